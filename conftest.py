@@ -1,0 +1,60 @@
+"""Test session setup shared by every test directory.
+
+Each pytest session gets its own random ROS_DOMAIN_ID and localhost-only
+discovery, so parallel runs on one machine never see each other's graphs. The
+environment must come from `tools/env.sh` (the Makefile does this).
+"""
+
+import os
+import random
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT / 'tests'))
+
+from support.procs import ProcessGroup  # noqa: E402
+
+
+def pytest_configure(config):
+    if 'PMA_TEST_DOMAIN_ID' in os.environ:
+        domain = int(os.environ['PMA_TEST_DOMAIN_ID'])
+    else:
+        domain = random.SystemRandom().randint(1, 101)
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    os.environ.pop('ROS_LOCALHOST_ONLY', None)
+    os.environ['PYTHONUNBUFFERED'] = '1'
+    os.environ['RCUTILS_LOGGING_BUFFERED_STREAM'] = '0'
+    profile = ROOT / 'tests' / 'support' / 'fastdds_fast_discovery.xml'
+    os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', str(profile))
+    config.stash[_DOMAIN_KEY] = domain
+
+
+_DOMAIN_KEY = pytest.StashKey[int]()
+
+
+def pytest_report_header(config):
+    mode = os.environ.get('PMA_ROS_MODE', 'unknown (run through tools/env.sh)')
+    return f'ROS_DOMAIN_ID={config.stash[_DOMAIN_KEY]} localhost-only; ROS mode: {mode}'
+
+
+@pytest.fixture
+def procs(tmp_path):
+    """Start real processes; every one is ended (SIGINT, SIGTERM, SIGKILL) at teardown."""
+    group = ProcessGroup(log_dir=tmp_path / 'logs')
+    try:
+        yield group
+    finally:
+        group.stop_all()
+
+
+@pytest.fixture(scope='module')
+def module_procs(tmp_path_factory):
+    group = ProcessGroup(log_dir=tmp_path_factory.mktemp('logs'))
+    try:
+        yield group
+    finally:
+        group.stop_all()

@@ -1,0 +1,110 @@
+"""Raw readings to SI units: pressure ADC counts to Pa, echo time to muscle length.
+
+The one home of the sensors' transfer functions. The driver converts with them;
+the simulated rig uses their inverses to produce the raw counts a real sensor
+would give, so both sides agree by construction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+ADC_FULL_SCALE = 1023  # 10-bit ADC of the ATmega2560
+
+
+@dataclass(frozen=True)
+class PressureCalibration:
+    """Ratiometric analog gauge sensor: `volts_at_zero` V at 0 Pa, `volts_at_full` V at `full_scale_pa`."""
+
+    adc_reference_v: float = 5.0
+    volts_at_zero: float = 0.5
+    volts_at_full: float = 4.5
+    full_scale_pa: float = 500_000.0
+    tare_offset_pa: float = 0.0  # subtracted after conversion (set by tare at rest)
+
+    def __post_init__(self):
+        for name in ('adc_reference_v', 'full_scale_pa'):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f'{name} must be finite and > 0')
+        if not self.volts_at_full > self.volts_at_zero:
+            raise ValueError('volts_at_full must be above volts_at_zero')
+        if not math.isfinite(self.tare_offset_pa):
+            raise ValueError('tare_offset_pa must be finite')
+
+    @property
+    def pa_per_volt(self) -> float:
+        return self.full_scale_pa / (self.volts_at_full - self.volts_at_zero)
+
+    @property
+    def pa_per_count(self) -> float:
+        """Resolution of one ADC count [Pa] (about 611 Pa with the defaults)."""
+        return self.pa_per_volt * self.adc_reference_v / ADC_FULL_SCALE
+
+    def adc_to_volts(self, adc: float) -> float:
+        return adc * self.adc_reference_v / ADC_FULL_SCALE
+
+    def adc_to_pa(self, adc: float) -> float:
+        """Gauge pressure [Pa] for an ADC count, tare applied."""
+        return (self.adc_to_volts(adc) - self.volts_at_zero) * self.pa_per_volt - self.tare_offset_pa
+
+    def pa_to_adc(self, gauge_pa: float) -> int:
+        """The count an ideal sensor gives at this gauge pressure (inverse of adc_to_pa)."""
+        volts = self.volts_at_zero + (gauge_pa + self.tare_offset_pa) / self.pa_per_volt
+        return int(min(ADC_FULL_SCALE, max(0, round(volts * ADC_FULL_SCALE / self.adc_reference_v))))
+
+    def adc_in_span(self, adc: int, margin_v: float = 0.1) -> bool:
+        """False when the reading is outside the sensor's output span (broken or unplugged)."""
+        volts = self.adc_to_volts(adc)
+        return self.volts_at_zero - margin_v <= volts <= self.volts_at_full + margin_v
+
+    def with_tare(self, adc_at_zero: float) -> PressureCalibration:
+        """A copy whose tare makes this ADC reading 0 Pa."""
+        untared = (self.adc_to_volts(adc_at_zero) - self.volts_at_zero) * self.pa_per_volt
+        return PressureCalibration(self.adc_reference_v, self.volts_at_zero, self.volts_at_full,
+                                   self.full_scale_pa, untared)
+
+
+@dataclass(frozen=True)
+class LengthCalibration:
+    """HC-SR04 echo time to muscle length through the mounting geometry.
+
+    The sensor looks along the muscle at a plate on its free end:
+    `length_m = length_offset_m + range_sign * range_m`. With the defaults the sensor
+    sits 0.40 m from the muscle's fixed end, facing it: a 0.30 m muscle leaves a
+    0.10 m range, and contraction lengthens the range (sign -1).
+    """
+
+    speed_of_sound_m_s: float = 343.0  # dry air, 20 degC
+    length_offset_m: float = 0.40
+    range_sign: float = -1.0
+    min_range_m: float = 0.02   # HC-SR04 datasheet
+    max_range_m: float = 4.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.speed_of_sound_m_s) and 300.0 <= self.speed_of_sound_m_s <= 400.0):
+            raise ValueError('speed_of_sound_m_s must be within 300..400 m/s')
+        if self.range_sign not in (-1.0, 1.0):
+            raise ValueError('range_sign must be -1 or +1')
+        if not math.isfinite(self.length_offset_m):
+            raise ValueError('length_offset_m must be finite')
+
+    def echo_to_range_m(self, echo_us: float) -> float:
+        """Distance to the target [m]; NaN for no echo or a reading outside the sensor's range."""
+        if echo_us <= 0:
+            return math.nan
+        range_m = echo_us * 1e-6 * self.speed_of_sound_m_s / 2.0
+        if not self.min_range_m <= range_m <= self.max_range_m:
+            return math.nan
+        return range_m
+
+    def range_to_length_m(self, range_m: float) -> float:
+        return self.length_offset_m + self.range_sign * range_m
+
+    def echo_to_length_m(self, echo_us: float) -> float:
+        return self.range_to_length_m(self.echo_to_range_m(echo_us))
+
+    def length_to_echo_us(self, length_m: float) -> int:
+        """Echo width an ideal sensor reports for this muscle length (the rig's inverse)."""
+        range_m = (length_m - self.length_offset_m) / self.range_sign
+        return max(0, round(range_m * 2.0 / self.speed_of_sound_m_s * 1e6))

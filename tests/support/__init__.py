@@ -1,0 +1,1 @@
+"""Helpers shared by the tests: real processes, the workspace's executables, DDS waits."""

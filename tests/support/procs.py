@@ -1,0 +1,143 @@
+"""Start and stop real processes the way `ros2 run` does.
+
+`ros2 run PKG EXE` executes `install/PKG/lib/PKG/EXE`; tests do exactly that, each
+process in its own process group so SIGINT reaches it like a Ctrl-C would.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+WORKSPACE = ROOT / 'ros2_ws'
+INSTALL = WORKSPACE / 'install'
+
+
+def executable(package: str, name: str) -> Path:
+    """Path of an installed node executable, as `ros2 run` resolves it."""
+    path = INSTALL / package / 'lib' / package / name
+    if not path.exists():
+        raise FileNotFoundError(f'{path} not found: run `make setup` to build the workspace')
+    return path
+
+
+class Proc:
+    """A started process whose combined output is captured line by line."""
+
+    def __init__(self, name: str, popen: subprocess.Popen, log_path: Path):
+        self.name = name
+        self.popen = popen
+        self.log_path = log_path
+        self._lines: list[str] = []
+        self._cond = threading.Condition()
+        self._reader = threading.Thread(target=self._pump, daemon=True)
+        self._reader.start()
+
+    def _pump(self) -> None:
+        with open(self.log_path, 'w', encoding='utf-8') as log:
+            for raw in iter(self.popen.stdout.readline, b''):
+                line = raw.decode('utf-8', errors='replace').rstrip('\n')
+                log.write(line + '\n')
+                log.flush()
+                with self._cond:
+                    self._lines.append(line)
+                    self._cond.notify_all()
+        with self._cond:
+            self._cond.notify_all()
+
+    @property
+    def output(self) -> str:
+        with self._cond:
+            return '\n'.join(self._lines)
+
+    def wait_for_line(self, predicate: Callable[[str], bool] | str, timeout: float = 20.0) -> str:
+        """Block until an output line matches (substring or predicate); return it."""
+        test = (lambda line: predicate in line) if isinstance(predicate, str) else predicate
+        deadline = time.monotonic() + timeout
+        seen = 0
+        with self._cond:
+            while True:
+                for line in self._lines[seen:]:
+                    if test(line):
+                        return line
+                seen = len(self._lines)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or (self.popen.poll() is not None and not self._reader.is_alive()):
+                    raise TimeoutError(
+                        f'{self.name}: no line matching {predicate!r} within {timeout} s '
+                        f'(exit code {self.popen.poll()}); output:\n{self.output[-4000:]}')
+                self._cond.wait(min(remaining, 0.2))
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def signal(self, sig: int) -> None:
+        if self.alive():
+            os.killpg(self.popen.pid, sig)
+
+    def stop(self, timeout: float = 5.0) -> int:
+        """SIGINT, then SIGTERM, then SIGKILL to the process group; return the exit code."""
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, 5)):
+            if not self.alive():
+                break
+            try:
+                os.killpg(self.popen.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                self.popen.wait(wait)
+            except subprocess.TimeoutExpired:
+                continue
+        # Members of the group that outlived the leader (none expected) go too.
+        try:
+            os.killpg(self.popen.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        self._reader.join(2)
+        return self.popen.returncode
+
+
+class ProcessGroup:
+    """Owns every process a test starts; `stop_all` ends them in reverse order."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.procs: list[Proc] = []
+
+    def start(self, argv: list[str | os.PathLike], name: str | None = None,
+              env: dict[str, str] | None = None, cwd: Path | None = None) -> Proc:
+        argv = [str(a) for a in argv]
+        name = name or Path(argv[0]).name
+        full_env = dict(os.environ)
+        full_env['PYTHONUNBUFFERED'] = '1'
+        if env:
+            full_env.update(env)
+        popen = subprocess.Popen(
+            argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            env=full_env, cwd=cwd, start_new_session=True)
+        proc = Proc(name, popen, self.log_dir / f'{len(self.procs):02d}-{name}.log')
+        self.procs.append(proc)
+        return proc
+
+    def ros2_run(self, package: str, exe: str, *args: str | os.PathLike,
+                 ros_args: list[str] | None = None, **kwargs) -> Proc:
+        """Like `ros2 run package exe args --ros-args ros_args`."""
+        argv = [executable(package, exe), *args]
+        if ros_args:
+            argv += ['--ros-args', *ros_args]
+        return self.start(argv, name=kwargs.pop('name', exe), **kwargs)
+
+    def python(self, script: Path | str, *args: str, **kwargs) -> Proc:
+        return self.start([sys.executable, str(script), *args], **kwargs)
+
+    def stop_all(self) -> None:
+        for proc in reversed(self.procs):
+            proc.stop()
