@@ -69,7 +69,8 @@ class Proc:
                         return line
                 seen = len(self._lines)
                 remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.popen.poll() is not None and not self._reader.is_alive()):
+                exited = self.popen.poll() is not None and not self._reader.is_alive()
+                if remaining <= 0 or exited:
                     raise TimeoutError(
                         f'{self.name}: no line matching {predicate!r} within {timeout} s '
                         f'(exit code {self.popen.poll()}); output:\n{self.output[-4000:]}')
@@ -84,7 +85,8 @@ class Proc:
 
     def stop(self, timeout: float = 5.0) -> int:
         """SIGINT, then SIGTERM, then SIGKILL to the process group; return the exit code."""
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, 5)):
+        escalation = ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, 5))
+        for sig, wait in escalation:
             if not self.alive():
                 break
             try:

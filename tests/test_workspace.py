@@ -1,0 +1,138 @@
+"""Issue 2: the workspace builds, the interfaces are generated, and they work across processes."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import threading
+from pathlib import Path
+
+import pytest
+
+from support.procs import INSTALL, ROOT
+from support.ros import SpinningNode, shutdown, wait_until
+
+HELPERS = Path(__file__).parent / 'helpers'
+EXECUTABLES = {
+    'pma_driver': ['driver_node', 'fake_arduino', 'recorder'],
+    'pma_model': ['model_node', 'replay', 'refit'],
+}
+
+
+def test_workspace_is_built_with_every_package():
+    for package in ('pma_interfaces', 'pma_driver', 'pma_model'):
+        index = INSTALL / package / 'share' / 'ament_index' / 'resource_index'
+        marker = index / 'packages' / package
+        assert marker.exists(), f'{package} is not installed in {INSTALL}'
+    for package, names in EXECUTABLES.items():
+        for name in names:
+            exe = INSTALL / package / 'lib' / package / name
+            assert exe.exists() and os.access(exe, os.X_OK), f'ros2 run {package} {name}: {exe}'
+
+
+def test_second_setup_is_a_no_op():
+    setup = ['bash', str(ROOT / 'tools' / 'setup.sh')]
+    subprocess.run(setup, capture_output=True, text=True, timeout=600, check=True)
+    result = subprocess.run(setup, capture_output=True, text=True, timeout=120, check=True)
+    assert 'Python environment up to date' in result.stdout, result.stdout
+    assert 'workspace up to date' in result.stdout, result.stdout
+
+
+def test_generated_types_import_with_their_constants():
+    from pma_interfaces.action import Sweep
+    from pma_interfaces.msg import ModelParams, PmaPrediction, PmaState
+    from pma_interfaces.srv import PressureForLength
+
+    state = PmaState()
+    assert (PmaState.VALVE_HOLD, PmaState.VALVE_FILL, PmaState.VALVE_VENT) == (0, 1, 2)
+    assert state.gauge_pressure_pa == 0.0 and state.length_m == 0.0
+    assert (PmaPrediction.BRANCH_INCREASING, PmaPrediction.BRANCH_DECREASING) == (1, 2)
+    req = PressureForLength.Request
+    assert (req.BRANCH_AUTO, req.BRANCH_INCREASING, req.BRANCH_DECREASING) == (0, 1, 2)
+    response_fields = {f.lstrip('_') for f in PressureForLength.Response.__slots__}
+    assert {'min_length_m', 'max_length_m', 'gauge_pressure_pa', 'success', 'message',
+            'branch'} <= response_fields
+    goal = Sweep.Goal(max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=1.0, cycles=1,
+                      reversal_pressures_pa=[300e3, 150e3])
+    assert list(goal.reversal_pressures_pa) == [300e3, 150e3]
+    assert ModelParams().form == ''
+
+
+@pytest.fixture(scope='module')
+def probe():
+    node = SpinningNode('workspace_probe')
+    yield node
+    node.close()
+    shutdown()
+
+
+@pytest.mark.integration
+def test_pma_state_crosses_processes(procs, probe):
+    from rclpy.qos import qos_profile_sensor_data
+
+    from pma_interfaces.msg import PmaState
+
+    received: list[PmaState] = []
+    lock = threading.Lock()
+
+    def on_state(msg):
+        with lock:
+            received.append(msg)
+
+    sub = probe.node.create_subscription(PmaState, 'pma/state', on_state, qos_profile_sensor_data)
+    try:
+        procs.python(HELPERS / 'state_publisher.py', '--rate', '50').wait_for_line('ready')
+        wait_until(lambda: len(received) >= 20, 20, '20 PmaState messages')
+        with lock:
+            seqs = [m.seq for m in received]
+            last = received[-1]
+        assert seqs == sorted(seqs)
+        assert last.header.frame_id == 'pma_link'
+        assert math.isclose(last.length_m, 0.26)
+        assert 249_000 <= last.gauge_pressure_pa <= 251_000
+    finally:
+        probe.node.destroy_subscription(sub)
+
+
+@pytest.mark.integration
+def test_pressure_for_length_service_crosses_processes(procs, probe):
+    from pma_interfaces.srv import PressureForLength
+
+    procs.python(HELPERS / 'interface_servers.py').wait_for_line('ready')
+    client = probe.node.create_client(PressureForLength, 'pressure_for_length')
+    try:
+        assert client.wait_for_service(timeout_sec=20), 'service not discovered'
+        ok = client.call(PressureForLength.Request(length_m=0.27), timeout_sec=10)
+        assert ok.success and math.isclose(ok.gauge_pressure_pa, 250_000.0, rel_tol=1e-9)
+        assert ok.branch == PressureForLength.Request.BRANCH_INCREASING
+        bad = client.call(PressureForLength.Request(length_m=math.nan), timeout_sec=10)
+        assert not bad.success and 'outside' in bad.message
+    finally:
+        probe.node.destroy_client(client)
+
+
+@pytest.mark.integration
+def test_sweep_action_runs_with_feedback_across_processes(procs, probe):
+    from rclpy.action import ActionClient
+
+    from pma_interfaces.action import Sweep
+
+    procs.python(HELPERS / 'interface_servers.py').wait_for_line('ready')
+    client = ActionClient(probe.node, Sweep, 'pma/sweep')
+    feedback: list[float] = []
+    try:
+        assert client.wait_for_server(timeout_sec=20), 'action server not discovered'
+        goal = Sweep.Goal(max_gauge_pressure_pa=200e3, step_pa=50e3, hold_s=0.0, cycles=1)
+        sent = client.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
+            f.feedback.gauge_setpoint_pa))
+        wait_until(sent.done, 20, 'goal acceptance')
+        handle = sent.result()
+        assert handle.accepted
+        result_future = handle.get_result_async()
+        wait_until(result_future.done, 20, 'sweep result')
+        result = result_future.result().result
+        assert result.success and result.sample_count == 5
+        assert feedback == [0.0, 50e3, 100e3, 150e3, 200e3]
+    finally:
+        client.destroy()
