@@ -82,7 +82,7 @@ def test_pma_state_crosses_processes(procs, probe):
 
     sub = probe.node.create_subscription(PmaState, 'pma/state', on_state, qos_profile_sensor_data)
     try:
-        procs.python(HELPERS / 'state_publisher.py', '--rate', '50').wait_for_line('ready')
+        procs.python(HELPERS / 'rig_stand_in.py', '--rate', '50').wait_for_line('ready')
         wait_until(lambda: len(received) >= 20, 20, '20 PmaState messages')
         with lock:
             seqs = [m.seq for m in received]

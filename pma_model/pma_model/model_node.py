@@ -1,0 +1,310 @@
+"""model_node: online branch-aware length prediction and the pressure_for_length service.
+
+A thin ROS wrapper around pma_model.params / memory / adaptation: it declares the model's
+parameters, validates any change as a whole (an invalid set is rejected with the reason and
+the old model stays), follows `pma/state`, and answers the inverse model.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+
+from pma_interfaces.msg import ModelParams as ModelParamsMsg
+from pma_interfaces.msg import PmaPrediction, PmaState
+from pma_interfaces.srv import PressureForLength
+from pma_model.detector import BRANCH_NAMES
+from pma_model.params import ModelParams, ParamsError, default_params
+
+_DESCRIPTIONS = {
+    'branch_form': "branch shape: 'sigmoid' (the paper's L0 - a*L0/(1+exp(-b*P))^c) or "
+                   "'hill' (L0 - dL*P^n/(P^n+K^n))",
+    'memory': "minor-loop memory: 'madelung' (turning-point stack) or 'switch' (the paper's "
+              'jump between the major branches)',
+    'deadband_pa': 'pressure must move this far against the current direction before a '
+                   'reversal counts [Pa]',
+    'max_gauge_pressure_pa': 'highest gauge pressure the inverse may answer with [Pa]',
+}
+_RANGES = {
+    'deadband_pa': (0.0, 250_000.0),
+    'max_gauge_pressure_pa': (10_000.0, 1_000_000.0),
+    'adaptation.forgetting': (0.5, 1.0),
+}
+
+
+def _describe(name: str) -> str:
+    if name in _DESCRIPTIONS:
+        return _DESCRIPTIONS[name]
+    if name.startswith('adaptation.'):
+        return f'online drift adaptation (offset + gain RLS): {name.split(".", 1)[1]}'
+    direction, form, field = name.split('.')
+    return f'{direction} branch, {form} form: {field} (SI units; suffix names the unit)'
+
+
+class ModelNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('model_node', **kwargs)
+        self._lock = threading.Lock()
+        defaults = default_params()
+        for name, value in defaults.to_ros_parameters().items():
+            descriptor = ParameterDescriptor(description=_describe(name))
+            if name in _RANGES:
+                low, high = _RANGES[name]
+                descriptor.floating_point_range = [
+                    FloatingPointRange(from_value=low, to_value=high, step=0.0)]
+            self.declare_parameter(name, value, descriptor)
+        self.declare_parameter('params_file', '', ParameterDescriptor(
+            description='params file (refit output) loaded at start and reloaded when it '
+                        'changes; empty = none'))
+        self.declare_parameter('params_file_check_period_s', 1.0, ParameterDescriptor(
+            description='how often the params file is checked for changes [s]',
+            floating_point_range=[FloatingPointRange(from_value=0.1, to_value=60.0, step=0.0)]))
+
+        try:
+            self._params = ModelParams.from_ros_parameters(self._model_parameter_values())
+        except ParamsError as error:
+            # Overrides given with --ros-args/--params-file that do not validate: say so and
+            # run on the shipped defaults rather than not at all.
+            self.get_logger().error(f'invalid model parameters, using the defaults: {error}')
+            self._params = defaults
+        self._model = self._params.build_model()
+        self._adapter = self._params.build_adapter()
+        self._latest_state: PmaState | None = None
+        self._stats = {'samples': 0, 'nan_pressure': 0, 'nan_length': 0, 'sum_sq_residual': 0.0,
+                       'residuals': 0}
+
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                             reliability=ReliabilityPolicy.RELIABLE)
+        self._params_pub = self.create_publisher(ModelParamsMsg, 'pma/model_params', latched)
+        self._prediction_pub = self.create_publisher(PmaPrediction, 'pma/prediction', 10)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
+        self.create_subscription(PmaState, 'pma/state', self._on_state, qos_profile_sensor_data)
+        self.create_service(PressureForLength, 'pressure_for_length', self._on_pressure_for_length)
+        self.create_timer(1.0, self._publish_diagnostics)
+
+        self._params_file_mtime: float | None = None
+        period = self.get_parameter('params_file_check_period_s').value
+        self.create_timer(period, self._check_params_file)
+        self._check_params_file()
+        self._publish_params()
+        self.get_logger().info(
+            f'model_node ready: {self._params.branch_form} branches, {self._params.memory} '
+            f'memory, adaptation {"on" if self._params.adaptation.enabled else "off"}')
+
+    # --- parameters -----------------------------------------------------------------
+
+    def _model_parameter_values(self, changes: dict | None = None) -> dict:
+        names = default_params().to_ros_parameters()
+        values = {name: self.get_parameter(name).value for name in names}
+        values.update(changes or {})
+        return values
+
+    def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        """Validate the new set as a whole; no side effects here (rclpy's contract)."""
+        changes = {p.name: p.value for p in parameters
+                   if p.name not in ('params_file', 'params_file_check_period_s')}
+        if not changes:
+            return SetParametersResult(successful=True)
+        try:
+            ModelParams.from_ros_parameters(self._model_parameter_values(changes))
+        except ParamsError as error:
+            reason = f'rejected, the model is unchanged: {error}'
+            self.get_logger().warning(reason)
+            return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        if any(p.name == 'params_file' for p in parameters):
+            self._params_file_mtime = None
+            self._check_params_file()
+        if all(p.name in ('params_file', 'params_file_check_period_s') for p in parameters):
+            return
+        params = ModelParams.from_ros_parameters(self._model_parameter_values())
+        with self._lock:
+            self._params = params
+            self._model = params.build_model()
+            self._adapter = params.build_adapter()
+        self.get_logger().info(
+            f'model updated: {params.branch_form} branches, {params.memory} memory, adaptation '
+            f'{"on" if params.adaptation.enabled else "off"} (memory state reset to rest)')
+        self._publish_params()
+
+    def _check_params_file(self) -> None:
+        """Load the params file at start and whenever it changes (hot reload after a refit)."""
+        path = self.get_parameter('params_file').value
+        if not path:
+            return
+        try:
+            mtime = os.stat(path).st_mtime
+        except OSError as error:
+            if self._params_file_mtime != -1.0:
+                self.get_logger().error(f'params file {path}: {error.strerror}; keeping the '
+                                        'current model and checking again')
+            self._params_file_mtime = -1.0
+            return
+        if mtime == self._params_file_mtime:
+            return
+        self._params_file_mtime = mtime
+        try:
+            loaded = ModelParams.load_yaml(path, base=self._params)
+        except ParamsError as error:
+            self.get_logger().error(f'params file not loaded, the model is unchanged: {error}')
+            return
+        result = self.set_parameters_atomically([
+            Parameter(name, value=value) for name, value in loaded.to_ros_parameters().items()])
+        if result.successful:
+            self.get_logger().info(f'loaded model parameters from {path}')
+        else:
+            self.get_logger().error(f'params file {path} rejected: {result.reason}')
+
+    def _publish_params(self) -> None:
+        params = self._params
+        msg = ModelParamsMsg()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.form = params.branch_form
+        msg.memory = params.memory
+        msg.parameters_yaml = params.to_yaml()
+        msg.deadband_pa = float(params.deadband_pa)
+        msg.max_gauge_pressure_pa = float(params.max_gauge_pressure_pa)
+        msg.adaptation_enabled = bool(params.adaptation.enabled)
+        self._params_pub.publish(msg)
+
+    # --- stream ---------------------------------------------------------------------
+
+    def _on_state(self, state: PmaState) -> None:
+        pressure = state.gauge_pressure_pa
+        measured = state.length_m
+        with self._lock:
+            self._stats['samples'] += 1
+            if not math.isfinite(pressure):
+                self._stats['nan_pressure'] += 1
+                self.get_logger().warning(
+                    f'sample seq {state.seq}: pressure is {pressure}; not predicted',
+                    throttle_duration_sec=5.0)
+                return
+            self._latest_state = state
+            base_length, branch = self._model.update(pressure)
+            adapting = self._params.adaptation.enabled
+            if adapting:
+                self._adapter.update(base_length, measured)
+                predicted = float(self._adapter.correct(base_length))
+                offset, gain = self._adapter.offset_m, self._adapter.gain
+            else:
+                predicted, offset, gain = base_length, 0.0, 1.0
+            if math.isfinite(measured):
+                residual = measured - predicted
+                self._stats['sum_sq_residual'] += residual * residual
+                self._stats['residuals'] += 1
+            else:
+                residual = math.nan
+                self._stats['nan_length'] += 1
+        msg = PmaPrediction()
+        msg.header = state.header
+        msg.gauge_pressure_pa = pressure
+        msg.measured_length_m = measured
+        msg.predicted_length_m = predicted
+        msg.residual_m = residual
+        msg.branch = branch
+        msg.adaptation_offset_m = offset
+        msg.adaptation_gain = gain
+        self._prediction_pub.publish(msg)
+
+    # --- service --------------------------------------------------------------------
+
+    def _on_pressure_for_length(self, request, response):
+        target = request.length_m
+        refusal = None
+        if not math.isfinite(target):
+            refusal = f'length_m must be a finite number, got {target}'
+        elif target <= 0.0:
+            refusal = f'length_m must be positive (metres), got {target}'
+        elif request.branch not in BRANCH_NAMES:
+            refusal = (f'unknown branch {request.branch}: use 0 (auto), 1 (increasing) or '
+                       '2 (decreasing)')
+        elif request.branch == PressureForLength.Request.BRANCH_AUTO and \
+                self._latest_state is None:
+            refusal = ('BRANCH_AUTO needs the current state, and no pma/state sample has been '
+                       'received yet: is the driver running? Or ask for branch 1 or 2.')
+        if refusal:
+            response.success, response.message = False, refusal
+            response.gauge_pressure_pa = math.nan
+            response.min_length_m = response.max_length_m = math.nan
+            return response
+        with self._lock:
+            base_target = target
+            if self._params.adaptation.enabled:
+                base_target = float(self._adapter.uncorrect(target))
+            result = self._model.pressure_for_length(base_target, request.branch)
+            if self._params.adaptation.enabled:
+                low, high = self._adapter.correct([result.min_length_m, result.max_length_m])
+                result_min, result_max = float(low), float(high)
+            else:
+                result_min, result_max = result.min_length_m, result.max_length_m
+        response.success = result.success
+        response.message = result.message
+        response.gauge_pressure_pa = result.gauge_pressure_pa
+        response.branch = result.branch
+        response.min_length_m, response.max_length_m = result_min, result_max
+        return response
+
+    # --- diagnostics ----------------------------------------------------------------
+
+    def _publish_diagnostics(self) -> None:
+        with self._lock:
+            stats = dict(self._stats)
+            adapter = self._adapter if self._params.adaptation.enabled else None
+        status = DiagnosticStatus()
+        status.name = f'{self.get_fully_qualified_name()}: hysteresis model'
+        status.hardware_id = 'model'
+        rms = math.sqrt(stats['sum_sq_residual'] / stats['residuals']) \
+            if stats['residuals'] else math.nan
+        if stats['samples'] == 0:
+            status.level, status.message = DiagnosticStatus.WARN, 'no pma/state received yet'
+        elif stats['nan_pressure']:
+            status.level = DiagnosticStatus.WARN
+            status.message = f'{stats["nan_pressure"]} samples with non-finite pressure skipped'
+        else:
+            status.level, status.message = DiagnosticStatus.OK, 'predicting'
+        values = {
+            'samples': stats['samples'], 'samples_nan_pressure': stats['nan_pressure'],
+            'samples_nan_length': stats['nan_length'], 'rms_residual_m': f'{rms:.6f}',
+            'branch_form': self._params.branch_form, 'memory': self._params.memory,
+        }
+        if adapter is not None:
+            values.update(adaptation_offset_m=f'{adapter.offset_m:.6f}',
+                          adaptation_gain=f'{adapter.gain:.6f}')
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self._diagnostics_pub.publish(array)
+
+
+def main(args=None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = ModelNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
