@@ -1,0 +1,290 @@
+"""`make demo`: the whole pipeline on the simulated Arduino, one run under runs/<timestamp>/.
+
+fake_arduino, driver_node, model_node and the recorder run as separate processes, exactly
+as `ros2 run` starts them; this script is the operator: it runs the paper's experiment and a
+minor-loop run through the Sweep action, asks pressure_for_length on both branches, refits
+the model from the new bag, lets model_node hot-load the refit, and says where everything is.
+Every process is stopped on success, failure and Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+INSTALL = ROOT / 'ros2_ws' / 'install'
+
+
+def say(text: str) -> None:
+    print(f'[demo] {text}', flush=True)
+
+
+class Processes:
+    """Children in their own process groups, logs in the run directory, stopped in reverse."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = log_dir
+        self.children: list[tuple[str, subprocess.Popen]] = []
+
+    def start(self, name: str, package: str, exe: str, *args: str,
+              ros_args: list[str] | None = None) -> subprocess.Popen:
+        argv = [str(INSTALL / package / 'lib' / package / exe), *args]
+        if ros_args:
+            argv += ['--ros-args', *ros_args]
+        log = open(self.log_dir / f'{name}.log', 'w')  # noqa: SIM115 - closed with the child
+        child = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL, start_new_session=True,
+                                 env={**os.environ, 'PYTHONUNBUFFERED': '1'})
+        child.log_file = log
+        self.children.append((name, child))
+        return child
+
+    def wait_for_log(self, name: str, text: str, timeout: float) -> str:
+        path = self.log_dir / f'{name}.log'
+        child = dict(self.children)[name]
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for line in path.read_text(errors='replace').splitlines():
+                if text in line:
+                    return line
+            if child.poll() is not None:
+                break
+            time.sleep(0.05)
+        tail = '\n'.join(path.read_text(errors='replace').splitlines()[-15:])
+        raise RuntimeError(f'{name} did not say "{text}" within {timeout} s '
+                           f'(exit code {child.poll()}); its log ({path}) ends:\n{tail}')
+
+    def stop(self, name: str, timeout: float = 10.0) -> int | None:
+        child = dict(self.children)[name]
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+            if child.poll() is not None:
+                break
+            try:
+                os.killpg(child.pid, sig)
+                child.wait(wait)
+            except (ProcessLookupError, subprocess.TimeoutExpired):
+                continue
+        child.log_file.close()
+        return child.returncode
+
+    def stop_all(self) -> None:
+        for name, child in reversed(self.children):
+            if child.poll() is None:
+                self.stop(name)
+
+
+def progress_bar(fraction: float, width: int = 30) -> str:
+    filled = round(max(0.0, min(1.0, fraction)) * width)
+    return '#' * filled + '-' * (width - filled)
+
+
+def run_sweep(node, label: str, goal, timeout: float):
+    from rclpy.action import ActionClient
+
+    from pma_interfaces.action import Sweep
+
+    client = ActionClient(node, Sweep, 'pma/sweep')
+    if not client.wait_for_server(timeout_sec=20):
+        raise RuntimeError('the pma/sweep action server (driver_node) is not available')
+    last_print = [0.0]
+
+    def on_feedback(message):
+        feedback = message.feedback
+        now = time.monotonic()
+        if now - last_print[0] >= 1.0 or feedback.progress >= 1.0:
+            last_print[0] = now
+            print(f'\r[demo] {label}: [{progress_bar(feedback.progress)}] '
+                  f'{100 * feedback.progress:5.1f} %  step {feedback.step_index + 1}/'
+                  f'{feedback.step_count}  setpoint {feedback.gauge_setpoint_pa / 1e3:5.0f} kPa  '
+                  f'{feedback.sample_count} samples', end='', flush=True)
+
+    sent = client.send_goal_async(goal, feedback_callback=on_feedback)
+    _wait(sent, 20, 'the sweep goal to be accepted')
+    handle = sent.result()
+    if not handle.accepted:
+        raise RuntimeError(f'{label}: the driver rejected the sweep goal (see driver_node.log)')
+    result_future = handle.get_result_async()
+    _wait(result_future, timeout, f'{label} to finish')
+    print(flush=True)
+    result = result_future.result().result
+    if not result.success:
+        raise RuntimeError(f'{label} failed: {result.message}')
+    say(f'{label}: done, {result.sample_count} samples ({result.message})')
+    client.destroy()
+    return result
+
+
+def _wait(future, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not future.done():
+        if time.monotonic() > deadline:
+            raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what}')
+        time.sleep(0.02)
+
+
+def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
+    from pma_interfaces.srv import PressureForLength
+
+    client = node.create_client(PressureForLength, 'pressure_for_length')
+    if not client.wait_for_service(timeout_sec=20):
+        raise RuntimeError('pressure_for_length (model_node) is not available')
+    answers = []
+    for branch in (PressureForLength.Request.BRANCH_INCREASING,
+                   PressureForLength.Request.BRANCH_DECREASING):
+        for length_m in lengths_m:
+            future = client.call_async(PressureForLength.Request(length_m=length_m,
+                                                                 branch=branch))
+            _wait(future, 10, 'pressure_for_length')
+            answers.append((length_m, branch, future.result()))
+    node.destroy_client(client)
+    return answers
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--hold-s', type=float, default=1.0,
+                        help='hold time at each pressure step [s] (default 1.0)')
+    parser.add_argument('--rate-hz', type=float, default=50.0, help='sample rate (default 50)')
+    parser.add_argument('--runs-dir', type=Path, default=ROOT / 'runs')
+    args = parser.parse_args(argv)
+
+    run_dir = (args.runs_dir / datetime.datetime.now().strftime('%Y%m%d-%H%M%S')).resolve()
+    logs = run_dir / 'logs'
+    logs.mkdir(parents=True)
+    procs = Processes(logs)
+    started = time.monotonic()
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('ROS_DOMAIN_ID', str(50 + os.getpid() % 50))
+    interrupted = threading.Event()
+
+    def on_signal(signum, _frame):
+        interrupted.set()
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_signal)
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.node import Node
+
+    bag_dir = run_dir / 'bag'
+    params_out = run_dir / 'refit_params.yaml'
+    node = executor = spinner = None
+    try:
+        say(f'run directory: {run_dir}')
+        say('1/7 starting fake_arduino (simulated rig on a pseudo-terminal)')
+        port = run_dir / 'pma0'
+        procs.start('fake_arduino', 'pma_driver', 'fake_arduino', '--link', str(port),
+                    '--seed', '1', '--max-rate', str(int(args.rate_hz)))
+        procs.wait_for_log('fake_arduino', 'device at', 15)
+        say('2/7 starting driver_node, model_node and the recorder')
+        procs.start('driver_node', 'pma_driver', 'driver_node', ros_args=[
+            '-p', f'port:={port}', '-p', f'sample_rate_hz:={args.rate_hz}'])
+        procs.start('model_node', 'pma_model', 'model_node', ros_args=[
+            '-p', f'params_file:={params_out}'])
+        procs.start('recorder', 'pma_driver', 'recorder', '-o', str(bag_dir))
+
+        rclpy.init()
+        node = Node('pma_demo')
+        executor = MultiThreadedExecutor()
+        executor.add_node(node)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
+
+        from pma_interfaces.action import Sweep
+        from pma_interfaces.msg import ModelParams, PmaState
+        from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+
+        states: list = []
+        node.create_subscription(PmaState, 'pma/state', states.append, qos_profile_sensor_data)
+        model_params: list = []
+        node.create_subscription(ModelParams, 'pma/model_params', model_params.append,
+                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        deadline = time.monotonic() + 30
+        while len(states) < 10:
+            if time.monotonic() > deadline:
+                raise RuntimeError('no pma/state from driver_node within 30 s '
+                                   f'(see {logs}/driver_node.log)')
+            time.sleep(0.05)
+        first = states[-1]
+        say(f'   streaming: {first.gauge_pressure_pa / 1e3:.1f} kPa, '
+            f'{first.length_m * 100:.2f} cm at rest')
+        procs.wait_for_log('recorder', 'recording', 20)
+
+        say("3/7 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
+        run_sweep(node, 'major loop', Sweep.Goal(
+            max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1), 300)
+        say('4/7 minor loops: reversals at 300 and 150 kPa on the way up')
+        run_sweep(node, 'minor loops', Sweep.Goal(
+            max_gauge_pressure_pa=500e3, step_pa=100e3, hold_s=args.hold_s, cycles=1,
+            reversal_pressures_pa=[300e3, 150e3]), 300)
+
+        say('5/7 pressure_for_length (the inverse model)')
+        print('        length     branch       gauge pressure   reachable on that branch')
+        for length_m, branch, answer in ask_pressures(node, [0.29, 0.27, 0.25]):
+            name = {1: 'increasing', 2: 'decreasing'}[branch]
+            if answer.success:
+                print(f'      {length_m * 100:6.2f} cm  {name:11s}  {answer.gauge_pressure_pa / 1e3:8.1f} kPa'
+                      f'       {answer.min_length_m * 100:.2f}..{answer.max_length_m * 100:.2f} cm')
+            else:
+                print(f'      {length_m * 100:6.2f} cm  {name:11s}  refused: {answer.message}')
+
+        say('6/7 stopping the recorder and refitting the model from the new bag')
+        procs.stop('recorder')
+        refit = subprocess.run(
+            [str(INSTALL / 'pma_model' / 'lib' / 'pma_model' / 'refit'), str(bag_dir),
+             '--json', str(run_dir / 'refit.json'), '--params-out', str(params_out),
+             '--plots', str(run_dir / 'plots')],
+            capture_output=True, text=True, check=False)
+        (logs / 'refit.log').write_text(refit.stdout + refit.stderr)
+        print(refit.stdout, end='')
+        if refit.returncode:
+            raise RuntimeError(f'refit failed (exit {refit.returncode}): {refit.stderr.strip()}')
+
+        say('7/7 model_node hot-loads the refit parameters')
+        loaded_before = len(model_params)
+        deadline = time.monotonic() + 15
+        while len(model_params) <= loaded_before and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if len(model_params) > loaded_before:
+            latest = model_params[-1]
+            say(f'   model_node now runs the refit: {latest.form} branches, '
+                f'{latest.memory} memory')
+        else:
+            say('   model_node did not report new parameters (see logs/model_node.log)')
+
+        elapsed = time.monotonic() - started
+        say(f'done in {elapsed:.0f} s. Outputs:')
+        for label, path in (('bag (rosbag2 MCAP)', bag_dir),
+                            ('refit report (JSON)', run_dir / 'refit.json'),
+                            ('refit parameters (model_node params file)', params_out),
+                            ('plots (PNG)', run_dir / 'plots'), ('process logs', logs)):
+            print(f'      {label:45s} {path}')
+        return 0
+    except KeyboardInterrupt:
+        say('interrupted: stopping every process')
+        return 130
+    except RuntimeError as error:
+        say(f'FAILED: {error}')
+        say(f'logs: {logs}')
+        return 1
+    finally:
+        if executor is not None:
+            executor.shutdown(timeout_sec=2)
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+        procs.stop_all()
+
+
+if __name__ == '__main__':
+    sys.exit(main())
