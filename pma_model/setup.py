@@ -19,7 +19,8 @@ setup(
     zip_safe=False,
     maintainer='PMA testbed team',
     maintainer_email='pma-testbed@example.org',
-    description='Hysteresis model, pressure_for_length service, replay and refit for the PMA testbed.',
+    description=('Hysteresis model, pressure_for_length service, replay and refit '
+                 'for the PMA testbed.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

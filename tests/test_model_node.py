@@ -7,9 +7,9 @@ import threading
 from pathlib import Path
 
 import pytest
-from support.ros import SpinningNode, shutdown, wait_until
 
 from pma_model.params import default_params
+from support.ros import SpinningNode, shutdown, wait_until
 
 HELPERS = Path(__file__).parent / 'helpers'
 pytestmark = pytest.mark.integration

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import math
 import os
 import signal
 import subprocess
@@ -40,7 +39,7 @@ class Processes:
         argv = [str(INSTALL / package / 'lib' / package / exe), *args]
         if ros_args:
             argv += ['--ros-args', *ros_args]
-        log = open(self.log_dir / f'{name}.log', 'w')  # noqa: SIM115 - closed with the child
+        log = open(self.log_dir / f'{name}.log', 'w')
         child = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
                                  stdin=subprocess.DEVNULL, start_new_session=True,
                                  env={**os.environ, 'PYTHONUNBUFFERED': '1'})
@@ -199,9 +198,10 @@ def main(argv: list[str] | None = None) -> int:
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
 
+        from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+
         from pma_interfaces.action import Sweep
         from pma_interfaces.msg import ModelParams, PmaState
-        from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 
         states: list = []
         node.create_subscription(PmaState, 'pma/state', states.append, qos_profile_sensor_data)
@@ -232,8 +232,9 @@ def main(argv: list[str] | None = None) -> int:
         for length_m, branch, answer in ask_pressures(node, [0.29, 0.27, 0.25]):
             name = {1: 'increasing', 2: 'decreasing'}[branch]
             if answer.success:
-                print(f'      {length_m * 100:6.2f} cm  {name:11s}  {answer.gauge_pressure_pa / 1e3:8.1f} kPa'
-                      f'       {answer.min_length_m * 100:.2f}..{answer.max_length_m * 100:.2f} cm')
+                reach = f'{answer.min_length_m * 100:.2f}..{answer.max_length_m * 100:.2f} cm'
+                print(f'      {length_m * 100:6.2f} cm  {name:11s}'
+                      f'  {answer.gauge_pressure_pa / 1e3:8.1f} kPa       {reach}')
             else:
                 print(f'      {length_m * 100:6.2f} cm  {name:11s}  refused: {answer.message}')
 

@@ -15,7 +15,10 @@ ADC_FULL_SCALE = 1023  # 10-bit ADC of the ATmega2560
 
 @dataclass(frozen=True)
 class PressureCalibration:
-    """Ratiometric analog gauge sensor: `volts_at_zero` V at 0 Pa, `volts_at_full` V at `full_scale_pa`."""
+    """Ratiometric analog gauge sensor.
+
+    `volts_at_zero` V at 0 Pa, `volts_at_full` V at `full_scale_pa`.
+    """
 
     adc_reference_v: float = 5.0
     volts_at_zero: float = 0.5
@@ -46,12 +49,14 @@ class PressureCalibration:
 
     def adc_to_pa(self, adc: float) -> float:
         """Gauge pressure [Pa] for an ADC count, tare applied."""
-        return (self.adc_to_volts(adc) - self.volts_at_zero) * self.pa_per_volt - self.tare_offset_pa
+        above_zero_v = self.adc_to_volts(adc) - self.volts_at_zero
+        return above_zero_v * self.pa_per_volt - self.tare_offset_pa
 
     def pa_to_adc(self, gauge_pa: float) -> int:
         """The count an ideal sensor gives at this gauge pressure (inverse of adc_to_pa)."""
         volts = self.volts_at_zero + (gauge_pa + self.tare_offset_pa) / self.pa_per_volt
-        return int(min(ADC_FULL_SCALE, max(0, round(volts * ADC_FULL_SCALE / self.adc_reference_v))))
+        count = round(volts * ADC_FULL_SCALE / self.adc_reference_v)
+        return int(min(ADC_FULL_SCALE, max(0, count)))
 
     def adc_in_span(self, adc: int, margin_v: float = 0.1) -> bool:
         """False when the reading is outside the sensor's output span (broken or unplugged)."""
@@ -82,7 +87,8 @@ class LengthCalibration:
     max_range_m: float = 4.0
 
     def __post_init__(self):
-        if not (math.isfinite(self.speed_of_sound_m_s) and 300.0 <= self.speed_of_sound_m_s <= 400.0):
+        speed = self.speed_of_sound_m_s
+        if not (math.isfinite(speed) and 300.0 <= speed <= 400.0):
             raise ValueError('speed_of_sound_m_s must be within 300..400 m/s')
         if self.range_sign not in (-1.0, 1.0):
             raise ValueError('range_sign must be -1 or +1')
