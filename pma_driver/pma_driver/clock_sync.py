@@ -1,0 +1,154 @@
+"""Device clock (`t_ms`, Arduino `millis()`) to host time, without the USB jitter.
+
+Plain Python, no ROS. The host sees each sample some time after the device took it:
+`receive = acquisition + latency`, and the latency is one-sided (never negative) with a
+long tail (USB polling, buffering, a busy host). So `receive - device_time` is the
+clock offset plus a latency, and its *lower envelope* is the offset plus the smallest
+latency. We track that envelope and stamp with it: the minimum of the observed offset
+in blocks of `block_s` of device time, a straight line through the block minima of the
+last `window_s` (the slope is the drift of the device's resonator against the host
+clock), lowered until no block minimum lies below it. A stamp is never later than the
+sample's receive time. docs/driver.md describes the method and its limits.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+
+from pma_driver.protocol import U32
+
+NS_PER_MS = 1_000_000
+NS_PER_S = 1_000_000_000
+
+
+class ClockSync:
+    """Maps device milliseconds to host nanoseconds; `reset()` when the device restarts."""
+
+    def __init__(self, window_s: float = 10.0, block_s: float = 0.5,
+                 max_drift_ppm: float = 20_000.0, jump_s: float = 1.0,
+                 jump_confirm_s: float = 5.0):
+        if not (block_s > 0 and window_s >= 2 * block_s):
+            raise ValueError('need block_s > 0 and window_s >= 2 * block_s')
+        self.window_s = window_s
+        self.block_s = block_s
+        self.max_drift = max_drift_ppm * 1e-6
+        self.jump_s = jump_s
+        self.jump_confirm_s = jump_confirm_s
+        self.resets = 0
+        self.reset()
+        self.resets = 0
+
+    def reset(self) -> None:
+        """Forget everything: the device clock restarted (reconnect, Arduino reset)."""
+        self._last_t_ms: int | None = None
+        self._device_ms = 0          # unwrapped device clock [ms]
+        self._ref_device_ns = 0      # origin of x (device time) for the line fit
+        self._ref_offset_ns = 0      # origin of y (offset) for the line fit
+        self._blocks: collections.deque[tuple[float, float]] = collections.deque(
+            maxlen=max(2, math.ceil(self.window_s / self.block_s)))
+        self._block_start: float | None = None
+        self._block_min: tuple[float, float] | None = None   # (x, y) of the block's minimum
+        self._intercept = math.inf   # offset line: y = intercept + slope * x  [s]
+        self._slope = 0.0
+        self._late_since: float | None = None
+        self.samples = 0
+        self.resets += 1
+
+    @property
+    def offset_s(self) -> float:
+        """Current host-minus-device offset estimate [s] (NaN before the first sample)."""
+        if self.samples == 0:
+            return math.nan
+        x = (self._device_ms * NS_PER_MS - self._ref_device_ns) / NS_PER_S
+        return (self._ref_offset_ns / NS_PER_S) + self._intercept + self._slope * x
+
+    @property
+    def drift_ppm(self) -> float:
+        """Estimated rate of the device clock against the host clock [ppm]."""
+        return self._slope * 1e6
+
+    def unwrap(self, t_ms: int) -> int | None:
+        """Continuous device time [ms] across the 32-bit wrap; None when the clock went back."""
+        if self._last_t_ms is None:
+            return t_ms
+        delta = (t_ms - self._last_t_ms) % U32
+        if delta >= U32 // 2:
+            return None
+        return self._device_ms + delta
+
+    def stamp(self, t_ms: int, receive_ns: int) -> int:
+        """Acquisition time [ns, host clock] of a sample taken at device time `t_ms`.
+
+        `receive_ns` is when the host read the sample's line (same clock as the result).
+        """
+        device_ms = self.unwrap(t_ms)
+        if device_ms is None:  # device restarted without us noticing a reconnect
+            self.reset()
+            device_ms = t_ms
+        if self.samples == 0:
+            self._ref_device_ns = device_ms * NS_PER_MS
+            self._ref_offset_ns = receive_ns - self._ref_device_ns
+        self._last_t_ms = t_ms
+        self._device_ms = device_ms
+        device_ns = device_ms * NS_PER_MS
+        x = (device_ns - self._ref_device_ns) / NS_PER_S
+        y = (receive_ns - device_ns - self._ref_offset_ns) / NS_PER_S
+
+        if self.samples > 0 and self._jumped(x, y):
+            self.reset()
+            return self.stamp(t_ms, receive_ns)
+        self.samples += 1
+        self._add_point(x, y)
+        estimate_ns = device_ns + self._ref_offset_ns + round(
+            (self._intercept + self._slope * x) * NS_PER_S)
+        return min(estimate_ns, receive_ns)
+
+    def _jumped(self, x: float, y: float) -> bool:
+        """True when the host clock jumped (not latency): the estimate must start over."""
+        residual = y - (self._intercept + self._slope * x)
+        if residual < -self.jump_s:
+            return True
+        if residual > self.jump_s:
+            # A stalled host also delivers late samples, but only for the stall's length.
+            if self._late_since is None:
+                self._late_since = x
+            return x - self._late_since > self.jump_confirm_s
+        self._late_since = None
+        return False
+
+    def _add_point(self, x: float, y: float) -> None:
+        if self._block_start is None:
+            self._block_start = x
+        elif x - self._block_start >= self.block_s:
+            self._blocks.append(self._block_min)
+            self._block_start = x
+            self._block_min = None
+            self._fit()
+        if self._block_min is None or y < self._block_min[1]:
+            self._block_min = (x, y)
+        # A new minimum below the line means the line was too high: lower it now.
+        if math.isinf(self._intercept):
+            self._intercept = y
+        below = (self._intercept + self._slope * x) - y
+        if below > 0:
+            self._intercept -= below
+
+    def _fit(self) -> None:
+        points = list(self._blocks)
+        if len(points) < 3:
+            self._slope = 0.0
+            self._intercept = min(p[1] for p in points)
+            return
+        n = len(points)
+        mean_x = sum(p[0] for p in points) / n
+        mean_y = sum(p[1] for p in points) / n
+        sxx = sum((p[0] - mean_x) ** 2 for p in points)
+        sxy = sum((p[0] - mean_x) * (p[1] - mean_y) for p in points)
+        slope = sxy / sxx if sxx > 0 else 0.0
+        slope = max(-self.max_drift, min(self.max_drift, slope))
+        intercept = mean_y - slope * mean_x
+        # Lower envelope: no block minimum may lie below the line.
+        intercept -= max(0.0, *(intercept + slope * p[0] - p[1] for p in points))
+        self._slope = slope
+        self._intercept = intercept

@@ -1,0 +1,328 @@
+"""fake_arduino: the simulated rig behind a pseudo-terminal, speaking protocol v1.
+
+Prints `fake_arduino: device at /dev/pts/N` on stdout (again after every simulated
+reconnect); everything else is logged to stderr. The device clock follows
+time.monotonic since (re)boot; the physics runs at 1 ms steps in between.
+
+Like a real USB-serial adapter, output is dropped while no host has the port open
+or while the host does not read (the master is non-blocking), and bytes left unread
+when the host closes the port are discarded when it opens again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import errno
+import logging
+import os
+import select
+import signal
+import sys
+import termios
+import time
+import tty
+from pathlib import Path
+
+from pma_driver.protocol import Valve
+from pma_driver.sim.device import (
+    COMPILED_CEILING_PA,
+    DeviceConfig,
+    LinkFaultConfig,
+    LinkFaults,
+    Rig,
+    SimDevice,
+)
+
+log = logging.getLogger('fake_arduino')
+
+SPLIT_PAUSE_S = 0.02         # gap between the two halves of a split line
+OUTBOX_LIMIT_BYTES = 4096    # like the adapter's buffer: beyond it, new lines are dropped
+READ_CHUNK = 4096
+IDLE_POLL_S = 0.05           # how often presence is re-checked while no host is attached
+BLOCKED_RETRY_S = 0.005      # retry period while the host has the port open but does not read
+
+
+MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
+_stop_requested: list[str] = []   # set by the signal handler, checked by the main loop
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog='fake_arduino', description='Simulated PMA rig on a pseudo-terminal (protocol v1).')
+    add = parser.add_argument
+    add('--link', type=Path, help='also make this path a symlink to the device (removed on exit)')
+    add('--rate', type=int, default=20, help='sample rate at boot [Hz] (default 20, max 1000)')
+    add('--max-rate', type=int, default=1000, help='max_rate_hz reported in HELLO (default 1000)')
+    add('--ceiling-pa', type=int, default=COMPILED_CEILING_PA,
+        help=f'pressure ceiling at boot [Pa] (default and limit {COMPILED_CEILING_PA})')
+    add('--hb-timeout-ms', type=int, default=1000, help='heartbeat timeout at boot [ms]')
+    add('--no-heartbeat-check', action='store_true',
+        help='never vent on heartbeat loss (manual play only)')
+    add('--seed', type=int, default=0, help='seed for sensor noise and faults (default 0)')
+    add('--echo-timeout-rate', type=float, default=0.0, help='share of samples without echo')
+    add('--garbage-rate', type=float, default=0.0, help='share of lines preceded by garbage')
+    add('--bad-checksum-rate', type=float, default=0.0, help='share of lines with a bad checksum')
+    add('--drop-rate', type=float, default=0.0, help='share of lines silently dropped')
+    add('--split-rate', type=float, default=0.0,
+        help=f'share of lines written in two parts {SPLIT_PAUSE_S * 1000:.0f} ms apart')
+    add('--stall-after', type=float, help='stop sending after this many seconds')
+    add('--stall-for', type=float, default=2.0, help='length of the stall [s] (default 2)')
+    add('--disconnect-after', type=float, help='close the pty (unplug) after this many seconds')
+    add('--reconnect-after', type=float, default=2.0,
+        help='new pty (device reboots) this many seconds after the unplug (default 2)')
+    add('--log-level', default='INFO', choices=['DEBUG', 'INFO', 'WARNING', 'ERROR'])
+    args = parser.parse_args(argv)
+    for name in ('stall_after', 'stall_for', 'disconnect_after', 'reconnect_after'):
+        value = getattr(args, name)
+        if value is not None and value < 0:
+            parser.error(f'--{name.replace("_", "-")} must be >= 0')
+    return args
+
+
+class PtyPort:
+    """The device end of a pseudo-terminal: the master fd, non-blocking, slave in raw mode."""
+
+    def __init__(self):
+        self.master, slave = os.openpty()
+        self.path = os.ttyname(slave)
+        tty.setraw(slave)          # no '\n' -> '\r\n', no echo, no line editing
+        os.close(slave)            # the host opens it; a closed slave shows as POLLHUP
+        os.set_blocking(self.master, False)
+        self._poll = select.poll()
+        self._poll.register(self.master, select.POLLIN)
+        self.host_attached = False
+
+    def check_host(self) -> bool:
+        """True while some process has the slave open; flushes stale output on attach."""
+        events = dict(self._poll.poll(0)).get(self.master, 0)
+        attached = not events & select.POLLHUP
+        if attached and not self.host_attached:
+            # A fresh open sees only what is written from now on, like a USB adapter.
+            termios.tcflush(self.master, termios.TCOFLUSH)
+        self.host_attached = attached
+        return attached
+
+    def wait_readable(self, timeout_s: float) -> bool:
+        if not self.host_attached:
+            time.sleep(min(max(0.0, timeout_s), IDLE_POLL_S))
+            return False
+        events = dict(self._poll.poll(max(0.0, timeout_s) * 1000.0)).get(self.master, 0)
+        return bool(events & select.POLLIN)
+
+    def read(self) -> bytes:
+        try:
+            return os.read(self.master, READ_CHUNK)
+        except BlockingIOError:
+            return b''
+        except OSError as error:
+            if error.errno == errno.EIO:   # the host closed the slave meanwhile
+                return b''
+            raise
+
+    def write(self, data: bytes) -> int:
+        """Bytes accepted (maybe fewer than given; 0 when the buffer is full)."""
+        try:
+            return os.write(self.master, data)
+        except (BlockingIOError, InterruptedError):
+            return 0
+        except OSError as error:
+            if error.errno == errno.EIO:
+                return 0
+            raise
+
+    def close(self) -> None:
+        os.close(self.master)
+
+
+class Link:
+    """A --link symlink that always points at the current pty (atomically replaced)."""
+
+    def __init__(self, path: Path | None):
+        self.path = path
+        self.target: str | None = None
+        if path is not None and path.exists() and not path.is_symlink():
+            raise SystemExit(f'fake_arduino: --link {path} exists and is not a symlink')
+
+    def point_at(self, target: str) -> None:
+        if self.path is None:
+            return
+        temporary = self.path.with_name(f'.{self.path.name}.{os.getpid()}.tmp')
+        temporary.unlink(missing_ok=True)
+        os.symlink(target, temporary)
+        os.replace(temporary, self.path)
+        self.target = target
+
+    def remove(self) -> None:
+        if self.path is None or self.target is None:
+            return
+        try:
+            if os.readlink(self.path) == self.target:
+                self.path.unlink()
+        except OSError:
+            pass
+        self.target = None
+
+
+class Writer:
+    """Queued chunks with not-before times (split lines); writes what the pty accepts."""
+
+    def __init__(self):
+        self._queue: collections.deque[tuple[float, bytes]] = collections.deque()
+        self.dropped_lines = 0
+
+    def queued_bytes(self) -> int:
+        return sum(len(chunk) for _, chunk in self._queue)
+
+    def push(self, chunks: list[bytes], now: float) -> None:
+        if not chunks:
+            return
+        if self.queued_bytes() > OUTBOX_LIMIT_BYTES:
+            self.dropped_lines += 1
+            return
+        due = now
+        for index, chunk in enumerate(chunks):
+            if index:
+                due += SPLIT_PAUSE_S
+            self._queue.append((due, chunk))
+
+    def clear(self) -> None:
+        self._queue.clear()
+
+    def next_due(self) -> float | None:
+        return self._queue[0][0] if self._queue else None
+
+    def flush(self, port: PtyPort, now: float) -> bool:
+        """Write every chunk that is due; True while a partly written line waits for room.
+
+        A chunk the pty takes nothing of is lost (the host is not reading), like bytes a
+        USB-serial adapter drops, so fresh output goes through once the host reads again.
+        """
+        while self._queue and self._queue[0][0] <= now:
+            due, chunk = self._queue[0]
+            written = port.write(chunk)
+            if 0 < written < len(chunk):
+                self._queue[0] = (due, chunk[written:])
+                return True
+            self._queue.popleft()
+            if not written:
+                self.dropped_lines += 1
+        return False
+
+
+def _on_signal(signum, _frame):
+    # Only a flag: raising here could land inside logging or a write and be swallowed.
+    _stop_requested.append(signal.Signals(signum).name)
+
+
+def configs_from_args(args: argparse.Namespace) -> tuple[DeviceConfig, LinkFaultConfig]:
+    """Raises ValueError with a readable message for out-of-range options."""
+    device = DeviceConfig(
+        rate_hz=args.rate, max_rate_hz=args.max_rate, ceiling_pa=args.ceiling_pa,
+        hb_timeout_ms=args.hb_timeout_ms, heartbeat_check=not args.no_heartbeat_check,
+        echo_timeout_rate=args.echo_timeout_rate, seed=args.seed)
+    link = LinkFaultConfig(
+        garbage_rate=args.garbage_rate, bad_checksum_rate=args.bad_checksum_rate,
+        drop_rate=args.drop_rate, split_rate=args.split_rate)
+    return device, link
+
+
+def run(args: argparse.Namespace) -> int:
+    config, fault_config = configs_from_args(args)
+    faults = LinkFaults(fault_config, seed=args.seed)
+    link = Link(args.link)
+    rig = Rig(config)
+    device = SimDevice(config, rig)
+    writer = Writer()
+    start = time.monotonic()
+    stall = (None if args.stall_after is None
+             else (start + args.stall_after, start + args.stall_after + args.stall_for))
+    unplug_at = None if args.disconnect_after is None else start + args.disconnect_after
+    replug_at = unplugged_at = 0.0
+    port: PtyPort | None = None
+
+    def plug_in() -> PtyPort:
+        new = PtyPort()
+        link.point_at(new.path)
+        print(f'fake_arduino: device at {new.path}', flush=True)
+        log.info('device at %s%s; %d Hz, ceiling %d Pa, heartbeat %s', new.path,
+                 f' (link {args.link})' if args.link else '', config.rate_hz, config.ceiling_pa,
+                 f'{config.hb_timeout_ms} ms' if config.heartbeat_check else 'not checked')
+        return new
+
+    port = plug_in()
+    boot = time.monotonic()
+    stalled = False
+    try:
+        while not _stop_requested:
+            now = time.monotonic()
+            if unplug_at is not None and now >= unplug_at:
+                log.warning('simulated unplug: closing %s', port.path)
+                link.remove()
+                port.close()
+                writer.clear()
+                port, unplug_at, unplugged_at = None, None, now
+                replug_at = now + args.reconnect_after
+                continue
+            if port is None:
+                if now < replug_at:
+                    time.sleep(min(IDLE_POLL_S, replug_at - now))
+                    continue
+                # Unpowered meanwhile: valves closed, the muscle kept its air (slow leak).
+                rig.step(now - unplugged_at, Valve.HOLD)
+                port = plug_in()
+                device.boot()
+                boot = now
+                log.info('device rebooted: seq and clock restart')
+
+            device.advance_to(int((now - boot) * 1000))
+            in_stall = stall is not None and stall[0] <= now < stall[1]
+            if in_stall != stalled:
+                log.warning('simulated stall %s', 'begins' if in_stall else 'ends')
+                stalled = in_stall
+            attached = port.check_host()
+            for line in device.take_output():
+                if attached and not in_stall:
+                    writer.push(faults.apply(line), now)
+            if not attached:
+                writer.clear()
+            blocked = writer.flush(port, now)
+
+            next_sample = boot + device.next_sample_ms * 1e-3
+            deadlines = [next_sample, now + BLOCKED_RETRY_S if blocked
+                         else writer.next_due() or next_sample]
+            deadlines += [t for t in (unplug_at, stall and stall[0], stall and stall[1])
+                          if t is not None and t > now]
+            if port.wait_readable(min(min(deadlines) - time.monotonic(), MAX_WAIT_S)):
+                data = port.read()
+                if data:
+                    device.advance_to(int((time.monotonic() - boot) * 1000))
+                    device.receive(data)
+        log.info('%s: shutting down', _stop_requested[0])
+    finally:
+        link.remove()
+        if port is not None:
+            port.close()
+        if writer.dropped_lines:
+            log.info('%d lines dropped because the host did not read', writer.dropped_lines)
+        if any(faults.counts.values()):
+            log.info('faults injected: %s', faults.counts)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(stream=sys.stderr, level=args.log_level,
+                        format='fake_arduino %(levelname)s: %(message)s')
+    try:
+        configs_from_args(args)
+    except ValueError as error:
+        print(f'fake_arduino: {error}', file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    return run(args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

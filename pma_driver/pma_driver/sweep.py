@@ -1,0 +1,115 @@
+"""The pressure staircase of a Sweep goal (pma_interfaces/action/Sweep), checked and planned.
+
+Plain Python, no ROS: the driver's action server runs the plan, tests check it here.
+One cycle goes 0 -> max in steps of `step_pa` and back to 0, holding `hold_s` at each
+step. Reversal pressures insert minor loops before the top: `[300e3, 150e3]` goes up to
+300 kPa, down to 150 kPa, then on up to max and back down. Steps lie on the grid of
+multiples of `step_pa`, plus the turning points themselves.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+MAX_STEPS = 10_000  # a plan longer than this is a typo (step_pa of 1 Pa), not an experiment
+
+
+class SweepError(ValueError):
+    """A goal that cannot be run; the message says which field and why."""
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    setpoints_pa: tuple[float, ...]   # every step, in order, starting with 0 Pa
+    hold_s: float
+    cycles: int
+
+    @property
+    def step_count(self) -> int:
+        return len(self.setpoints_pa)
+
+    @property
+    def hold_time_s(self) -> float:
+        """Total time spent holding (the run takes longer: each step must be reached first)."""
+        return self.step_count * self.hold_s
+
+    def progress(self, step_index: int, hold_fraction: float = 0.0) -> float:
+        """Fraction done (0..1) at `step_index` with this much of its hold elapsed."""
+        fraction = (step_index + min(1.0, max(0.0, hold_fraction))) / self.step_count
+        return min(1.0, max(0.0, fraction))
+
+
+def staircase(start_pa: float, stop_pa: float, step_pa: float) -> list[float]:
+    """Steps from `start_pa` (excluded) to `stop_pa` (included) on the grid of `step_pa`."""
+    eps = 1e-9 * step_pa
+    out: list[float] = []
+    if stop_pa > start_pa:
+        k = math.floor(start_pa / step_pa + 1e-9) + 1
+        while k * step_pa < stop_pa - eps:
+            out.append(k * step_pa)
+            k += 1
+    elif stop_pa < start_pa:
+        k = math.ceil(start_pa / step_pa - 1e-9) - 1
+        while k * step_pa > stop_pa + eps:
+            out.append(k * step_pa)
+            k -= 1
+    else:
+        return []
+    out.append(stop_pa)
+    return out
+
+
+def _check_finite(name: str, value: float) -> None:
+    if not math.isfinite(value):
+        raise SweepError(f'{name} must be a finite number, got {value}')
+
+
+def plan_sweep(max_gauge_pressure_pa: float, step_pa: float, hold_s: float, cycles: int,
+               reversal_pressures_pa: Sequence[float] = (), *,
+               ceiling_pa: float, max_steps: int = MAX_STEPS) -> SweepPlan:
+    """Check a Sweep goal against the driver's ceiling and return its plan, or raise SweepError."""
+    _check_finite('max_gauge_pressure_pa', max_gauge_pressure_pa)
+    _check_finite('step_pa', step_pa)
+    _check_finite('hold_s', hold_s)
+    if max_gauge_pressure_pa <= 0:
+        raise SweepError(f'max_gauge_pressure_pa must be > 0 Pa, got {max_gauge_pressure_pa}')
+    if max_gauge_pressure_pa > ceiling_pa:
+        raise SweepError(
+            f'max_gauge_pressure_pa {max_gauge_pressure_pa:.0f} Pa is above the driver ceiling '
+            f'{ceiling_pa:.0f} Pa (parameter max_gauge_pressure_pa)')
+    if step_pa <= 0:
+        raise SweepError(f'step_pa must be > 0 Pa, got {step_pa}')
+    if hold_s < 0:
+        raise SweepError(f'hold_s must be >= 0 s, got {hold_s}')
+    if cycles < 1:
+        raise SweepError(f'cycles must be >= 1, got {cycles}')
+    reversals = [float(r) for r in reversal_pressures_pa]
+    for i, value in enumerate(reversals):
+        _check_finite(f'reversal_pressures_pa[{i}]', value)
+        if not 0 <= value < max_gauge_pressure_pa:
+            raise SweepError(
+                f'reversal_pressures_pa[{i}] = {value:.0f} Pa must be within '
+                f'0..{max_gauge_pressure_pa:.0f} Pa (below max_gauge_pressure_pa)')
+    if len(reversals) % 2:
+        raise SweepError(
+            'reversal_pressures_pa come in (peak, trough) pairs, e.g. [300000, 150000]; '
+            f'got {len(reversals)} values')
+    turning = [0.0, *reversals, float(max_gauge_pressure_pa), 0.0]
+    for i in range(1, len(turning) - 1):
+        rising = turning[i] > turning[i - 1]
+        falling_next = turning[i + 1] < turning[i]
+        if rising != falling_next or turning[i] == turning[i - 1]:
+            raise SweepError(
+                f'reversal pressures must alternate up and down from 0 and end below max '
+                f'(turning points {[round(t) for t in turning]} Pa do not)')
+    one_cycle: list[float] = []
+    for start, stop in itertools.pairwise(turning):
+        one_cycle += staircase(start, stop, step_pa)
+    count = 1 + len(one_cycle) * cycles
+    if count > max_steps:
+        raise SweepError(f'the plan has {count} steps (more than {max_steps}): is step_pa '
+                         f'{step_pa} Pa too small?')
+    return SweepPlan(tuple([0.0, *one_cycle * cycles]), float(hold_s), int(cycles))

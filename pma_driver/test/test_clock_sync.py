@@ -1,0 +1,91 @@
+"""ClockSync against a simulated device clock with one-sided USB latency."""
+
+import numpy as np
+import pytest
+
+from pma_driver.clock_sync import ClockSync
+from pma_driver.protocol import U32
+
+MIN_LATENCY_S = 0.001
+
+
+def simulate(rate_hz, duration_s, drift_ppm=0.0, *, seed=0, offset_s=1000.0, t0_ms=0):
+    """Device sample times and host receive times: latency = 1 ms + exponential + rare spikes."""
+    rng = np.random.default_rng(seed)
+    n = int(rate_hz * duration_s)
+    device_ms = t0_ms + np.round(np.arange(n) * 1000.0 / rate_hz).astype(np.int64)
+    true_host_s = offset_s + (device_ms - t0_ms) / 1000.0 * (1.0 - drift_ppm * 1e-6)
+    latency = MIN_LATENCY_S + rng.exponential(0.002, n)
+    spikes = rng.random(n) < 0.02
+    latency[spikes] += rng.uniform(0.01, 0.05, spikes.sum())
+    receive_ns = np.round((true_host_s + latency) * 1e9).astype(np.int64)
+    # Lines arrive in order: a late line delays the ones queued behind it.
+    receive_ns = np.maximum.accumulate(receive_ns)
+    return device_ms % U32, true_host_s, receive_ns
+
+
+def stamp_errors(sync, device_ms, true_host_s, receive_ns):
+    stamps = np.array([sync.stamp(int(t), int(r)) for t, r in zip(device_ms, receive_ns,
+                                                                   strict=True)])
+    return stamps / 1e9 - (true_host_s + MIN_LATENCY_S)
+
+
+@pytest.mark.parametrize('rate_hz', [20.0, 1000.0])
+@pytest.mark.parametrize('drift_ppm', [0.0, 500.0, -3000.0])
+def test_stamps_have_far_less_jitter_than_receive_times(rate_hz, drift_ppm):
+    device_ms, true_host_s, receive_ns = simulate(rate_hz, 30.0, drift_ppm)
+    errors = stamp_errors(ClockSync(), device_ms, true_host_s, receive_ns)
+    settled = errors[int(rate_hz * 3):]          # after the first few blocks
+    receive_errors = receive_ns / 1e9 - (true_host_s + MIN_LATENCY_S)
+    assert np.percentile(np.abs(receive_errors), 99) > 0.008
+    assert np.percentile(np.abs(settled), 99) < 0.0015
+    assert np.max(settled) <= 0.0015
+
+
+def test_drift_is_estimated():
+    sync = ClockSync()
+    device_ms, true_host_s, receive_ns = simulate(50.0, 30.0, drift_ppm=1000.0)
+    stamp_errors(sync, device_ms, true_host_s, receive_ns)
+    assert sync.drift_ppm == pytest.approx(-1000.0, abs=150.0)
+
+
+def test_stamp_never_after_receive_time():
+    sync = ClockSync()
+    device_ms, _, receive_ns = simulate(100.0, 10.0)
+    for t, r in zip(device_ms, receive_ns, strict=True):
+        assert sync.stamp(int(t), int(r)) <= r
+
+
+def test_32_bit_wrap_of_device_clock_is_continuous():
+    device_ms, true_host_s, receive_ns = simulate(100.0, 20.0, t0_ms=U32 - 5000)
+    assert device_ms.min() < 1000 and device_ms.max() > U32 - 1000   # it does wrap
+    errors = stamp_errors(ClockSync(), device_ms, true_host_s, receive_ns)
+    assert np.percentile(np.abs(errors[300:]), 99) < 0.0015
+
+
+def test_device_restart_resets_the_estimate():
+    sync = ClockSync()
+    device_ms, true_host_s, receive_ns = simulate(50.0, 10.0)
+    stamp_errors(sync, device_ms, true_host_s, receive_ns)
+    # The Arduino resets: its clock starts at 0 again, 10 s later in host time.
+    device2, true2, receive2 = simulate(50.0, 10.0, offset_s=1020.0, seed=1)
+    errors = stamp_errors(sync, device2, true2, receive2)
+    assert sync.resets == 1
+    assert np.percentile(np.abs(errors[150:]), 99) < 0.0015
+
+
+def test_explicit_reset_forgets_the_old_offset():
+    sync = ClockSync()
+    sync.stamp(1000, 5_000_000_000)
+    sync.reset()
+    assert sync.samples == 0
+    assert sync.stamp(1000, 9_000_000_000) == 9_000_000_000
+
+
+def test_host_clock_jump_back_restarts_estimate():
+    sync = ClockSync()
+    device_ms, true_host_s, receive_ns = simulate(50.0, 5.0)
+    stamp_errors(sync, device_ms, true_host_s, receive_ns)
+    jumped = sync.stamp(int(device_ms[-1]) + 20, int(receive_ns[-1]) - 10 * 10**9)
+    assert sync.resets == 1
+    assert jumped <= int(receive_ns[-1]) - 10 * 10**9

@@ -1,0 +1,235 @@
+"""fake_arduino as a real process on a real pty, read with pyserial like the driver does."""
+
+import itertools
+import os
+import re
+import signal
+import time
+
+import pytest
+import serial
+
+from pma_driver import protocol
+from pma_driver.calibration import PressureCalibration
+from pma_driver.protocol import Ack, FrameDecoder, Hello, Sample
+
+DEVICE_LINE = re.compile(r'^fake_arduino: device at (/dev/pts/\d+)$')
+
+
+def start(procs, *args):
+    proc = procs.ros2_run('pma_driver', 'fake_arduino', *args)
+    line = proc.wait_for_line(lambda text: DEVICE_LINE.match(text) is not None, timeout=20)
+    return proc, DEVICE_LINE.match(line).group(1)
+
+
+class Port:
+    """pyserial on the slave side plus a decoder, as the driver will use them."""
+
+    def __init__(self, path):
+        self.serial = serial.Serial(str(path), 115200, timeout=0.02)
+        self.decoder = FrameDecoder(drop_first_partial=True)
+        self.arrivals = []    # (monotonic time, frame)
+
+    def send(self, command, *args):
+        self.serial.write(protocol.encode_command(command, *args))
+
+    def collect(self, seconds, heartbeat_s=0.2, until=None):
+        """Read for `seconds` (sending HB), or until `until(frame)` is true; return frames."""
+        frames = []
+        end = time.monotonic() + seconds
+        next_hb = 0.0
+        while time.monotonic() < end:
+            now = time.monotonic()
+            if heartbeat_s and now >= next_hb:
+                self.send('HB')
+                next_hb = now + heartbeat_s
+            for frame in self.decoder.feed(self.serial.read(4096)):
+                frames.append(frame)
+                self.arrivals.append((time.monotonic(), frame))
+                if until and until(frame):
+                    return frames
+        return frames
+
+    def close(self):
+        self.serial.close()
+
+
+def samples_of(frames):
+    return [f for f in frames if isinstance(f, Sample)]
+
+
+def test_banner_samples_at_the_rate_and_clean_exit(procs, tmp_path):
+    link = tmp_path / 'ttyPMA'
+    proc, path = start(procs, '--link', link)
+    assert os.path.realpath(link) == path
+    port = Port(link)
+    port.send('HELLO')
+    frames = port.collect(2.0)
+    hello = next(f for f in frames if isinstance(f, Hello))
+    assert (hello.proto, hello.rate_hz, hello.max_rate_hz, hello.ceiling_pa,
+            hello.hb_timeout_ms) == (1, 20, 1000, 500_000, 1000)
+    samples = samples_of(frames)
+    assert 35 <= len(samples) <= 42
+    assert {b.seq - a.seq for a, b in itertools.pairwise(samples)} == {1}
+    assert {b.t_ms - a.t_ms for a, b in itertools.pairwise(samples)} == {50}
+    assert port.decoder.dropped_total == 0
+    port.close()
+    proc.signal(signal.SIGINT)
+    assert proc.popen.wait(5) == 0
+    assert not os.path.lexists(link)
+
+
+def test_sigterm_removes_the_link(procs, tmp_path):
+    link = tmp_path / 'ttyPMA'
+    proc, _ = start(procs, '--link', link)
+    assert os.path.islink(link)
+    proc.signal(signal.SIGTERM)
+    assert proc.popen.wait(5) == 0
+    assert not os.path.lexists(link)
+
+
+def test_commanded_sweep_reaches_each_setpoint(procs):
+    _, path = start(procs, '--rate', '100')
+    port = Port(path)
+    sensor = PressureCalibration()
+    lengths = {}
+    for setpoint in (100_000, 300_000, 500_000, 200_000, 0):
+        port.send('SET', setpoint)
+        frames = port.collect(2.0)
+        assert Ack('SET', setpoint) in frames
+        settled = samples_of(frames)[-20:]
+        pressures = [sensor.adc_to_pa(s.adc) for s in settled]
+        assert abs(sum(pressures) / len(pressures) - setpoint) < 10_000, setpoint
+        assert all(s.setpoint_pa == setpoint and s.status == 0 for s in settled)
+        lengths[setpoint] = sum(s.echo_us for s in settled) / len(settled)
+    # Contraction lengthens the echo (sensor faces the free end): monotone in pressure.
+    assert lengths[0] < lengths[100_000] < lengths[300_000] < lengths[500_000]
+
+
+def test_set_above_ceiling_is_refused_over_the_wire(procs):
+    _, path = start(procs, '--ceiling-pa', '300000')
+    port = Port(path)
+    port.send('SET', 300_001)
+    frames = port.collect(1.0, until=lambda f: isinstance(f, protocol.Nak))
+    assert frames[-1] == protocol.Nak('SET', 'RANGE')
+
+
+def test_heartbeat_loss_over_the_wire(procs):
+    _, path = start(procs, '--rate', '50')
+    port = Port(path)
+    port.send('SET', 100_000)
+    port.collect(0.5)
+    frames = port.collect(2.0, heartbeat_s=0)
+    lost = [s for s in samples_of(frames) if s.status & protocol.STATUS_HEARTBEAT_LOST]
+    assert lost and all(s.valve == protocol.Valve.VENT for s in lost)
+
+
+def test_host_may_open_close_and_stop_reading(procs):
+    _, path = start(procs, '--rate', '1000')
+    for _ in range(4):
+        port = Port(path)
+        frames = port.collect(0.3)
+        assert len(samples_of(frames)) > 150
+        port.close()
+        time.sleep(0.2)
+    port = Port(path)
+    time.sleep(2.0)                   # open but not reading: the pty buffer fills up
+    port.serial.reset_input_buffer()
+    port.decoder.reset()
+    port.send('HELLO')
+    frames = port.collect(1.0, until=lambda f: isinstance(f, Hello))
+    assert isinstance(frames[-1], Hello)
+    recent = samples_of(port.collect(0.3))
+    assert len(recent) > 150
+
+
+@pytest.mark.parametrize('flag, check', [
+    ('--garbage-rate', lambda d, gaps: d.dropped['framing'] + d.dropped['overlong'] > 10
+     and gaps == 0),
+    ('--bad-checksum-rate', lambda d, gaps: d.dropped['checksum'] > 10),
+    ('--drop-rate', lambda d, gaps: gaps > 10 and d.dropped_total == 0),
+    ('--echo-timeout-rate', lambda d, gaps: d.dropped_total == 0 and gaps == 0),
+])
+def test_each_fault_flag_does_what_it_says(procs, flag, check):
+    _, path = start(procs, '--rate', '200', flag, '0.2', '--seed', '7')
+    port = Port(path)
+    samples = samples_of(port.collect(1.5))
+    gaps = sum(protocol.seq_gap(a.seq, b.seq) for a, b in itertools.pairwise(samples))
+    assert len(samples) > 150
+    assert check(port.decoder, gaps), (dict(port.decoder.dropped), gaps)
+    timeouts = [s for s in samples if s.echo_us == 0]
+    if flag == '--echo-timeout-rate':
+        assert 0.1 * len(samples) < len(timeouts) < 0.3 * len(samples)
+        assert all(s.status & protocol.STATUS_ECHO_TIMEOUT for s in timeouts)
+    else:
+        assert not timeouts
+
+
+def test_split_lines_arrive_in_two_parts_and_decode_whole(procs):
+    _, path = start(procs, '--rate', '20', '--split-rate', '0.5', '--seed', '3')
+    link = serial.Serial(path, 115200, timeout=0.002)
+    pending, started, pauses, lines = b'', None, [], 0
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        data = link.read(4096)
+        if not data:
+            continue
+        now = time.monotonic()
+        if pending and started is not None:
+            pauses.append(now - started)
+        pending += data
+        lines += pending.count(b'\n')
+        pending = pending[pending.rfind(b'\n') + 1:]
+        started = now if pending else None
+    link.close()
+    assert lines > 30
+    assert sum(p >= 0.015 for p in pauses) >= 5       # the second half came ~20 ms later
+
+
+def test_stall_stops_output_then_resumes_with_a_seq_gap(procs):
+    _, path = start(procs, '--rate', '50', '--stall-after', '1.0', '--stall-for', '1.0')
+    port = Port(path)
+    port.collect(3.0)
+    times = [t for t, f in port.arrivals if isinstance(f, Sample)]
+    samples = [f for _, f in port.arrivals if isinstance(f, Sample)]
+    longest = max(b - a for a, b in itertools.pairwise(times))
+    assert 0.85 < longest < 1.3
+    gaps = [protocol.seq_gap(a.seq, b.seq) for a, b in itertools.pairwise(samples)]
+    assert max(gaps) >= 40 and sorted(gaps)[-2] == 0   # one gap: the device kept running
+
+
+def test_disconnect_then_reconnect_on_a_new_pty_with_the_link_re_pointed(procs, tmp_path):
+    link = tmp_path / 'ttyPMA'
+    proc, _ = start(procs, '--link', link, '--rate', '50', '--disconnect-after', '1.0',
+                        '--reconnect-after', '1.0')
+    port = Port(link)
+    port.send('SET', 150_000)
+    with pytest.raises(serial.SerialException):
+        port.collect(3.0)                      # the unplug ends the read loop
+    before = samples_of(f for _, f in port.arrivals)
+    assert before and before[-1].t_ms >= 900
+    port.close()
+    assert not os.path.lexists(link)           # the device node is gone while unplugged
+    deadline = time.monotonic() + 5
+    while len(device_lines := [t for t in proc.output.splitlines() if DEVICE_LINE.match(t)]) < 2:
+        assert time.monotonic() < deadline, proc.output
+        time.sleep(0.05)
+    second = DEVICE_LINE.match(device_lines[1]).group(1)   # the kernel may reuse the number
+    deadline = time.monotonic() + 2
+    while not os.path.lexists(link) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert os.path.realpath(link) == second
+    port = Port(link)
+    port.send('HELLO')
+    frames = port.collect(1.0)
+    assert any(isinstance(f, Hello) for f in frames)
+    samples = samples_of(frames)
+    assert samples and samples[0].t_ms < 1500 and samples[0].seq < 75   # rebooted
+    assert samples[-1].setpoint_pa == 0                                 # setpoint lost
+    port.close()
+
+
+def test_bad_options_exit_with_a_message(procs):
+    proc = procs.ros2_run('pma_driver', 'fake_arduino', '--rate', '2000')
+    assert proc.popen.wait(10) == 2
+    proc.wait_for_line('rate_hz must be within', timeout=5)

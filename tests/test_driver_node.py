@@ -1,0 +1,454 @@
+"""driver_node against fake_arduino, both real processes on a real pty, over real DDS.
+
+The test process is a probe: an rclpy node that subscribes, publishes setpoints, calls
+parameter and lifecycle services and sends Sweep goals.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from lifecycle_msgs.srv import ChangeState, GetState
+from mcap.reader import make_reader
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.action import ActionClient
+from sensor_msgs.msg import FluidPressure, Range
+from std_msgs.msg import Float64
+
+from pma_driver.driver_node import PARAMETERS
+from pma_interfaces.action import Sweep
+from pma_interfaces.msg import PmaState
+from support.procs import INSTALL
+from support.ros import SpinningNode, shutdown, wait_until
+
+pytestmark = pytest.mark.integration
+
+DRIVER = '/pma_driver'
+DIAG_NAME = 'pma_driver: serial link'
+
+
+@pytest.fixture(scope='module')
+def spinning():
+    node = SpinningNode('driver_test_probe')
+    yield node
+    node.close()
+    shutdown()
+
+
+class Probe:
+    """What the driver publishes, as seen from another process."""
+
+    def __init__(self, spinning: SpinningNode):
+        self.node = spinning.node
+        self.lock = threading.Lock()
+        self.states: list[tuple[float, PmaState]] = []
+        self.pressures: list[FluidPressure] = []
+        self.ranges: list[Range] = []
+        self.diagnostics: list[DiagnosticStatus] = []
+        node = self.node
+        self._subs = [
+            node.create_subscription(PmaState, 'pma/state', self._on_state, 100),
+            node.create_subscription(FluidPressure, 'pma/pressure', self._keep(self.pressures),
+                                     100),
+            node.create_subscription(Range, 'pma/range', self._keep(self.ranges), 100),
+            node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10),
+        ]
+        self.setpoint_pub = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+        self.sweep = ActionClient(node, Sweep, 'pma/sweep')
+
+    def _on_state(self, msg: PmaState) -> None:
+        with self.lock:
+            self.states.append((time.monotonic(), msg))
+
+    def _keep(self, into: list):
+        def keep(msg) -> None:
+            with self.lock:
+                into.append(msg)
+        return keep
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        with self.lock:
+            self.diagnostics += [s for s in msg.status if s.name == DIAG_NAME]
+
+    def close(self) -> None:
+        for sub in self._subs:
+            self.node.destroy_subscription(sub)
+        self.node.destroy_publisher(self.setpoint_pub)
+        self.sweep.destroy()
+
+    # -- helpers -------------------------------------------------------------------------
+
+    def state_count(self) -> int:
+        with self.lock:
+            return len(self.states)
+
+    def latest(self) -> PmaState:
+        with self.lock:
+            return self.states[-1][1]
+
+    def wait_states(self, count: int, timeout: float = 20.0) -> list[PmaState]:
+        start = self.state_count()
+        wait_until(lambda: self.state_count() >= start + count, timeout,
+                   f'{count} PmaState messages')
+        with self.lock:
+            return [m for _, m in self.states[start:]]
+
+    def wait_diag(self, predicate, timeout: float, what: str) -> DiagnosticStatus:
+        found: list[DiagnosticStatus] = []
+
+        def check() -> bool:
+            with self.lock:
+                found[:] = [d for d in self.diagnostics if predicate(d)]
+            return bool(found)
+
+        wait_until(check, timeout, what)
+        return found[-1]
+
+    def publish_setpoint(self, value: float) -> None:
+        wait_until(lambda: self.setpoint_pub.get_subscription_count() > 0, 10.0,
+                   'driver subscribed to pma/pressure_setpoint')
+        self.setpoint_pub.publish(Float64(data=value))
+
+    def call(self, srv_type, name: str, request, timeout: float = 10.0):
+        client = self.node.create_client(srv_type, name)
+        try:
+            assert client.wait_for_service(timeout_sec=timeout), f'{name} not available'
+            future = client.call_async(request)
+            wait_until(future.done, timeout, f'{name} answer')
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def set_parameter(self, name: str, value):
+        if isinstance(value, float):
+            pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+        elif isinstance(value, str):
+            pv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
+        else:
+            pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
+        request = SetParameters.Request(parameters=[Parameter(name=name, value=pv)])
+        return self.call(SetParameters, f'{DRIVER}/set_parameters', request).results[0]
+
+    def lifecycle_state(self) -> str:
+        return self.call(GetState, f'{DRIVER}/get_state', GetState.Request()).current_state.label
+
+    def transition(self, transition_id: int) -> bool:
+        request = ChangeState.Request()
+        request.transition.id = transition_id
+        return self.call(ChangeState, f'{DRIVER}/change_state', request).success
+
+
+def values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+@pytest.fixture
+def probe(spinning):
+    p = Probe(spinning)
+    yield p
+    p.close()
+
+
+@pytest.fixture
+def rig(procs, tmp_path):
+    """Start fake_arduino (extra CLI flags) and driver_node on its --link path."""
+
+    def start(*fake_args: str, driver_params: tuple[str, ...] = (), start_fake: bool = True,
+              params_file: Path | None = None):
+        port = tmp_path / 'ttyPMA'
+        fake = None
+        if start_fake:
+            fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed',
+                                  '7', *fake_args)
+            fake.wait_for_line('fake_arduino: device at', 20)
+        params = [f'port:={port}', *driver_params]
+        ros_args = ['--params-file', str(params_file)] if params_file else []
+        ros_args += [arg for p in params for arg in ('-p', p)]
+        driver = procs.ros2_run('pma_driver', 'driver_node', ros_args=ros_args)
+        return fake, driver, port
+
+    return start
+
+
+def test_publishes_plausible_state_pressure_and_range(rig, probe):
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    states = probe.wait_states(40)
+    for msg in states:
+        assert abs(msg.gauge_pressure_pa) < 10_000.0          # vented muscle: ~0 Pa gauge
+        assert msg.length_m == pytest.approx(0.30, abs=0.01)    # 30 cm at rest
+        assert msg.header.frame_id == 'pma_link'
+        assert 0 <= msg.pressure_adc <= 1023 and msg.echo_us > 0
+    seqs = [m.seq for m in states]
+    assert seqs == sorted(seqs)
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in states]
+    assert all(b > a for a, b in itertools.pairwise(stamps))
+    now = probe.node.get_clock().now().nanoseconds * 1e-9
+    assert abs(now - stamps[-1]) < 1.0                          # ROS time, not device time
+    period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
+    assert period == pytest.approx(1 / 20.0, rel=0.15)          # sample_rate_hz default 20
+    wait_until(lambda: probe.pressures and probe.ranges, 5.0, 'pressure and range')
+    pressure, ranged = probe.pressures[-1], probe.ranges[-1]
+    assert pressure.fluid_pressure == pytest.approx(101_325.0, abs=10_000.0)   # absolute
+    assert 0 < pressure.variance < 1e6
+    assert ranged.radiation_type == Range.ULTRASOUND
+    assert ranged.range == pytest.approx(0.10, abs=0.01)       # 0.40 m offset - 0.30 m
+    assert ranged.min_range < ranged.range < ranged.max_range
+    assert ranged.field_of_view == pytest.approx(0.26, abs=0.05)
+    diag = probe.wait_diag(lambda d: d.level == DiagnosticStatus.OK, 5.0, 'diagnostics OK')
+    assert diag.hardware_id.endswith('ttyPMA')
+    assert float(values(diag)['sample rate [Hz]']) == pytest.approx(20.0, rel=0.25)
+
+
+def test_setpoint_moves_pressure_and_bad_ones_are_refused(rig, probe):
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(5)
+    probe.publish_setpoint(200_000.0)
+    wait_until(lambda: probe.latest().gauge_pressure_pa > 180_000.0, 15.0, 'pressure ~200 kPa')
+    contracted = probe.latest()
+    assert contracted.gauge_setpoint_pa == 200_000.0
+    assert contracted.length_m < 0.29                            # the muscle contracts
+    for bad, words in ((600_000.0, 'setpoint 600000 Pa is above max_gauge_pressure_pa'),
+                       (math.nan, 'setpoint nan is not a finite number'),
+                       (-5_000.0, 'setpoint -5000 Pa is negative'),
+                       (math.inf, 'setpoint inf is not a finite number')):
+        time.sleep(1.0)                                   # refusals are logged throttled
+        probe.publish_setpoint(bad)
+        driver.wait_for_line(words, 5)
+    states = probe.wait_states(20)
+    assert {m.gauge_setpoint_pa for m in states} == {200_000.0}
+    assert driver.alive()
+
+
+def test_sweep_action_gives_feedback_and_a_result(rig, probe):
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    assert probe.sweep.wait_for_server(timeout_sec=10)
+    feedback: list[Sweep.Feedback] = []
+    goal = Sweep.Goal(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1)
+    sent = probe.sweep.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
+        f.feedback))
+    wait_until(sent.done, 10, 'goal answer')
+    handle = sent.result()
+    assert handle.accepted
+    result_future = handle.get_result_async()
+    wait_until(result_future.done, 60, 'sweep result')
+    result = result_future.result().result
+    assert result.success, result.message
+    assert result.sample_count > 20 and result.bag_path == ''
+    steps = {f.step_index for f in feedback}
+    assert steps == set(range(5))                                # 0,100,200,100,0 kPa
+    assert {f.step_count for f in feedback} == {5}
+    assert max(f.gauge_setpoint_pa for f in feedback) == 200_000.0
+    progress = [f.progress for f in feedback]
+    assert progress == sorted(progress) and progress[-1] == pytest.approx(1.0)
+    # Above the ceiling: rejected, with the reason in the log.
+    bad = probe.sweep.send_goal_async(Sweep.Goal(
+        max_gauge_pressure_pa=600_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1))
+    wait_until(bad.done, 10, 'goal answer')
+    assert not bad.result().accepted
+    driver.wait_for_line('above the driver ceiling', 5)
+
+
+def test_sweep_cancel_vents(rig, probe):
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    assert probe.sweep.wait_for_server(timeout_sec=10)
+    feedback: list[Sweep.Feedback] = []
+    goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=5.0, cycles=2)
+    sent = probe.sweep.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
+        f.feedback))
+    wait_until(sent.done, 10, 'goal answer')
+    handle = sent.result()
+    wait_until(lambda: any(f.step_index >= 1 for f in feedback), 20, 'second step')
+    cancel = handle.cancel_goal_async()
+    wait_until(cancel.done, 10, 'cancel answer')
+    result_future = handle.get_result_async()
+    wait_until(result_future.done, 10, 'result')
+    assert result_future.result().status == 5                    # GoalStatus.STATUS_CANCELED
+    assert 'vented' in result_future.result().result.message
+    wait_until(lambda: probe.latest().gauge_pressure_pa < 20_000.0, 10, 'vented to ~0 Pa')
+
+
+@pytest.mark.slow
+def test_unplug_and_replug_resumes_within_two_seconds(rig, probe):
+    fake, driver, _port = rig('--disconnect-after', '4', '--reconnect-after', '3')
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(5)
+    probe.wait_diag(lambda d: d.level == DiagnosticStatus.ERROR, 10,
+                    'diagnostics ERROR while unplugged')
+    assert driver.alive()
+    # The port is back when fake_arduino announces its new device.
+    wait_until(lambda: fake.output.count('fake_arduino: device at') >= 2, 10, 'replug')
+    back = time.monotonic()
+    count = probe.state_count()
+    wait_until(lambda: probe.state_count() > count, 5, 'PmaState after replug')
+    with probe.lock:
+        first = next(t for t, _ in probe.states[count:])
+    assert first - back < 2.0
+    probe.wait_diag(lambda d: d.level == DiagnosticStatus.OK and int(values(d)['connects']) == 2,
+                    5, 'diagnostics OK again')
+
+
+FAULTS = {
+    'garbage': (('--garbage-rate', '0.1'), 'bad frames'),
+    'bad_checksum': (('--bad-checksum-rate', '0.1'), 'bad frames (checksum)'),
+    'drop': (('--drop-rate', '0.1'), 'sequence gaps'),
+    'split': (('--split-rate', '0.5'), None),
+    'echo_timeout': (('--echo-timeout-rate', '0.3'), None),
+}
+
+
+@pytest.mark.parametrize('fault', FAULTS)
+def test_faults_leave_the_driver_up_and_are_counted(rig, probe, fault):
+    flags, counter = FAULTS[fault]
+    _, driver, _ = rig(*flags, '--rate', '50', driver_params=('sample_rate_hz:=50.0',))
+    driver.wait_for_line('active: publishing', 30)
+    states = probe.wait_states(100)
+    if counter is not None:
+        probe.wait_diag(lambda d: int(values(d).get(counter, '0')) > 0, 5,
+                        f'{counter} counted')
+    if fault == 'split':          # lines split across reads are whole again: nothing dropped
+        diag = probe.wait_diag(lambda d: int(values(d).get('frames', '0')) > 50, 5, 'frames')
+        assert values(diag)['bad frames'] == '0'
+    if fault == 'echo_timeout':
+        timeouts = [m for m in states if m.status & PmaState.STATUS_ECHO_TIMEOUT]
+        assert timeouts and all(math.isnan(m.length_m) and m.echo_us == 0 for m in timeouts)
+    assert driver.alive()
+    probe.wait_states(10)
+
+
+def test_stall_is_a_warning_then_streaming_again(rig, probe):
+    _, driver, _ = rig('--stall-after', '3', '--stall-for', '3')
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_diag(lambda d: d.level == DiagnosticStatus.WARN and 'no data' in d.message, 15,
+                    'stall warning')
+    count = probe.state_count()
+    probe.wait_diag(lambda d: d.level == DiagnosticStatus.OK, 10, 'OK again')
+    wait_until(lambda: probe.state_count() > count, 5, 'samples again')
+    assert driver.alive()
+
+
+def test_port_missing_at_start_then_appearing(rig, probe, procs):
+    _, driver, port = rig(start_fake=False)
+    driver.wait_for_line('no such device', 20)
+    probe.wait_diag(lambda d: d.level == DiagnosticStatus.ERROR and 'no such device' in d.message,
+                    10, 'diagnostics ERROR: port missing')
+    time.sleep(1.5)
+    assert driver.alive()
+    fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port))
+    fake.wait_for_line('fake_arduino: device at', 20)
+    appeared = time.monotonic()
+    probe.wait_states(1, timeout=10)
+    assert time.monotonic() - appeared < 3.0    # reconnect_period_s + handshake
+
+
+def test_device_that_never_answers_the_handshake(procs, probe):
+    master, slave = os.openpty()         # a tty with nothing speaking the protocol behind it
+    try:
+        port = os.ttyname(slave)
+        driver = procs.ros2_run('pma_driver', 'driver_node', ros_args=[
+            '-p', f'port:={port}', '-p', 'handshake_timeout_s:=1.0'])
+        diag = probe.wait_diag(lambda d: d.level == DiagnosticStatus.ERROR, 20,
+                               'handshake ERROR')
+        assert 'no HELLO within 1 s' in diag.message
+        assert 'wrong baud rate or not a PMA firmware?' in diag.message
+        assert driver.alive()
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+PARAMS_FILE = INSTALL / 'pma_driver' / 'share' / 'pma_driver' / 'config' / 'driver_node.yaml'
+
+
+def test_params_file_lists_every_parameter_with_the_code_default():
+    listed = yaml.safe_load(PARAMS_FILE.read_text())['/**']['ros__parameters']
+    assert listed == {name: default for name, (default, _, _) in PARAMETERS.items()}
+
+
+def test_parameters_are_validated_and_port_is_read_only(rig, probe):
+    _, driver, _ = rig(params_file=PARAMS_FILE)
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    bad = probe.set_parameter('sample_rate_hz', -5.0)
+    assert not bad.successful and bad.reason
+    read_only = probe.set_parameter('port', '/dev/ttyUSB9')
+    assert not read_only.successful and 'read-only' in read_only.reason.lower()
+    heartbeat = probe.set_parameter('heartbeat_period_s', 0.9)   # > half of the 1000 ms timeout
+    assert not heartbeat.successful and 'half' in heartbeat.reason
+    good = probe.set_parameter('sample_rate_hz', 50.0)
+    assert good.successful, good.reason
+    states = probe.wait_states(60)
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in states[-40:]]
+    assert (stamps[-1] - stamps[0]) / 39 == pytest.approx(1 / 50.0, rel=0.2)
+
+
+def test_lifecycle_by_a_manager(rig, probe):
+    _, driver, _ = rig(driver_params=('autostart:=false',))
+    wait_until(lambda: probe.lifecycle_state() == 'unconfigured', 20, 'unconfigured')
+    assert probe.transition(1)                                   # configure
+    assert probe.lifecycle_state() == 'inactive'
+    time.sleep(1.0)
+    assert probe.state_count() == 0                              # inactive: nothing published
+    assert probe.transition(3)                                   # activate
+    probe.wait_states(5)
+    assert probe.transition(4)                                   # deactivate
+    time.sleep(0.5)
+    count = probe.state_count()
+    time.sleep(1.0)
+    assert probe.state_count() == count
+    assert probe.transition(2)                                   # cleanup: port closed
+    driver.wait_for_line('closed', 5)
+    assert probe.lifecycle_state() == 'unconfigured'
+    assert driver.alive()
+
+
+def test_sweep_records_its_own_bag(rig, probe, tmp_path):
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    assert probe.sweep.wait_for_server(timeout_sec=10)
+    bag = tmp_path / 'sweep_bag'
+    goal = Sweep.Goal(max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1,
+                      record=True, bag_path=str(bag))
+    sent = probe.sweep.send_goal_async(goal)
+    wait_until(sent.done, 10, 'goal answer')
+    result_future = sent.result().get_result_async()
+    wait_until(result_future.done, 60, 'sweep result')
+    result = result_future.result().result
+    assert result.success, result.message
+    assert result.bag_path == str(bag)
+    files = list(bag.glob('*.mcap'))
+    assert files, f'no MCAP file in {bag}: {list(bag.iterdir())}'
+    with open(files[0], 'rb') as stream:
+        reader = make_reader(stream)
+        topics = {channel.topic for _, channel, _ in reader.iter_messages()}
+    assert '/pma/state' in topics
+
+
+def test_ctrl_c_vents_before_closing(rig, procs, probe):
+    # Without the device's own heartbeat check, only the driver's VENT can bring it to 0 Pa.
+    _, driver, port = rig('--no-heartbeat-check')
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    probe.publish_setpoint(150_000.0)
+    wait_until(lambda: probe.latest().gauge_setpoint_pa == 150_000.0, 10, 'setpoint applied')
+    assert driver.stop() == 0                                   # SIGINT, as Ctrl-C
+    assert 'Traceback' not in driver.output
+    second = procs.ros2_run('pma_driver', 'driver_node', ros_args=['-p', f'port:={port}'])
+    second.wait_for_line('active: publishing', 30)
+    first = probe.wait_states(1)[0]
+    assert first.gauge_setpoint_pa == 0.0
