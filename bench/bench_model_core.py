@@ -1,0 +1,94 @@
+"""Speed of the hysteresis model core, as ratios to a numpy baseline timed in the same run.
+
+Run: python bench/bench_model_core.py [--samples 1000000]
+Absolute numbers depend on the machine; the ratios (time / baseline time) travel better.
+Array baseline: np.polyval of a degree-5 polynomial on the same array. Per-call baseline:
+np.polyval on one float. Paths: 'smooth' is a triangle sweep with a reversal every 2000
+samples; 'noisy' adds +/-10 kPa noise, so nearly every sample is a Madelung reversal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from pma_model.detector import BranchDetector
+from pma_model.params import default_params
+
+COEFFICIENTS = np.array([1e-30, -2e-24, 3e-18, -4e-12, 5e-6, 0.3])
+
+
+def best_time(function, repeats: int) -> float:
+    best = float('inf')
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--samples', type=int, default=1_000_000)
+    parser.add_argument('--repeats', type=int, default=3)
+    args = parser.parse_args()
+    n, repeats = args.samples, args.repeats
+    rng = np.random.default_rng(0)
+    phase = np.arange(n) % 4000
+    smooth = 500e3 * np.where(phase < 2000, phase, 4000 - phase) / 2000.0
+    noisy = smooth + rng.uniform(-10e3, 10e3, n)
+
+    params = default_params()
+    models = {form: replace(params, branch_form=form).build_model()
+              for form in ('sigmoid', 'hill')}
+    switch = replace(params, memory='switch').build_model()
+    sigmoid = models['sigmoid']
+
+    rows = []
+    baseline = best_time(lambda: np.polyval(COEFFICIENTS, smooth), repeats)
+    rows.append(('baseline: np.polyval deg 5', n, baseline))
+    for form, model in models.items():
+        rows.append((f'{form} branch length()', n,
+                     best_time(lambda m=model: m.increasing.length(smooth), repeats)))
+    rows.append(('detector.detect, smooth', n,
+                 best_time(lambda: BranchDetector(20e3).detect(smooth), repeats)))
+    rows.append(('madelung predict, smooth', n,
+                 best_time(lambda: sigmoid.predict(smooth), repeats)))
+    rows.append(('switch predict, smooth', n, best_time(lambda: switch.predict(smooth), repeats)))
+    noisy_n = min(n, 100_000)
+    rows.append(('madelung predict, noisy', noisy_n,
+                 best_time(lambda: sigmoid.predict(noisy[:noisy_n]), 1)))
+
+    print(f'{"vectorised":34s} {"samples":>9s} {"Msamples/s":>11s} {"x baseline time":>16s}')
+    for name, count, seconds in rows:
+        per_sample_ratio = (seconds / count) / (baseline / n)
+        print(f'{name:34s} {count:9d} {count / seconds / 1e6:11.2f} {per_sample_ratio:16.1f}')
+
+    calls = 2_000
+    scalar = 0.27
+    online_model = params.build_model()
+    online_path = smooth[:calls]
+    per_call = {
+        'baseline: np.polyval on a float': best_time(
+            lambda: [np.polyval(COEFFICIENTS, 1.5e5) for _ in range(calls)], repeats),
+        'sigmoid branch pressure()': best_time(
+            lambda: [sigmoid.increasing.pressure(scalar) for _ in range(calls)], repeats),
+        'hill branch pressure()': best_time(
+            lambda: [models['hill'].increasing.pressure(scalar) for _ in range(calls)], repeats),
+        'model.pressure_for_length (auto)': best_time(
+            lambda: [sigmoid.pressure_for_length(scalar) for _ in range(calls)], repeats),
+        'model.update (online, madelung)': best_time(
+            lambda: [online_model.update(p) for p in online_path], repeats),
+    }
+    call_baseline = per_call['baseline: np.polyval on a float'] / calls
+    print(f'\n{"per call":34s} {"us/call":>9s} {"x baseline":>11s}')
+    for name, seconds in per_call.items():
+        micros = seconds / calls * 1e6
+        print(f'{name:34s} {micros:9.2f} {seconds / calls / call_baseline:11.1f}')
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,285 @@
+"""Static length-pressure branches of the muscle: the paper's sigmoid and a Hill curve.
+
+Each hysteresis branch (increasing or decreasing pressure) is a monotone map from gauge
+pressure to length. Both forms share one interface so the memory model, the fitter and the
+node never care which one is in use. Everything is SI: pressure in Pa, length in m, and the
+sigmoid's b in 1/Pa (the paper's 0.011333 per kPa is 1.1333e-5 per Pa, see units.py).
+
+Pressures below 0 Pa gauge are treated as 0 Pa: there is no data below ambient and the
+muscle does not lengthen under a slight vacuum, so the forward map holds its rest value.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
+
+import numpy as np
+from scipy.optimize import least_squares
+
+DEFAULT_MAX_GAUGE_PRESSURE_PA = 500_000.0
+
+# Lengths closer than this fraction of the stroke to a branch's saturation asymptote are
+# refused by the inverse: there dP/dL grows without bound, so a sensor-sized length error
+# maps to an arbitrarily large pressure. With the paper's sigmoid this only bites above
+# about 1.4 MPa, i.e. only when max_gauge_pressure_pa is raised far beyond the muscle.
+SATURATION_MARGIN_FRACTION = 1e-6
+
+
+class UnreachableLengthError(ValueError):
+    """The requested length cannot be produced with gauge pressures 0..max on this branch."""
+
+    def __init__(self, message: str, min_length_m: float, max_length_m: float):
+        super().__init__(message)
+        self.min_length_m = min_length_m
+        self.max_length_m = max_length_m
+
+
+def _require(condition: bool, name: str, value, rule: str) -> None:
+    if not condition:
+        raise ValueError(f'{name} must be {rule}, got {value!r}')
+
+
+def _finite_positive(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+
+
+@dataclass(frozen=True)
+class Branch(abc.ABC):
+    """One monotone length(pressure) branch with a closed-form inverse.
+
+    Subclasses are frozen dataclasses whose fields are the parameters, in the order of
+    `names`; that order is also the parameter vector a least-squares fitter works on.
+    """
+
+    form: ClassVar[str]
+
+    @abc.abstractmethod
+    def length(self, p_pa):
+        """Length [m] at gauge pressure(s) [Pa]; vectorised, float in -> float out."""
+
+    @abc.abstractmethod
+    def inverse_unchecked(self, length_m):
+        """The closed-form inverse with no range check: NaN where it has no real answer.
+
+        For callers that have already checked the range (the memory model's scanning
+        curves); everyone else should call `pressure`.
+        """
+
+    @abc.abstractmethod
+    def stroke_m(self) -> float:
+        """Distance from the rest length to the saturation asymptote [m]."""
+
+    @abc.abstractmethod
+    def saturation_length_m(self) -> float:
+        """The length approached as pressure grows without bound [m]."""
+
+    # --- derived behaviour, shared by all forms -----------------------------------------
+
+    def length_range(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+        """(min_length_m, max_length_m) reachable with gauge pressures 0..p_max_pa."""
+        return float(self.length(p_max_pa)), float(self.length(0.0))
+
+    def invertible_pressure_limit(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+        """Highest pressure the inverse may answer: p_max_pa or the saturation margin."""
+        margin_floor = self.saturation_length_m() + SATURATION_MARGIN_FRACTION * self.stroke_m()
+        return min(float(p_max_pa), float(self.inverse_unchecked(margin_floor)))
+
+    def invertible_range(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+        """(min_length_m, max_length_m) the inverse answers for: 0..invertible_pressure_limit."""
+        return self.length_range(self.invertible_pressure_limit(p_max_pa))
+
+    def pressure(self, length_m, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+        """Gauge pressure [Pa] that gives length_m on this branch; never extrapolates.
+
+        Raises UnreachableLengthError (with the reachable range) when any requested length
+        is not finite or needs a pressure outside 0..p_max_pa.
+        """
+        lengths = np.asarray(length_m, dtype=float)
+        low, high = self.invertible_range(p_max_pa)
+        bad = ~(np.isfinite(lengths) & (lengths >= low) & (lengths <= high))
+        if np.any(bad):
+            first = float(lengths[bad].flat[0])
+            raise UnreachableLengthError(
+                f'length {first:.6g} m is outside the {self.form} branch range '
+                f'[{low:.6g}, {high:.6g}] m reachable with 0..{p_max_pa:.6g} Pa '
+                '(less the saturation margin)',
+                low, high)
+        limit_pa = self.invertible_pressure_limit(p_max_pa)
+        pressures = np.clip(self.inverse_unchecked(lengths), 0.0, limit_pa)
+        return float(pressures) if pressures.ndim == 0 else pressures
+
+    # --- parameter vector for fitters ---------------------------------------------------
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in fields(cls))
+
+    def vector(self) -> np.ndarray:
+        return np.array([getattr(self, name) for name in self.names()], dtype=float)
+
+    @classmethod
+    def from_vector(cls, vector) -> Branch:
+        values = [float(v) for v in vector]
+        if len(values) != len(cls.names()):
+            raise ValueError(f'{cls.form} branch needs {len(cls.names())} parameters '
+                             f'{cls.names()}, got {len(values)}')
+        return cls(**dict(zip(cls.names(), values, strict=True)))
+
+    @classmethod
+    @abc.abstractmethod
+    def bounds(cls) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) for each entry of the parameter vector, for least_squares."""
+
+    def to_dict(self) -> dict[str, float]:
+        return {name: float(value) for name, value in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> Branch:
+        missing = set(cls.names()) - set(values)
+        extra = set(values) - set(cls.names())
+        if missing or extra:
+            raise ValueError(f'{cls.form} branch parameters must be exactly {cls.names()}; '
+                             f'missing {sorted(missing)}, unknown {sorted(extra)}')
+        return cls(**{name: float(values[name]) for name in cls.names()})
+
+
+@dataclass(frozen=True)
+class SigmoidBranch(Branch):
+    """The paper's branch: L = L0 - a*L0 / (1 + exp(-b*P))**c."""
+
+    form: ClassVar[str] = 'sigmoid'
+
+    l0_m: float
+    a: float
+    b_per_pa: float
+    c: float
+
+    def __post_init__(self):
+        _require(_finite_positive(self.l0_m), 'l0_m', self.l0_m, 'finite and > 0')
+        _require(_finite_positive(self.a) and self.a < 1, 'a', self.a, 'in (0, 1)')
+        _require(_finite_positive(self.b_per_pa), 'b_per_pa', self.b_per_pa, 'finite and > 0')
+        _require(_finite_positive(self.c), 'c', self.c, 'finite and > 0')
+
+    def length(self, p_pa):
+        p = np.maximum(np.asarray(p_pa, dtype=float), 0.0)
+        # (1 + exp(-bP))**-c written as exp(-c*log(1 + exp(-bP))) so no power overflows.
+        saturation = np.exp(-self.c * np.logaddexp(0.0, -self.b_per_pa * p))
+        result = self.l0_m - self.a * self.l0_m * saturation
+        return float(result) if result.ndim == 0 else result
+
+    def inverse_unchecked(self, length_m):
+        length = np.asarray(length_m, dtype=float)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            # u = log(1 + exp(-bP)); expm1 keeps precision near saturation, where u -> 0.
+            u = np.log(self.a * self.l0_m / (self.l0_m - length)) / self.c
+            result = -np.log(np.expm1(u)) / self.b_per_pa
+        result = np.where(np.isfinite(result), result, np.nan)
+        return float(result) if result.ndim == 0 else result
+
+    def stroke_m(self) -> float:
+        return self.a * self.l0_m
+
+    def saturation_length_m(self) -> float:
+        return self.l0_m * (1.0 - self.a)
+
+    @classmethod
+    def bounds(cls):
+        return (np.array([1e-3, 1e-6, 1e-9, 1e-2]), np.array([10.0, 1.0 - 1e-9, 1e-2, 100.0]))
+
+
+@dataclass(frozen=True)
+class HillBranch(Branch):
+    """A Hill curve: L = L0 - dL * P**n / (P**n + K**n).
+
+    Unlike the sigmoid it is flat at P = 0 (n > 1), so it follows the rig's 0-50 kPa
+    dead zone, and it saturates at L0 - dL rather than at a fixed exponent's limit.
+    """
+
+    form: ClassVar[str] = 'hill'
+
+    l0_m: float
+    dl_m: float
+    k_pa: float
+    n: float
+
+    def __post_init__(self):
+        _require(_finite_positive(self.l0_m), 'l0_m', self.l0_m, 'finite and > 0')
+        _require(_finite_positive(self.dl_m) and self.dl_m < self.l0_m, 'dl_m', self.dl_m,
+                 'in (0, l0_m)')
+        _require(_finite_positive(self.k_pa), 'k_pa', self.k_pa, 'finite and > 0')
+        _require(_finite_positive(self.n), 'n', self.n, 'finite and > 0')
+
+    def length(self, p_pa):
+        ratio = np.maximum(np.asarray(p_pa, dtype=float), 0.0) / self.k_pa
+        powered = np.power(ratio, self.n)
+        result = self.l0_m - self.dl_m * powered / (1.0 + powered)
+        return float(result) if result.ndim == 0 else result
+
+    def inverse_unchecked(self, length_m):
+        fraction = (self.l0_m - np.asarray(length_m, dtype=float)) / self.dl_m
+        with np.errstate(divide='ignore', invalid='ignore'):
+            result = self.k_pa * np.power(fraction / (1.0 - fraction), 1.0 / self.n)
+        result = np.where(np.isfinite(result) & (fraction >= 0), result, np.nan)
+        return float(result) if result.ndim == 0 else result
+
+    def stroke_m(self) -> float:
+        return self.dl_m
+
+    def saturation_length_m(self) -> float:
+        return self.l0_m - self.dl_m
+
+    @classmethod
+    def bounds(cls):
+        return (np.array([1e-3, 1e-6, 1.0, 0.1]), np.array([10.0, 10.0, 1e7, 20.0]))
+
+
+BRANCH_FORMS: dict[str, type[Branch]] = {'sigmoid': SigmoidBranch, 'hill': HillBranch}
+
+
+def branch_class(form: str) -> type[Branch]:
+    try:
+        return BRANCH_FORMS[form]
+    except KeyError:
+        raise ValueError(f'branch form must be one of {sorted(BRANCH_FORMS)}, got {form!r}') \
+            from None
+
+
+def fit_branch(initial: Branch, p_pa, length_m, fixed: tuple[str, ...] = ()) -> Branch:
+    """Least-squares fit of a branch to (pressure, length) samples, from `initial`.
+
+    Parameters named in `fixed` keep their initial value (the paper fixes c and L0).
+    NaN samples are ignored. Residuals are in metres, so the fit minimises the MSE.
+    """
+    cls = type(initial)
+    pressures = np.asarray(p_pa, dtype=float)
+    lengths = np.asarray(length_m, dtype=float)
+    keep = np.isfinite(pressures) & np.isfinite(lengths)
+    pressures, lengths = pressures[keep], lengths[keep]
+    unknown = set(fixed) - set(cls.names())
+    if unknown:
+        raise ValueError(f'cannot fix unknown {cls.form} parameters {sorted(unknown)}')
+    free = [i for i, name in enumerate(cls.names()) if name not in fixed]
+    if len(pressures) < len(free):
+        raise ValueError(f'need at least {len(free)} finite samples, got {len(pressures)}')
+    start = initial.vector()
+    lower, upper = cls.bounds()
+
+    # Parameters differ by ~10 orders of magnitude (b per Pa vs L0 in m), so the solver
+    # works on them divided by their starting values: every unknown is then about 1.
+    scale = np.where(start[free] != 0, np.abs(start[free]), 1.0)
+
+    def model_with(normalised):
+        vector = start.copy()
+        vector[free] = normalised * scale
+        return cls.from_vector(vector)
+
+    def residuals(normalised):
+        return model_with(normalised).length(pressures) - lengths
+
+    result = least_squares(residuals, start[free] / scale,
+                           bounds=(lower[free] / scale, upper[free] / scale), method='trf',
+                           x_scale='jac', xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=10_000)
+    return model_with(result.x)

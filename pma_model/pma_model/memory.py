@@ -1,0 +1,379 @@
+"""Hysteresis memory: how the two major branches combine into a length for any pressure path.
+
+Two rules (docs/model.md has the full story):
+
+- 'switch' (the paper): the length is the major branch of the detected direction, so it
+  jumps by the loop width at every reversal.
+- 'madelung' (default): a stack of turning points with wiping-out. Each scanning curve is
+  the current direction's major branch B rescaled through the last reversal O and the
+  previous opposite reversal T:
+      L(P) = L_T + (L_O - L_T) * (B(P) - B(P_T)) / (B(P_O) - B(P_T))
+  and when P passes P_T, O and T are popped and the older curve continues. With no turning
+  point the state is on the increasing major branch; a single turning point (a maximum)
+  heads for the permanent anchor (0 Pa, decreasing branch at 0 Pa). This gives
+  return-point memory, no jump at a reversal, and a closed-form inverse through B^-1.
+
+The Madelung stack follows every reversal of the pressure signal (loops smaller than the
+noise close on themselves and are wiped out); the deadband detector gives the reported
+branch, drives 'switch', and is the one the offline refit uses.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
+from pma_model.detector import (
+    BRANCH_AUTO,
+    BRANCH_DECREASING,
+    BRANCH_INCREASING,
+    BRANCH_NAMES,
+    BranchDetector,
+)
+
+MEMORY_MODES = ('madelung', 'switch')
+
+# Nested turning points need distinct pressures, so a 10-bit sensor cannot fill this; the
+# cap only bounds memory for pathological input. Overflow forgets the oldest loop.
+MAX_TURNING_POINTS = 512
+
+# Monotone runs shorter than this are stepped sample by sample (noisy data reverses
+# nearly every sample; one numpy evaluation per run would cost more than stepping).
+_SHORT_RUN = 32
+
+# Below this |B(P_O) - B(P_T)| [m] the rescaling is 0/0 (both points in the flat region
+# below 0 Pa): the curve is then B shifted through O instead.
+_FLAT_SPAN_M = 1e-15
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """The answer to 'which pressure makes the muscle this long?' (PressureForLength)."""
+
+    success: bool
+    message: str
+    gauge_pressure_pa: float
+    branch: int
+    min_length_m: float
+    max_length_m: float
+
+
+@dataclass(frozen=True)
+class _Curve:
+    """A scanning curve through O and T shaped like `major`; O is None for the major itself."""
+
+    major: Branch
+    origin: tuple[float, float] | None = None
+    target: tuple[float, float] | None = None
+
+    @functools.cached_property
+    def _span(self):
+        return float(self.major.length(self.origin[0])), float(self.major.length(self.target[0]))
+
+    def length(self, p_pa):
+        shape = self.major.length(p_pa)
+        if self.origin is None:
+            return shape
+        (_, l_origin), (_, l_target) = self.origin, self.target
+        b_origin, b_target = self._span
+        if abs(b_origin - b_target) < _FLAT_SPAN_M:
+            return l_origin + (shape - b_origin)
+        return l_target + (l_origin - l_target) * (shape - b_target) / (b_origin - b_target)
+
+    def pressure(self, length_m: float) -> float:
+        """P with length(P) == length_m, through B^-1 (NaN when the shape has none)."""
+        if self.origin is None:
+            return float(self.major.inverse_unchecked(length_m))
+        (p_origin, l_origin), (_, l_target) = self.origin, self.target
+        b_origin, b_target = self._span
+        if abs(b_origin - b_target) < _FLAT_SPAN_M:
+            shape = length_m - l_origin + b_origin
+        elif l_origin == l_target:
+            return p_origin if length_m == l_origin else math.nan
+        else:
+            scale = (b_origin - b_target) / (l_origin - l_target)
+            shape = b_target + (length_m - l_target) * scale
+        return float(self.major.inverse_unchecked(shape))
+
+
+class HysteresisModel:
+    """Length of the muscle for a pressure history, and the inverse for a target length.
+
+    The state starts at rest: 0 Pa on the increasing major branch.
+    """
+
+    def __init__(self, increasing: Branch, decreasing: Branch, memory: str = 'madelung',
+                 deadband_pa: float = 20_000.0,
+                 max_gauge_pressure_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+        if memory not in MEMORY_MODES:
+            raise ValueError(f'memory must be one of {MEMORY_MODES}, got {memory!r}')
+        if not (math.isfinite(max_gauge_pressure_pa) and max_gauge_pressure_pa > 0):
+            raise ValueError('max_gauge_pressure_pa must be finite and > 0, '
+                             f'got {max_gauge_pressure_pa!r}')
+        self.increasing = increasing
+        self.decreasing = decreasing
+        self.memory = memory
+        self.max_gauge_pressure_pa = float(max_gauge_pressure_pa)
+        self._detector = BranchDetector(deadband_pa)
+        self.reset()
+
+    # --- state ----------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Back to rest: 0 Pa, increasing major branch, no turning points."""
+        self._detector.reset()
+        self._p = 0.0
+        self._l = float(self.increasing.length(0.0))
+        self._rising = True
+        self._stack: list[tuple[float, float]] = []
+        self._cached_key = None
+        self._cached_curve: _Curve | None = None
+
+    @property
+    def deadband_pa(self) -> float:
+        return self._detector.deadband_pa
+
+    @property
+    def pressure_pa(self) -> float:
+        return self._p
+
+    @property
+    def length_m(self) -> float:
+        return self._l
+
+    @property
+    def branch(self) -> int:
+        """The detector's branch (1 increasing, 2 decreasing), as published."""
+        return self._detector.branch
+
+    @property
+    def rest_length_m(self) -> float:
+        return float(self.increasing.length(0.0))
+
+    @property
+    def turning_points(self) -> tuple[tuple[float, float], ...]:
+        """Madelung stack (pressure_pa, length_m), oldest first."""
+        return tuple(self._stack)
+
+    def _major(self, rising: bool) -> Branch:
+        return self.increasing if rising else self.decreasing
+
+    def _curve(self, rising: bool, stack: list[tuple[float, float]]) -> _Curve:
+        major = self._major(rising)
+        if not stack:
+            return _Curve(major)
+        if len(stack) >= 2:
+            target = stack[-2]
+        else:
+            anchor_pa = self.max_gauge_pressure_pa if rising else 0.0
+            target = (anchor_pa, float(major.length(anchor_pa)))
+        return _Curve(major, stack[-1], target)
+
+    def _push(self, point: tuple[float, float]) -> None:
+        self._stack.append(point)
+        if len(self._stack) > MAX_TURNING_POINTS:
+            del self._stack[:2]
+
+    def _wipe_out(self, p_pa: float) -> bool:
+        """Pop (O, T) if p_pa has reached P_T; True when something was popped."""
+        if len(self._stack) < 2:
+            return False
+        target_pa = self._stack[-2][0]
+        if (p_pa >= target_pa) if self._rising else (p_pa <= target_pa):
+            del self._stack[-2:]
+            return True
+        return False
+
+    # --- forward --------------------------------------------------------------------
+
+    def update(self, p_pa: float) -> tuple[float, int]:
+        """Advance by one gauge pressure [Pa]; returns (length_m, branch).
+
+        NaN or inf raises ValueError and leaves the state untouched.
+        """
+        p_pa = float(p_pa)
+        if not math.isfinite(p_pa):
+            raise ValueError(f'gauge pressure must be finite, got {p_pa!r}')
+        branch = self._detector.update(p_pa)
+        if self.memory == 'switch':
+            self._p, self._l = p_pa, float(self._major(branch == BRANCH_INCREASING).length(p_pa))
+            return self._l, branch
+        self._step_madelung(p_pa)
+        return self._l, branch
+
+    def _step_madelung(self, p_pa: float) -> None:
+        if p_pa != self._p:
+            rising = p_pa > self._p
+            if rising != self._rising:
+                self._push((self._p, self._l))
+                self._rising = rising
+            while self._wipe_out(p_pa):
+                pass
+            self._l = float(self._current_curve().length(p_pa))
+            self._p = p_pa
+
+    def _current_curve(self) -> _Curve:
+        """The curve in force, rebuilt only when the direction or the stack's top changes."""
+        key = (self._rising, len(self._stack), tuple(self._stack[-2:]))
+        if key != self._cached_key:
+            self._cached_key = key
+            self._cached_curve = self._curve(self._rising, self._stack)
+        return self._cached_curve
+
+    def advance(self, p_pa) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorised `update` over an array: (lengths_m, branches), state advanced.
+
+        Same result as calling update() per sample, except that NaN/inf samples give a NaN
+        length (and the branch in force) instead of raising.
+        """
+        pressures = np.asarray(p_pa, dtype=float).ravel()
+        branches = self._detector.detect(pressures)
+        lengths = np.full(pressures.size, np.nan)
+        finite = np.flatnonzero(np.isfinite(pressures))
+        if finite.size == 0:
+            return lengths, branches
+        values = pressures[finite]
+        if self.memory == 'switch':
+            rising = branches[finite] == BRANCH_INCREASING
+            lengths[finite] = np.where(rising, self.increasing.length(values),
+                                       self.decreasing.length(values))
+            self._p, self._l = float(values[-1]), float(lengths[finite[-1]])
+            return lengths, branches
+        lengths[finite] = self._advance_madelung(values)
+        return lengths, branches
+
+    def predict(self, p_pa) -> np.ndarray:
+        """Lengths [m] for a whole pressure path simulated from rest; this model is unchanged."""
+        fresh = copy.deepcopy(self)
+        fresh.reset()
+        return fresh.advance(p_pa)[0]
+
+    def _advance_madelung(self, values: np.ndarray) -> np.ndarray:
+        """Madelung over finite pressures, one numpy evaluation per curve segment."""
+        out = np.empty(values.size)
+        previous = np.concatenate(([self._p], values[:-1]))
+        steps = np.sign(values - previous)
+        # A hold (zero step) keeps the direction in force: forward-fill the last nonzero sign.
+        last_move = np.maximum.accumulate(np.where(steps != 0, np.arange(values.size), -1))
+        direction = np.where(last_move >= 0, steps[np.maximum(last_move, 0)],
+                             1.0 if self._rising else -1.0)
+        run_starts = np.concatenate(([0], np.flatnonzero(direction[1:] != direction[:-1]) + 1))
+        run_ends = np.concatenate((run_starts[1:], [values.size]))
+        for start, end in zip(run_starts, run_ends, strict=True):
+            if end - start < _SHORT_RUN:  # numpy's per-call cost dominates: step instead
+                for index in range(start, end):
+                    self._step_madelung(float(values[index]))
+                    out[index] = self._l
+                continue
+            rising = bool(direction[start] > 0)
+            if rising != self._rising:
+                self._push((self._p, self._l))
+                self._rising = rising
+            position = start
+            while position < end:
+                stop = end
+                if len(self._stack) >= 2:
+                    target_pa = self._stack[-2][0]
+                    run = values[position:end]
+                    reached = (run >= target_pa) if rising else (run <= target_pa)
+                    if reached.any():
+                        stop = position + int(np.argmax(reached))
+                if stop > position:
+                    out[position:stop] = self._curve(rising, self._stack).length(
+                        values[position:stop])
+                if stop < end:
+                    del self._stack[-2:]
+                position = stop
+            self._p, self._l = float(values[end - 1]), float(out[end - 1])
+        return out
+
+    # --- inverse --------------------------------------------------------------------
+
+    def auto_branch(self, length_m: float) -> int:
+        """AUTO rule: a target shorter than now needs more pressure -> increasing."""
+        return BRANCH_INCREASING if length_m < self._l else BRANCH_DECREASING
+
+    def pressure_for_length(self, length_m: float, branch: int = BRANCH_AUTO) -> InverseResult:
+        """Gauge pressure [Pa] that gives length_m when pressure moves along `branch`.
+
+        Madelung: the path pressure would follow from the current state in that direction -
+        the current scanning curve if the state is already moving that way, else the curve a
+        reversal right now would start (the rescaled major branch from the current point),
+        continuing through wiping-out to 0 Pa or the maximum pressure. Switch: the major
+        branch. Never answers outside 0..max_gauge_pressure_pa; refusals carry the range.
+        """
+        if branch not in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING):
+            return InverseResult(False, f'unknown branch {branch!r}: use 0 (auto), '
+                                 '1 (increasing) or 2 (decreasing)', math.nan, 0, math.nan,
+                                 math.nan)
+        try:
+            length_m = float(length_m)
+        except (TypeError, ValueError):
+            length_m = math.nan
+        if not math.isfinite(length_m):
+            return InverseResult(False, f'target length must be finite, got {length_m!r}',
+                                 math.nan, 0, math.nan, math.nan)
+        if branch == BRANCH_AUTO:
+            branch = self.auto_branch(length_m)
+        rising = branch == BRANCH_INCREASING
+        name = BRANCH_NAMES[branch]
+        if self.memory == 'switch':
+            ends = (0.0, self.max_gauge_pressure_pa)
+            segments = [(_Curve(self._major(rising)), *(ends if rising else ends[::-1]))]
+            where = f'{name} major branch'
+        else:
+            segments = self._future_segments(rising)
+            where = f'{name} path from the current state ({self._p:.6g} Pa, {self._l:.6g} m)'
+        pieces = []
+        for curve, p_from, p_to in segments:
+            # Only the part of each piece that lies ahead of us and inside 0..limit counts.
+            limit_pa = curve.major.invertible_pressure_limit(self.max_gauge_pressure_pa)
+            low_pa, high_pa = (p_from, p_to) if rising else (p_to, p_from)
+            low_pa, high_pa = max(low_pa, 0.0), min(high_pa, limit_pa)
+            if low_pa <= high_pa:
+                pieces.append((curve, low_pa, high_pa, float(curve.length(low_pa)),
+                               float(curve.length(high_pa))))
+        if not pieces:
+            return InverseResult(False, f'no pressure within 0..{self.max_gauge_pressure_pa:.6g}'
+                                 f' Pa is reachable on the {where}', math.nan, 0, math.nan,
+                                 math.nan)
+        ends = [value for piece in pieces for value in piece[3:]]
+        min_length_m, max_length_m = min(ends), max(ends)
+        for curve, low_pa, high_pa, l_low, l_high in pieces:
+            if min(l_low, l_high) <= length_m <= max(l_low, l_high):
+                pressure = curve.pressure(length_m)
+                if math.isnan(pressure):
+                    pressure = low_pa if abs(length_m - l_low) <= abs(length_m - l_high) \
+                        else high_pa
+                pressure = min(max(pressure, low_pa), high_pa)
+                return InverseResult(True, f'on the {where}', pressure, branch,
+                                     min_length_m, max_length_m)
+        return InverseResult(
+            False, f'length {length_m:.6g} m is not reachable on the {where}: reachable '
+            f'[{min_length_m:.6g}, {max_length_m:.6g}] m with 0..'
+            f'{self.max_gauge_pressure_pa:.6g} Pa', math.nan, 0, min_length_m, max_length_m)
+
+    def _future_segments(self, rising: bool) -> list[tuple[_Curve, float, float]]:
+        """(curve, from_pa, to_pa) pieces pressure would follow moving one way from here."""
+        stack = list(self._stack)
+        if rising != self._rising:
+            stack.append((self._p, self._l))
+        segments = []
+        p_from = self._p
+        limit_pa = self.max_gauge_pressure_pa if rising else 0.0
+        while True:
+            curve = self._curve(rising, stack)
+            p_to = stack[-2][0] if len(stack) >= 2 else limit_pa
+            final = len(stack) < 2 or ((p_to >= limit_pa) if rising else (p_to <= limit_pa))
+            if final:
+                p_to = limit_pa
+            segments.append((curve, p_from, p_to))
+            if final:
+                return segments
+            del stack[-2:]
+            p_from = p_to

@@ -1,0 +1,300 @@
+"""The model's parameters: validated, in SI, loadable from and savable to a ROS params file.
+
+One structure serves the node (flat dotted ROS parameters such as `increasing.sigmoid.a`),
+the params file it loads with --params-file (nested under `/**: ros__parameters:`) and the
+ModelParams message (YAML text). Both branch forms are always present and validated, so
+switching `branch_form` never needs new numbers. The defaults live in the package data file
+data/default_params.yaml (the paper's increasing fit and our least-squares fits of Table 1).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, fields, replace
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from pma_model import units
+from pma_model.adaptation import AdaptationSettings, DriftAdapter
+from pma_model.branches import Branch, HillBranch, SigmoidBranch, branch_class
+from pma_model.memory import MEMORY_MODES, HysteresisModel
+
+BRANCH_FORM_NAMES = ('sigmoid', 'hill')
+DIRECTIONS = ('increasing', 'decreasing')
+
+# Sanity ranges that catch unit mix-ups (kPa for Pa, cm for m, b per kPa for per Pa).
+MAX_GAUGE_PRESSURE_RANGE_PA = (10_000.0, 1_000_000.0)
+MAX_L0_M = 2.0
+MAX_B_PER_PA = 1e-3
+MIN_K_PA = 1_000.0
+
+
+class ParamsError(ValueError):
+    """A parameter failed validation; the message names the field (dotted ROS name)."""
+
+
+@dataclass(frozen=True)
+class BranchParams:
+    """Both forms' parameters for one direction (increasing or decreasing pressure)."""
+
+    sigmoid: SigmoidBranch
+    hill: HillBranch
+
+    def of_form(self, form: str) -> Branch:
+        return getattr(self, form)
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    branch_form: str
+    memory: str
+    deadband_pa: float
+    max_gauge_pressure_pa: float
+    adaptation: AdaptationSettings
+    increasing: BranchParams
+    decreasing: BranchParams
+
+    def __post_init__(self):
+        if self.branch_form not in BRANCH_FORM_NAMES:
+            raise ParamsError(f'branch_form must be one of {BRANCH_FORM_NAMES}, '
+                              f'got {self.branch_form!r}')
+        if self.memory not in MEMORY_MODES:
+            raise ParamsError(f'memory must be one of {MEMORY_MODES}, got {self.memory!r}')
+        low, high = MAX_GAUGE_PRESSURE_RANGE_PA
+        if not (math.isfinite(self.max_gauge_pressure_pa)
+                and low <= self.max_gauge_pressure_pa <= high):
+            raise ParamsError(f'max_gauge_pressure_pa must be in [{low:.0f}, {high:.0f}] Pa, '
+                              f'got {self.max_gauge_pressure_pa!r} (Pa, not kPa)')
+        if not (math.isfinite(self.deadband_pa)
+                and 0 <= self.deadband_pa < 0.5 * self.max_gauge_pressure_pa):
+            raise ParamsError('deadband_pa must be >= 0 and below half of '
+                              f'max_gauge_pressure_pa, got {self.deadband_pa!r}')
+        for direction in DIRECTIONS:
+            pair = getattr(self, direction)
+            for form in BRANCH_FORM_NAMES:
+                _check_units(f'{direction}.{form}', pair.of_form(form))
+
+    # --- building the pieces --------------------------------------------------------
+
+    def branches(self) -> tuple[Branch, Branch]:
+        """(increasing, decreasing) branches of the selected form."""
+        return (self.increasing.of_form(self.branch_form),
+                self.decreasing.of_form(self.branch_form))
+
+    def build_model(self) -> HysteresisModel:
+        increasing, decreasing = self.branches()
+        return HysteresisModel(increasing, decreasing, memory=self.memory,
+                               deadband_pa=self.deadband_pa,
+                               max_gauge_pressure_pa=self.max_gauge_pressure_pa)
+
+    def build_adapter(self) -> DriftAdapter:
+        """Adapter around the model's rest length (used only if adaptation.enabled)."""
+        return DriftAdapter(float(self.branches()[0].length(0.0)), self.adaptation)
+
+    def with_branches(self, increasing: Branch, decreasing: Branch) -> ModelParams:
+        """A copy with the given branches (their form) replacing that form's numbers."""
+        form = increasing.form
+        if decreasing.form != form:
+            raise ParamsError('both branches must have the same form')
+        return replace(self, increasing=replace(self.increasing, **{form: increasing}),
+                       decreasing=replace(self.decreasing, **{form: decreasing}))
+
+    # --- flat ROS parameters --------------------------------------------------------
+
+    def to_ros_parameters(self) -> dict[str, object]:
+        """{dotted name: value}, the way rclpy sees the params file's nested keys."""
+        flat: dict[str, object] = {
+            'branch_form': self.branch_form,
+            'memory': self.memory,
+            'deadband_pa': float(self.deadband_pa),
+            'max_gauge_pressure_pa': float(self.max_gauge_pressure_pa),
+        }
+        for item in fields(AdaptationSettings):
+            value = getattr(self.adaptation, item.name)
+            flat[f'adaptation.{item.name}'] = value if isinstance(value, bool) else float(value)
+        for direction in DIRECTIONS:
+            for form in BRANCH_FORM_NAMES:
+                for name, value in getattr(self, direction).of_form(form).to_dict().items():
+                    flat[f'{direction}.{form}.{name}'] = float(value)
+        return flat
+
+    @classmethod
+    def from_ros_parameters(cls, values: dict, base: ModelParams | None = None) -> ModelParams:
+        """Parameters from {dotted name: value}; names not given keep `base` (the defaults).
+
+        Unknown names, wrong types and out-of-range values raise ParamsError naming the field.
+        Integers are accepted for float fields (a params file may say 10000 for 10000.0).
+        """
+        merged = (base or default_params()).to_ros_parameters()
+        unknown = sorted(set(values) - set(merged))
+        if unknown:
+            raise ParamsError(f'unknown parameter(s) {unknown}; known: {sorted(merged)}')
+        for name, value in values.items():
+            merged[name] = _coerce(name, value, merged[name])
+        adaptation = {item.name: merged[f'adaptation.{item.name}']
+                      for item in fields(AdaptationSettings)}
+        try:
+            adaptation_settings = AdaptationSettings(**adaptation)
+        except ValueError as error:
+            raise ParamsError(f'adaptation.{error}') from None
+        pairs = {}
+        for direction in DIRECTIONS:
+            forms = {}
+            for form in BRANCH_FORM_NAMES:
+                prefix = f'{direction}.{form}.'
+                branch_values = {key[len(prefix):]: value for key, value in merged.items()
+                                 if key.startswith(prefix)}
+                try:
+                    forms[form] = branch_class(form).from_dict(branch_values)
+                except ValueError as error:
+                    raise ParamsError(f'{prefix}{error}') from None
+            pairs[direction] = BranchParams(**forms)
+        return cls(branch_form=merged['branch_form'], memory=merged['memory'],
+                   deadband_pa=merged['deadband_pa'],
+                   max_gauge_pressure_pa=merged['max_gauge_pressure_pa'],
+                   adaptation=adaptation_settings, **pairs)
+
+    # --- YAML (ROS params-file format) ----------------------------------------------
+
+    def to_nested(self) -> dict:
+        """The ros__parameters mapping: nested dicts, SI values, floats as floats."""
+        nested: dict = {}
+        for name, value in self.to_ros_parameters().items():
+            node = nested
+            *parents, leaf = name.split('.')
+            for parent in parents:
+                node = node.setdefault(parent, {})
+            node[leaf] = value
+        return nested
+
+    def to_yaml(self, node_name: str = '/**') -> str:
+        """Params-file text that `model_node --ros-args --params-file` loads as is."""
+        return yaml.safe_dump({node_name: {'ros__parameters': self.to_nested()}},
+                              sort_keys=False, default_flow_style=False)
+
+    def save_yaml(self, path, node_name: str = '/**') -> None:
+        Path(path).write_text(self.to_yaml(node_name))
+
+    @classmethod
+    def from_nested(cls, nested: dict, base: ModelParams | None = None) -> ModelParams:
+        if not isinstance(nested, dict):
+            raise ParamsError(f'ros__parameters must be a mapping, got {type(nested).__name__}')
+        return cls.from_ros_parameters(_flatten(nested), base)
+
+    @classmethod
+    def from_yaml(cls, text: str, base: ModelParams | None = None) -> ModelParams:
+        """From params-file text: `<node or /**>: {ros__parameters: {...}}`."""
+        try:
+            document = yaml.safe_load(text)
+        except yaml.YAMLError as error:
+            raise ParamsError(f'not valid YAML: {error}') from None
+        if not isinstance(document, dict) or len(document) != 1:
+            raise ParamsError('a params file must have exactly one top-level key '
+                              "(a node name or '/**')")
+        (section,) = document.values()
+        if not isinstance(section, dict) or set(section) != {'ros__parameters'}:
+            raise ParamsError("the top-level key must hold only 'ros__parameters'")
+        return cls.from_nested(section['ros__parameters'], base)
+
+    @classmethod
+    def load_yaml(cls, path, base: ModelParams | None = None) -> ModelParams:
+        try:
+            text = Path(path).read_text()
+        except OSError as error:
+            raise ParamsError(f'cannot read params file {path}: {error}') from None
+        try:
+            return cls.from_yaml(text, base)
+        except ParamsError as error:
+            raise ParamsError(f'{path}: {error}') from None
+
+
+def _check_units(prefix: str, branch: Branch) -> None:
+    if branch.l0_m > MAX_L0_M:
+        raise ParamsError(f'{prefix}.l0_m must be <= {MAX_L0_M} m, got {branch.l0_m!r} '
+                          '(metres, not cm)')
+    if isinstance(branch, SigmoidBranch) and branch.b_per_pa > MAX_B_PER_PA:
+        raise ParamsError(f'{prefix}.b_per_pa must be <= {MAX_B_PER_PA} per Pa, got '
+                          f'{branch.b_per_pa!r} (per Pa, not per kPa)')
+    if isinstance(branch, HillBranch) and branch.k_pa < MIN_K_PA:
+        raise ParamsError(f'{prefix}.k_pa must be >= {MIN_K_PA} Pa, got {branch.k_pa!r} '
+                          '(Pa, not kPa)')
+
+
+def _coerce(name: str, value, template):
+    """`value` as the type of the default `template`, or ParamsError naming the field."""
+    if isinstance(template, bool):
+        if isinstance(value, bool):
+            return value
+        raise ParamsError(f'{name} must be true or false, got {value!r}')
+    if isinstance(template, str):
+        if isinstance(value, str):
+            return value
+        raise ParamsError(f'{name} must be a string, got {value!r}')
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ParamsError(f'{name} must be a number, got {value!r}')
+    if not math.isfinite(value):
+        raise ParamsError(f'{name} must be finite, got {value!r}')
+    return float(value)
+
+
+def _flatten(nested: dict, prefix: str = '') -> dict:
+    flat = {}
+    for key, value in nested.items():
+        name = f'{prefix}{key}'
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f'{name}.'))
+        else:
+            flat[name] = value
+    return flat
+
+
+@dataclass(frozen=True)
+class PaperTable:
+    """The paper's Table 1 in SI: one length per pressure for each branch."""
+
+    pressure_pa: np.ndarray
+    increasing_length_m: np.ndarray
+    decreasing_length_m: np.ndarray
+
+
+def paper_table1() -> PaperTable:
+    """Table 1 from the package data (kPa/cm in the file, SI here)."""
+    text = resources.files('pma_model').joinpath('data', 'paper_table1.csv').read_text()
+    rows = list(csv.DictReader(io.StringIO(text)))
+
+    def column(name):
+        return np.array([float(row[name]) for row in rows])
+
+    return PaperTable(units.kpa_to_pa(column('pressure_kpa')),
+                      units.cm_to_m(column('length_increasing_cm')),
+                      units.cm_to_m(column('length_decreasing_cm')))
+
+
+def default_params_path():
+    """The packaged defaults (a Traversable; read it with .read_text())."""
+    return resources.files('pma_model').joinpath('data', 'default_params.yaml')
+
+
+def default_params() -> ModelParams:
+    """The shipped defaults, read from the package data file every time (it is small)."""
+    document = yaml.safe_load(default_params_path().read_text())
+    (section,) = document.values()
+    flat = _flatten(section['ros__parameters'])
+    missing = sorted(set(_SEED.to_ros_parameters()) - set(flat))
+    if missing:
+        raise ParamsError(f'{default_params_path()} lacks {missing}')
+    return ModelParams.from_ros_parameters(flat, base=_SEED)
+
+
+# from_ros_parameters needs a complete base to merge into; this seed is only that scaffold
+# (every value is overwritten by the data file, and the file must name every field).
+_SEED = ModelParams(
+    branch_form='sigmoid', memory='madelung', deadband_pa=20_000.0,
+    max_gauge_pressure_pa=500_000.0, adaptation=AdaptationSettings(),
+    increasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)),
+    decreasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)))

@@ -1,0 +1,262 @@
+"""Hysteresis memory: Madelung return-point memory, wiping-out, continuity, the inverse."""
+
+import copy
+import itertools
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
+from pma_model.memory import MAX_TURNING_POINTS, HysteresisModel
+from pma_model.params import default_params
+
+KPA = 1000.0
+
+
+def model_of(form='sigmoid', memory='madelung', **overrides):
+    params = replace(default_params(), branch_form=form, memory=memory, **overrides)
+    return params.build_model()
+
+
+def ramp(*turns_kpa, step_kpa=1.0):
+    """A piecewise-linear pressure path through the turning points, in Pa."""
+    pieces = [np.array([turns_kpa[0]])]
+    for start, end in itertools.pairwise(turns_kpa):
+        count = max(1, round(abs(end - start) / step_kpa))
+        pieces.append(np.linspace(start, end, count + 1)[1:])
+    return np.concatenate(pieces) * KPA
+
+
+def length_at(model, path, p_pa, occurrence):
+    lengths = model.predict(path)
+    return lengths[np.flatnonzero(np.isclose(path, p_pa))[occurrence]]
+
+
+@pytest.mark.parametrize('form', ['sigmoid', 'hill'])
+def test_return_point_memory_after_a_minor_loop(form):
+    model = model_of(form)
+    path = ramp(0, 300, 150, 300, 400)
+    before = length_at(model, path, 300 * KPA, 0)
+    after = length_at(model, path, 300 * KPA, 1)
+    assert after == pytest.approx(before, abs=1e-12)
+    # and the minor loop is a real loop: at 200 kPa the way down and the way up differ
+    down, up = length_at(model, path, 200 * KPA, 1), length_at(model, path, 200 * KPA, 2)
+    assert abs(down - up) > 1e-4
+    # after closing the loop the model is back on the increasing major branch
+    assert length_at(model, path, 400 * KPA, 0) == pytest.approx(
+        model.increasing.length(400 * KPA), abs=1e-12)
+
+
+def test_wiping_out_forgets_an_inner_loop():
+    model = model_of()
+    with_inner_loop = ramp(0, 400, 100, 300, 200, 350)
+    without = ramp(0, 400, 100, 350)
+    assert model.predict(with_inner_loop)[-1] == pytest.approx(model.predict(without)[-1],
+                                                               abs=1e-12)
+    model.advance(ramp(0, 400, 100, 300, 200, 290))
+    assert [round(p / KPA) for p, _ in model.turning_points] == [400, 100, 300, 200]
+    model.advance(ramp(290, 310))  # passes 300 kPa: the (300, 200) pair is wiped out
+    assert [round(p / KPA) for p, _ in model.turning_points] == [400, 100]
+
+
+@pytest.mark.parametrize('form', ['sigmoid', 'hill'])
+def test_no_jump_at_reversals_in_madelung(form):
+    model = model_of(form)
+    model.advance(ramp(0, 300))
+    for step_pa in (-100.0, +60.0, -30.0):
+        before = model.length_m
+        length, _ = model.update(model.pressure_pa + step_pa)
+        slope = abs(model.increasing.length(300 * KPA + 1) - model.increasing.length(300 * KPA))
+        assert abs(length - before) < 2 * slope * abs(step_pa)
+
+
+def test_switch_mode_jumps_at_a_reversal():
+    switch, madelung = model_of(memory='switch'), model_of()
+    up_then_down = ramp(0, 300, 200)
+    steps_switch = np.abs(np.diff(switch.predict(up_then_down)))
+    steps_madelung = np.abs(np.diff(madelung.predict(up_then_down)))
+    flip = int(np.argmax(steps_switch))
+    assert up_then_down[flip + 1] == pytest.approx(280 * KPA)  # after the 20 kPa deadband
+    loop_width = switch.increasing.length(280 * KPA) - switch.decreasing.length(280 * KPA)
+    slope_per_kpa = abs(switch.decreasing.length(281 * KPA) - switch.decreasing.length(280 * KPA))
+    assert loop_width > 1e-3
+    assert steps_switch[flip] == pytest.approx(loop_width, rel=0.1)  # whole width in 1 kPa
+    assert steps_madelung[flip] < 1.5 * slope_per_kpa
+
+
+def test_major_loop_follows_the_major_branches():
+    model = model_of()
+    up = ramp(0, 500)
+    down = ramp(500, 0)[1:]
+    lengths = model.predict(np.concatenate((up, down)))
+    assert np.array_equal(lengths[:up.size], model.increasing.length(up))
+    # the way down is the decreasing branch rescaled to start where the rise ended
+    assert np.max(np.abs(lengths[up.size:] - model.decreasing.length(down))) < 2e-4
+    assert lengths[-1] == pytest.approx(model.decreasing.length(0.0), abs=1e-15)
+
+
+@settings(max_examples=100, deadline=None)
+@given(turns=st.lists(st.floats(-20.0, 520.0), min_size=2, max_size=25),
+       step=st.sampled_from([0.611, 5.0, 50.0]),
+       form=st.sampled_from(['sigmoid', 'hill']),
+       memory=st.sampled_from(['madelung', 'switch']))
+def test_online_equals_vectorised(turns, step, form, memory):
+    path = ramp(*turns, step_kpa=step)
+    online = model_of(form, memory)
+    expected = [online.update(p) for p in path]
+    batch = model_of(form, memory)
+    lengths, branches = batch.advance(path)
+    assert np.allclose(lengths, [length for length, _ in expected], rtol=0, atol=1e-12)
+    assert branches.tolist() == [branch for _, branch in expected]
+    assert len(batch.turning_points) == len(online.turning_points)
+    assert np.allclose(np.reshape(batch.turning_points, (-1, 2)),
+                       np.reshape(online.turning_points, (-1, 2)), rtol=0, atol=1e-12)
+
+
+def test_nan_is_refused_online_and_skipped_in_arrays():
+    model = model_of()
+    model.advance(ramp(0, 200))
+    state = (model.pressure_pa, model.length_m, model.turning_points)
+    for bad in (math.nan, math.inf):
+        with pytest.raises(ValueError, match='finite'):
+            model.update(bad)
+    assert (model.pressure_pa, model.length_m, model.turning_points) == state
+    lengths, branches = model_of().advance([0.0, 1e5, math.nan, 2e5])
+    assert math.isnan(lengths[2]) and np.all(np.isfinite(lengths[[0, 1, 3]]))
+    assert branches.tolist() == [1, 1, 1, 1]
+
+
+def test_predict_starts_from_rest_and_leaves_the_model_alone():
+    model = model_of()
+    model.advance(ramp(0, 400, 100))
+    state = (model.pressure_pa, model.length_m, model.turning_points)
+    path = ramp(0, 250, 120)
+    fresh = model_of()
+    assert np.array_equal(model.predict(path), fresh.advance(path)[0])
+    assert (model.pressure_pa, model.length_m, model.turning_points) == state
+
+
+def test_turning_point_stack_stays_small_under_sensor_noise_and_is_capped():
+    model = model_of()
+    rng = np.random.default_rng(5)
+    counts = 611.0 * np.round((250e3 + rng.uniform(-10e3, 10e3, 20_000)) / 611.0)
+    model.advance(np.concatenate((ramp(0, 250), counts)))
+    assert len(model.turning_points) <= 40
+    nested = [0.0]
+    for i in range(MAX_TURNING_POINTS + 50):  # 400, 1, 399, 2, ... strictly nested loops
+        nested.append(400e3 - i * 300.0 if i % 2 == 0 else (i + 1) * 300.0)
+    model.reset()
+    model.advance(np.array(nested))
+    assert len(model.turning_points) <= MAX_TURNING_POINTS
+
+
+# --- inverse ----------------------------------------------------------------------------
+
+def simulate_to(model, p_pa):
+    """Move a copy of the model monotonically to p_pa (fine steps) and return its length."""
+    trial = copy.deepcopy(model)
+    trial.advance(np.linspace(trial.pressure_pa, p_pa, 200)[1:])
+    return trial.length_m
+
+
+@pytest.mark.parametrize('form', ['sigmoid', 'hill'])
+def test_inverse_round_trip_on_a_scanning_curve(form):
+    model = model_of(form)
+    model.advance(ramp(0, 350, 150))
+    assert len(model.turning_points) == 1  # falling on a scanning curve from 350 kPa
+    for fraction, branch in ((0.3, BRANCH_DECREASING), (0.7, BRANCH_INCREASING)):
+        probe = model.pressure_for_length(model.length_m, branch)
+        assert probe.success and probe.gauge_pressure_pa == pytest.approx(150 * KPA)
+        low, high = probe.min_length_m, probe.max_length_m
+        target = low + fraction * (high - low)
+        result = model.pressure_for_length(target, branch)
+        assert result.success, result.message
+        assert result.branch == branch
+        assert simulate_to(model, result.gauge_pressure_pa) == pytest.approx(target, abs=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(turns=st.lists(st.floats(0.0, 500.0), min_size=2, max_size=12),
+       fraction=st.floats(0.0, 1.0), rising=st.booleans(),
+       form=st.sampled_from(['sigmoid', 'hill']))
+def test_inverse_round_trip_property(turns, fraction, rising, form):
+    model = model_of(form)
+    model.advance(ramp(*turns, step_kpa=5.0))
+    branch = BRANCH_INCREASING if rising else BRANCH_DECREASING
+    span = model.pressure_for_length(model.length_m, branch)
+    if not span.success:  # already at 0 Pa going down, or at the maximum going up
+        assert model.pressure_pa in (0.0, model.max_gauge_pressure_pa)
+        return
+    target = span.min_length_m + fraction * (span.max_length_m - span.min_length_m)
+    result = model.pressure_for_length(target, branch)
+    assert result.success, result.message
+    assert 0.0 <= result.gauge_pressure_pa <= model.max_gauge_pressure_pa
+    assert (result.gauge_pressure_pa >= model.pressure_pa) == rising or \
+        result.gauge_pressure_pa == pytest.approx(model.pressure_pa)
+    assert simulate_to(model, result.gauge_pressure_pa) == pytest.approx(target, abs=1e-8)
+
+
+def test_auto_branch_rule():
+    model = model_of()
+    model.advance(ramp(0, 250))
+    shorter, longer = model.length_m - 0.002, model.length_m + 0.002
+    assert model.auto_branch(shorter) == BRANCH_INCREASING
+    assert model.auto_branch(longer) == BRANCH_DECREASING
+    up, down = model.pressure_for_length(shorter), model.pressure_for_length(longer)
+    assert up.branch == BRANCH_INCREASING and up.gauge_pressure_pa > 250 * KPA
+    assert down.branch == BRANCH_DECREASING and down.gauge_pressure_pa < 250 * KPA
+
+
+def test_inverse_never_answers_above_the_maximum_pressure():
+    model = model_of(max_gauge_pressure_pa=300 * KPA)
+    needs_350 = model.increasing.length(350 * KPA)
+    result = model.pressure_for_length(needs_350, BRANCH_INCREASING)
+    assert not result.success
+    assert 'not reachable' in result.message and '300000 Pa' in result.message
+    assert result.min_length_m == pytest.approx(model.increasing.length(300 * KPA))
+    # the rig's rest length (30.06 cm) is longer than the model ever gets: refused with range
+    rest = model.pressure_for_length(0.3006, BRANCH_AUTO)
+    assert not rest.success and rest.branch == 0 and math.isnan(rest.gauge_pressure_pa)
+    rng = np.random.default_rng(9)
+    model.advance(ramp(0, 280, 120, 260))
+    for target in rng.uniform(0.22, 0.31, 300):
+        for branch in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING):
+            answer = model.pressure_for_length(target, branch)
+            if answer.success:
+                assert 0.0 <= answer.gauge_pressure_pa <= 300 * KPA
+
+
+def test_switch_inverse_is_the_major_branch_inverse():
+    model = model_of(memory='switch')
+    model.advance(ramp(0, 400, 200))
+    target = 0.27
+    for branch, major in ((BRANCH_INCREASING, model.increasing),
+                          (BRANCH_DECREASING, model.decreasing)):
+        result = model.pressure_for_length(target, branch)
+        assert result.success
+        assert result.gauge_pressure_pa == pytest.approx(major.pressure(target), abs=1e-6)
+        assert (result.min_length_m, result.max_length_m) == pytest.approx(major.length_range())
+
+
+def test_bad_inverse_requests_are_refused_with_a_message():
+    model = model_of()
+    for bad in (math.nan, math.inf, 'long'):
+        result = model.pressure_for_length(bad, BRANCH_INCREASING)
+        assert not result.success and 'finite' in result.message
+    result = model.pressure_for_length(0.27, 7)
+    assert not result.success and 'unknown branch' in result.message
+    at_rest_down = model.pressure_for_length(0.26, BRANCH_DECREASING)
+    assert not at_rest_down.success and 'reachable' in at_rest_down.message
+
+
+def test_constructor_validates():
+    params = default_params()
+    increasing, decreasing = params.branches()
+    with pytest.raises(ValueError, match='memory'):
+        HysteresisModel(increasing, decreasing, memory='preisach')
+    with pytest.raises(ValueError, match='max_gauge_pressure_pa'):
+        HysteresisModel(increasing, decreasing, max_gauge_pressure_pa=math.nan)
