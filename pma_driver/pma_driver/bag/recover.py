@@ -1,0 +1,59 @@
+"""Rewrite a bag cut short by a crash into a clean, indexed bag with metadata.yaml.
+
+The Python counterpart of `mcap recover` (Go CLI, not on PyPI) followed by `ros2 bag
+reindex`: every complete message is copied with its schema, QoS and timestamps. The damaged
+input is never modified, so nothing is lost if recovery itself fails.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from pma_driver.bag.errors import BagError
+from pma_driver.bag.reader import BagReader, TruncatedBagWarning
+from pma_driver.bag.writer import BagWriter
+
+
+@dataclass(frozen=True)
+class RecoveryReport:
+    """What recover_bag wrote: where, how many messages, and whether the input was damaged."""
+
+    output: Path
+    message_count: int
+    topic_counts: dict[str, int]
+    input_was_truncated: bool
+
+    def summary(self) -> str:
+        state = 'truncated' if self.input_was_truncated else 'intact'
+        return (f'recovered {self.message_count} messages on {len(self.topic_counts)} topics '
+                f'({state} input) into {self.output}')
+
+
+def default_output(bag: Path) -> Path:
+    """`<bag>_recovered` next to the input directory (or next to a bare .mcap's stem)."""
+    bag = Path(bag)
+    stem = bag.stem if bag.is_file() else bag.name
+    return bag.parent / f'{stem}_recovered'
+
+
+def recover_bag(bag: str | os.PathLike, output: str | os.PathLike | None = None) -> RecoveryReport:
+    """Copy every complete message of `bag` into a new bag directory `output`."""
+    source = Path(bag)
+    target = Path(output) if output is not None else default_output(source)
+    if target.resolve() == source.resolve():
+        raise BagError(f'recover output {target} must differ from the input bag')
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', TruncatedBagWarning)
+        reader = BagReader(source)
+    with reader:
+        with BagWriter(target) as writer:
+            for topic in reader.topics.values():
+                writer.add_topic(topic.name, topic.type_name, topic.offered_qos_profiles,
+                                 schema=topic.schema)
+            for message in reader.messages():
+                writer.write(message.topic, message.data, message.log_time_ns,
+                             message.publish_time_ns)
+        return RecoveryReport(target, writer.message_count, writer.topics, reader.truncated)

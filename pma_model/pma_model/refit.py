@@ -1,0 +1,124 @@
+"""`ros2 run pma_model refit <bag or csv>`: refit the hysteresis models offline.
+
+Prints the paper-style table (kPa, cm) on stdout; --json writes the full report, --params-out
+the params file model_node loads (the best-AICc branch form it supports, or --model), --plots
+the paper's Figs. 6-8. Bad input gives one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from pma_model.report import BRANCH_MODEL_FORMS, MODEL_NAMES, build_report, format_table
+from pma_model.samples import SamplesError, load_branch_data
+
+EXIT_BAD_INPUT = 2
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog='refit', description='Refit the PMA hysteresis models to a bag or CSV and report '
+        "the paper's statistics.")
+    parser.add_argument('input', type=Path,
+                        help='rosbag2 MCAP bag (directory or .mcap) with PmaState on pma/state, '
+                        'a CSV sample log (time_s,gauge_pressure_pa,length_m[,gauge_setpoint_pa])'
+                        ' or a branch table (pressure_kpa,length_increasing_cm,'
+                        'length_decreasing_cm)')
+    parser.add_argument('--json', type=Path, metavar='FILE', help='write the report as JSON')
+    parser.add_argument('--params-out', type=Path, metavar='FILE.yaml',
+                        help='write a model_node params file with the chosen branch model')
+    parser.add_argument('--plots', type=Path, metavar='DIR', help='write PNG figures here')
+    parser.add_argument('--model', choices=sorted(BRANCH_MODEL_FORMS),
+                        help='branch model for --params-out (default: best loop AICc)')
+    parser.add_argument('--steady-state', action=argparse.BooleanOptionalAction, default=None,
+                        help='reduce each hold to its steady-state mean (default: when the '
+                        'data are mostly holds)')
+    parser.add_argument('--deadband-pa', type=float, default=20_000.0, metavar='X',
+                        help='branch detector deadband [Pa] (default 20000)')
+    parser.add_argument('--no-holdout', action='store_true',
+                        help='skip the interleaved hold-out refits')
+    args = parser.parse_args(argv)
+    if not args.deadband_pa >= 0:
+        parser.error('--deadband-pa must be >= 0')
+    return args
+
+
+def choose_params_model(report: dict, requested: str | None) -> str:
+    if requested:
+        return requested
+    loop = report['loop']['models']
+    scored = [(loop[name]['metrics']['aicc'], name) for name in BRANCH_MODEL_FORMS
+              if name in loop and loop[name]['metrics']['aicc'] is not None]
+    if not scored:  # AICc needs n > k + 1; fall back on AIC
+        scored = [(loop[name]['metrics']['aic'], name) for name in BRANCH_MODEL_FORMS
+                  if name in loop]
+    return min(scored)[1]
+
+
+def write_params(path: Path, fitted, name: str, deadband_pa: float) -> None:
+    from pma_model.params import default_params
+
+    model = fitted[name]
+    base = default_params()
+    params = base.with_branches(model.branches['increasing'], model.branches['decreasing'])
+    params = replace(params, branch_form=BRANCH_MODEL_FORMS[name], deadband_pa=deadband_pa)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    params.save_yaml(path)
+
+
+def check_data(data) -> None:
+    for direction, size in (('increasing', data.inc_pressure_pa.size),
+                            ('decreasing', data.dec_pressure_pa.size)):
+        if size == 0:
+            raise SamplesError(f'{data.source}: only one branch in the data (no {direction} '
+                               'points); a refit needs a sweep up and back down')
+        if size < 5:
+            raise SamplesError(f'{data.source}: only {size} {direction} points; a refit needs '
+                               'at least 5 per branch')
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        data = load_branch_data(args.input, args.deadband_pa, args.steady_state)
+        check_data(data)
+
+        def announce(name):
+            print(f'fitting {name} ...', file=sys.stderr, flush=True)
+
+        report, fitted = build_report(data, MODEL_NAMES, holdout=not args.no_holdout,
+                                      on_model=announce)
+    except SamplesError as error:
+        print(f'refit: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (ValueError, RuntimeError) as error:
+        print(f'refit: the fit did not converge: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    print(format_table(report))
+    try:
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=2, allow_nan=False) + '\n')
+            print(f'wrote {args.json}')
+        if args.params_out:
+            name = choose_params_model(report, args.model)
+            write_params(args.params_out, fitted, name, args.deadband_pa)
+            print(f'wrote {args.params_out} ({name}, branch_form '
+                  f'{BRANCH_MODEL_FORMS[name]})')
+        if args.plots:
+            from pma_model.plots import write_plots
+
+            for path in write_plots(data, fitted, args.plots):
+                print(f'wrote {path}')
+    except (OSError, ValueError) as error:
+        print(f'refit: cannot write output: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,348 @@
+"""replay: play a recorded bag back onto the ROS graph with its original timing.
+
+    ros2 run pma_model replay BAG [--rate R] [--loop] [--start-offset S] [--topics T ...]
+                               [--remap /old:=/new ...] [--clock [HZ]] [--start-paused] [--delay S]
+
+The recorded CDR bytes are published as they are (no decode/re-encode), spaced by their
+log_time (receive time) divided by R, with each topic's recorded QoS when all its recorded
+publisher profiles agree (else reliable/volatile, depth 1000). `--clock` publishes bag time
+on /clock (rosgraph_msgs/Clock, best effort like rosbag2) for `use_sim_time` consumers.
+Put BAG before a bare `--clock`, otherwise the bag name is taken as the rate in Hz.
+
+Services (std_srvs/srv/Trigger): ~/pause, ~/resume, ~/toggle_paused.
+A missing, empty, truncated or foreign bag ends with one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import rclpy
+from builtin_interfaces.msg import Time
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    LivelinessPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from rclpy.serialization import deserialize_message
+from rosgraph_msgs.msg import Clock
+from std_srvs.srv import Trigger
+
+from pma_driver.bag import BagError, BagReader, TopicInfo
+from pma_driver.bag.reader import TruncatedBagWarning
+
+NS_PER_S = 1_000_000_000
+DEFAULT_QOS_DEPTH = 1000
+_POLICIES = {
+    'reliability': ReliabilityPolicy,
+    'durability': DurabilityPolicy,
+    'liveliness': LivelinessPolicy,
+}
+
+
+def _duration(value: dict) -> Duration:
+    return Duration(seconds=int(value['sec']), nanoseconds=int(value['nsec']))
+
+
+def playback_qos(profiles: list[dict]) -> QoSProfile:
+    """The recorded QoS if all recorded profiles agree, else the default (as rosbag2 does).
+
+    History and depth are not carried by DDS discovery (recorded as unknown/0), so the player
+    keeps the last DEFAULT_QOS_DEPTH messages, enough for a burst after a pause.
+    """
+    default = QoSProfile(depth=DEFAULT_QOS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+    if not profiles or any(p != profiles[0] for p in profiles):
+        return default
+    recorded = profiles[0]
+    try:
+        policies = {key: enum[str(recorded[key]).upper()] for key, enum in _POLICIES.items()}
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
+                         depth=max(int(recorded.get('depth', 0)), DEFAULT_QOS_DEPTH), **policies)
+        for key in ('deadline', 'lifespan', 'liveliness_lease_duration'):
+            setattr(qos, key, _duration(recorded[key]))
+    except (KeyError, TypeError, ValueError):
+        return default
+    if 'UNKNOWN' in (policies['reliability'].name, policies['durability'].name):
+        return default
+    return qos
+
+
+def message_class(type_name: str):
+    package, _, name = type_name.split('/')
+    try:
+        return getattr(importlib.import_module(f'{package}.msg'), name)
+    except (ImportError, AttributeError) as exc:
+        raise BagError(f'message type {type_name} is not installed here (build and source '
+                       f'the package that defines it): {exc}') from exc
+
+
+def check_types(reader: BagReader, topics: dict[str, TopicInfo]) -> dict[str, type]:
+    """Import each topic's class and decode its first message, so a mismatch fails early."""
+    classes = {}
+    for name, info in topics.items():
+        msg_type = message_class(info.type_name)
+        first = next(iter(reader.messages([name])), None)
+        if first is not None:
+            try:
+                deserialize_message(first.data, msg_type)
+            except Exception as exc:  # the typesupport raises several types
+                raise BagError(f'messages on {name} do not decode as {info.type_name}: '
+                               f'{exc}') from exc
+        classes[name] = msg_type
+    return classes
+
+
+def normalise(topic: str) -> str:
+    return topic if topic.startswith('/') else f'/{topic}'
+
+
+def parse_remaps(pairs: list[str]) -> dict[str, str]:
+    remaps = {}
+    for pair in pairs:
+        old, sep, new = pair.partition(':=')
+        if not sep or not old or not new:
+            raise BagError(f'bad --remap {pair!r}: expected /old:=/new')
+        remaps[normalise(old)] = normalise(new)
+    return remaps
+
+
+class Player(Node):
+    """Publishes a bag's messages from a playback thread; the executor serves the services."""
+
+    def __init__(self, reader: BagReader, args: argparse.Namespace):
+        super().__init__('replay')
+        self.reader = reader
+        self.rate = args.rate
+        self.loop = args.loop
+        self.delay_s = args.delay
+        topics = reader.topics
+        if args.topics:
+            wanted = [normalise(t) for t in args.topics]
+            unknown = [t for t in wanted if t not in topics]
+            if unknown:
+                raise BagError(f'topics not in the bag: {", ".join(unknown)} (bag has: '
+                               f'{", ".join(topics)})')
+            topics = {t: topics[t] for t in wanted}
+        if args.clock is not None:
+            topics.pop('/clock', None)
+        if not any(t.message_count for t in topics.values()):
+            raise BagError(f'bag {reader.path} has no messages to play')
+        classes = check_types(reader, topics)
+        remaps = parse_remaps(args.remap or [])
+        self.publishers_by_topic = {
+            name: self.create_publisher(classes[name], remaps.get(name, name),
+                                        playback_qos(info.offered_qos_profiles))
+            for name, info in topics.items()}
+        first_ns, _ = reader.time_range_ns()
+        self.start_ns = first_ns + int(args.start_offset * NS_PER_S)
+        self.message_total = sum(topics[t].message_count for t in topics)
+        self._lock = threading.Lock()
+        self._anchor = (self.start_ns, time.monotonic_ns())  # (bag ns, wall ns) while playing
+        self._paused_at: int | None = self.start_ns if args.start_paused else None
+        self.finished = threading.Event()
+        self.stopping = threading.Event()
+        self.create_service(Trigger, '~/pause', self.on_pause)
+        self.create_service(Trigger, '~/resume', self.on_resume)
+        self.create_service(Trigger, '~/toggle_paused', self.on_toggle)
+        if args.clock is not None:
+            if args.clock <= 0:
+                raise BagError('--clock rate must be > 0 Hz')
+            self.clock_publisher = self.create_publisher(
+                Clock, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+            self.create_timer(1.0 / args.clock, self.publish_clock)
+        self.thread = threading.Thread(target=self.play, daemon=True)
+
+    # -- timeline ---------------------------------------------------------------------------
+
+    def bag_now(self) -> int:
+        """Current bag time [ns since epoch] of the playback timeline."""
+        with self._lock:
+            if self._paused_at is not None:
+                return self._paused_at
+            bag, wall = self._anchor
+            return bag + int((time.monotonic_ns() - wall) * self.rate)
+
+    def restart_timeline(self, bag_ns: int) -> None:
+        with self._lock:
+            if self._paused_at is not None:
+                self._paused_at = bag_ns
+            self._anchor = (bag_ns, time.monotonic_ns())
+
+    def set_paused(self, paused: bool) -> bool:
+        """Pause or resume; return whether the state changed."""
+        with self._lock:
+            if paused == (self._paused_at is not None):
+                return False
+            if paused:
+                bag, wall = self._anchor
+                self._paused_at = bag + int((time.monotonic_ns() - wall) * self.rate)
+            else:
+                self._anchor = (self._paused_at, time.monotonic_ns())
+                self._paused_at = None
+            return True
+
+    @property
+    def paused(self) -> bool:
+        with self._lock:
+            return self._paused_at is not None
+
+    def on_pause(self, _request, response):
+        response.success = True
+        response.message = 'paused' if self.set_paused(True) else 'already paused'
+        return response
+
+    def on_resume(self, _request, response):
+        response.success = True
+        response.message = 'resumed' if self.set_paused(False) else 'already playing'
+        return response
+
+    def on_toggle(self, _request, response):
+        self.set_paused(not self.paused)
+        response.success = True
+        response.message = 'paused' if self.paused else 'resumed'
+        return response
+
+    def publish_clock(self) -> None:
+        now = self.bag_now()
+        self.clock_publisher.publish(Clock(clock=Time(sec=now // NS_PER_S,
+                                                      nanosec=now % NS_PER_S)))
+
+    # -- playback thread --------------------------------------------------------------------
+
+    def wait_until(self, log_time_ns: int) -> bool:
+        """Sleep until the timeline reaches log_time_ns; False if playback is stopping."""
+        while not self.stopping.is_set():
+            ahead_ns = log_time_ns - self.bag_now()
+            if ahead_ns <= 0:
+                return True
+            wall_s = 0.05 if self.paused else ahead_ns / self.rate / NS_PER_S
+            time.sleep(min(wall_s, 0.05))
+        return False
+
+    def play(self) -> None:
+        topics = list(self.publishers_by_topic)
+        message = None
+        try:
+            while not self.stopping.wait(self.delay_s):
+                self.restart_timeline(self.start_ns)
+                for message in self.reader.messages(topics, start_time_ns=self.start_ns):
+                    if not self.wait_until(message.log_time_ns):
+                        return
+                    self.publishers_by_topic[message.topic].publish(message.data)
+                if not self.loop:
+                    break
+            if message is not None:
+                with self._lock:  # /clock stays at the end of the bag while acks drain
+                    self._paused_at = message.log_time_ns
+            for publisher in self.publishers_by_topic.values():
+                publisher.wait_for_all_acked(Duration(seconds=1))
+        finally:
+            self.finished.set()
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog='replay', description=__doc__.split('\n')[0])
+    parser.add_argument('bag', type=Path, help='bag directory or .mcap file')
+    parser.add_argument('-r', '--rate', type=float, default=1.0, help='speed factor (> 0)')
+    parser.add_argument('-l', '--loop', action='store_true', help='play again from the start')
+    parser.add_argument('--start-offset', type=float, default=0.0, metavar='S',
+                        help='start S seconds after the first message')
+    parser.add_argument('--topics', nargs='+', metavar='TOPIC', help='play only these topics')
+    parser.add_argument('-m', '--remap', nargs='+', metavar='/OLD:=/NEW',
+                        help='publish a recorded topic under another name')
+    parser.add_argument('-d', '--delay', type=float, default=0.0, metavar='S',
+                        help='wait S seconds before playing (each loop), e.g. for discovery')
+    parser.add_argument('--clock', type=float, nargs='?', const=40.0, metavar='HZ',
+                        help='publish bag time on /clock (default 40 Hz)')
+    parser.add_argument('-p', '--start-paused', action='store_true',
+                        help='wait for ~/resume or ~/toggle_paused before playing')
+    args = parser.parse_args(argv)
+    if args.rate <= 0:
+        parser.error('--rate must be > 0')
+    if args.start_offset < 0 or args.delay < 0:
+        parser.error('--start-offset and --delay must be >= 0')
+    return args
+
+
+def open_bag(path: Path) -> BagReader:
+    """Open for playback: a truncated bag is refused (recover it first)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', TruncatedBagWarning)
+        reader = BagReader(path)
+    if reader.truncated:
+        reader.close()
+        raise BagError(f'bag {path} is truncated (not closed by its recorder); recover it '
+                       f'first: ros2 run pma_driver recorder --recover {path}')
+    return reader
+
+
+def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(our arguments, argv for rclpy.init): only `--ros-args ... [--]` sections go to ROS.
+
+    rclpy.utilities.remove_ros_args would also swallow our `--remap /a:=/b` (it treats a bare
+    `a:=b` as a legacy remap rule), so the split is done here.
+    """
+    ours, ros, inside = [], [argv[0]], False
+    for arg in argv[1:]:
+        if arg == '--ros-args':
+            inside = True
+            ros.append(arg)
+        elif inside and arg == '--':
+            inside = False
+        elif inside:
+            ros.append(arg)
+        else:
+            ours.append(arg)
+    return ours, ros
+
+
+def main(argv: list[str] | None = None) -> int:
+    user_args, argv = split_ros_args(sys.argv if argv is None else argv)
+    args = parse_args(user_args)
+    try:
+        reader = open_bag(args.bag)
+    except BagError as exc:
+        print(f'replay: {exc}', file=sys.stderr)
+        return 2
+    rclpy.init(args=argv)
+    try:
+        player = Player(reader, args)
+    except BagError as exc:
+        print(f'replay: {exc}', file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = SingleThreadedExecutor()
+    executor.add_node(player)
+    print(f'replay: playing {player.message_total} messages on '
+          f'{len(player.publishers_by_topic)} topics from {args.bag} at rate {args.rate}'
+          + (' (paused)' if args.start_paused else ''), flush=True)
+    player.thread.start()
+    try:
+        while not player.finished.is_set():
+            executor.spin_once(timeout_sec=0.05)
+        print('replay: done', flush=True)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        player.stopping.set()
+        player.thread.join(2)
+        player.destroy_node()
+        reader.close()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,148 @@
+"""`ros2 run pma_model refit` as a real process: the paper's table, a sweep bag, bad input."""
+
+import json
+from importlib import resources
+
+import numpy as np
+import pytest
+from test_samples import (
+    TRUE_DECREASING,
+    TRUE_INCREASING,
+    staircase,
+    write_sample_log,
+    write_state_bag,
+)
+
+from pma_model import units
+from pma_model.params import ModelParams
+
+PAPER_TABLE = resources.files('pma_model').joinpath('data', 'paper_table1.csv')
+MODELS = {'sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear'}
+METRIC_KEYS = {'mae_cm', 'mse_cm2', 'rmse_cm', 'max_cm', 'r2', 'r', 'aic', 'aicc', 'bic', 'n',
+               'k'}
+
+
+def run_refit(procs, *args, timeout=150):
+    proc = procs.ros2_run('pma_model', 'refit', *[str(a) for a in args])
+    code = proc.popen.wait(timeout)
+    proc.stop()  # already exited: this only joins the output reader
+    return code, proc.output
+
+
+@pytest.fixture(scope='module')
+def table_run(tmp_path_factory, module_procs):
+    out = tmp_path_factory.mktemp('refit_table')
+    code, output = run_refit(module_procs, PAPER_TABLE, '--json', out / 'report.json',
+                             '--params-out', out / 'params.yaml', '--plots', out / 'plots')
+    assert code == 0, output
+    return out, json.loads((out / 'report.json').read_text()), output
+
+
+def test_json_shape_and_the_papers_numbers(table_run):
+    _, report, _ = table_run
+    for direction in ('increasing', 'decreasing'):
+        models = report['branches'][direction]['models']
+        assert set(models) == MODELS
+        for entry in models.values():
+            assert METRIC_KEYS <= set(entry['metrics'])
+            assert entry['params'] and 'stderr' in entry
+    paper = report['branches']['increasing']['models']['sigmoid_fixed_c']
+    assert {'a', 'b_per_kpa', 'c', 'l0_cm'} <= set(paper['params'])
+    assert round(paper['params']['a'], 5) == 0.19073
+    assert round(paper['params']['b_per_kpa'], 6) == 0.011333
+    assert paper['params']['l0_cm'] == pytest.approx(30.06)
+    assert paper['params']['c'] == 6.214 and set(paper['stderr']) == {'a', 'b_per_kpa'}
+    metrics = paper['metrics']
+    assert (round(metrics['mae_cm'], 4), round(metrics['r2'], 4), round(metrics['r'], 4)) == \
+        (0.1664, 0.9912, 0.9960)
+    assert (round(metrics['aic'], 3), round(metrics['bic'], 3)) == (-31.563, -30.767)
+    assert round(metrics['mse_cm2'], 4) == 0.0394
+    decreasing = report['branches']['decreasing']['models']['sigmoid_fixed_c']['params']
+    assert round(decreasing['a'], 4) == 0.1879 and round(decreasing['b_per_kpa'], 5) == 0.01305
+
+
+def test_other_models_land_on_the_reference_figures(table_run):
+    _, report, _ = table_run
+    branches = report['branches']
+    assert branches['increasing']['models']['hill']['metrics']['mse_cm2'] == \
+        pytest.approx(0.0169, abs=0.0005)
+    assert branches['decreasing']['models']['hill']['metrics']['mse_cm2'] == \
+        pytest.approx(0.0163, abs=0.0005)
+    loop = report['loop']['models']
+    assert loop['bouc_wen']['metrics']['mae_cm'] == pytest.approx(0.427, abs=0.01)
+    assert loop['bouc_wen']['metrics']['r2'] == pytest.approx(0.939, abs=0.003)
+    assert loop['bouc_wen_nonlinear']['metrics']['mse_cm2'] < 0.1 * \
+        loop['bouc_wen']['metrics']['mse_cm2']
+    assert loop['hill']['metrics']['aicc'] < loop['sigmoid_fixed_c']['metrics']['aicc']
+    assert abs(loop['bouc_wen_nonlinear']['drift']['drift_cm']) > 0.1
+    holdout = report['holdout']
+    assert (holdout['n_train'], holdout['n_test']) == (12, 10)
+    assert holdout['models']['sigmoid_fixed_c']['rmse_cm'] == pytest.approx(0.256, abs=0.005)
+    assert holdout['models']['hill']['rmse_cm'] == pytest.approx(0.207, abs=0.005)
+    c_interval = branches['increasing']['models']['sigmoid_free_c']['ci95']['c']
+    assert c_interval[1] - c_interval[0] > 4.0
+    assert any('c = ' in w and 'poorly identified' in w for w in report['warnings'])
+
+
+def test_table_output_params_file_and_plots(table_run):
+    out, report, output = table_run
+    assert 'paper Table 2 sigmoid' in output and '0.15780' in output
+    params = ModelParams.load_yaml(out / 'params.yaml')
+    assert params.branch_form == 'hill'  # best loop AICc among the forms model_node runs
+    fitted = report['branches']['increasing']['models']['hill']['params']
+    assert params.increasing.hill.k_pa == pytest.approx(units.kpa_to_pa(fitted['k_kpa']))
+    for name in ('loop.png', 'residuals.png', 'comparison.png'):
+        png = (out / 'plots' / name).read_bytes()
+        assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 10_000
+
+
+def test_sweep_bag_recovers_the_loop(procs, tmp_path):
+    t, pressure, setpoint, length = staircase(noise_m=2e-4, nan_every=11)
+    bag = write_state_bag(tmp_path / 'sweep', t, pressure, setpoint, length)
+    code, output = run_refit(procs, bag, '--no-holdout', '--json', tmp_path / 'r.json',
+                             '--params-out', tmp_path / 'p.yaml', '--model', 'sigmoid_fixed_c')
+    assert code == 0, output
+    report = json.loads((tmp_path / 'r.json').read_text())
+    assert report['data']['steady_state'] and report['data']['dropped_nan_lengths'] > 0
+    params = ModelParams.load_yaml(tmp_path / 'p.yaml')
+    assert params.branch_form == 'sigmoid'
+    for fitted, truth in ((params.increasing.sigmoid, TRUE_INCREASING),
+                          (params.decreasing.sigmoid, TRUE_DECREASING)):
+        assert fitted.a == pytest.approx(truth.a, abs=0.003)
+        assert fitted.b_per_pa == pytest.approx(truth.b_per_pa, rel=0.04)
+        # The paper's convention fixes L0 at the measured 0 kPa length, which for a sigmoid
+        # truth is its length at 0 Pa (0.8 mm below its L0 parameter).
+        assert fitted.l0_m == pytest.approx(TRUE_INCREASING.length(0.0), abs=2e-4)
+    assert report['branches']['increasing']['models']['sigmoid_fixed_c']['metrics']['rmse_cm'] \
+        < 0.05
+
+
+def assert_clean_error(code, output, text):
+    assert code == 2, output
+    assert 'Traceback' not in output
+    errors = [line for line in output.splitlines() if line.startswith('refit:')]
+    assert len(errors) == 1 and text in errors[0], output
+
+
+def test_missing_file(procs, tmp_path):
+    assert_clean_error(*run_refit(procs, tmp_path / 'absent.mcap'), 'no such file')
+
+
+def test_bag_without_usable_data(procs, tmp_path):
+    t, pressure, setpoint, _ = staircase()
+    bag = write_state_bag(tmp_path / 'nan', t, pressure, setpoint, np.full(t.size, np.nan))
+    assert_clean_error(*run_refit(procs, bag), 'no usable samples')
+
+
+def test_single_branch_only(procs, tmp_path):
+    t = np.linspace(0, 10, 501)
+    pressure = 5e4 * t
+    log = write_sample_log(tmp_path / 'up.csv', t, pressure, TRUE_INCREASING.length(pressure))
+    assert_clean_error(*run_refit(procs, log), 'only one branch')
+
+
+def test_fit_that_cannot_run(procs, tmp_path):
+    table = tmp_path / 'short.csv'
+    table.write_text('pressure_kpa,length_increasing_cm,length_decreasing_cm\n'
+                     '0,30,30\n100,29,28.5\n200,27,26.5\n')
+    assert_clean_error(*run_refit(procs, table), 'needs at least 5')

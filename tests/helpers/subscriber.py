@@ -1,0 +1,88 @@
+"""Test helper: subscribe one topic and dump (receive time, field value) pairs as JSON.
+
+    subscriber.py --topic /pma/state --type pma_interfaces/msg/PmaState --field seq
+                  --count 400 --out got.json [--timeout 30]
+
+Exits when `count` messages arrived or after `timeout` s (or SIGINT), writing what it got.
+"""
+
+import argparse
+import importlib
+import json
+import sys
+import time
+
+import rclpy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+
+def field_value(msg, path):
+    for part in path.split('.'):
+        msg = msg[int(part)] if part.isdigit() else getattr(msg, part)
+    return msg
+
+
+def resume(node, topic: str, service: str, deadline: float) -> None:
+    """Wait until a publisher of topic is discovered, then call the Trigger service."""
+    from std_srvs.srv import Trigger
+
+    while node.count_publishers(topic) < 1 and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    client = node.create_client(Trigger, service)
+    if not client.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic())):
+        print(f'subscriber: no service {service}', flush=True)
+        return
+    time.sleep(1.0)  # endpoint matching completes shortly after graph discovery
+    future = client.call_async(Trigger.Request())
+    rclpy.spin_until_future_complete(node, future, timeout_sec=10)
+    print(f'subscriber: called {service}: {future.result()}', flush=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument('--topic', required=True)
+    parser.add_argument('--type', required=True)
+    parser.add_argument('--field', default='')
+    parser.add_argument('--count', type=int, default=0)
+    parser.add_argument('--timeout', type=float, default=30.0)
+    parser.add_argument('--best-effort', action='store_true')
+    parser.add_argument('--out', required=True)
+    parser.add_argument('--resume-service', metavar='SRV',
+                        help='once a publisher matched, call this std_srvs/Trigger service '
+                             '(e.g. /replay/resume of a player started with --start-paused)')
+    args = parser.parse_args()
+    package, _, name = args.type.split('/')
+    msg_type = getattr(importlib.import_module(f'{package}.msg'), name)
+    rclpy.init()
+    node = rclpy.create_node('test_subscriber')
+    received = []
+
+    def on_message(msg):
+        value = field_value(msg, args.field) if args.field else None
+        if hasattr(value, 'sec') and hasattr(value, 'nanosec'):
+            value = value.sec * 1_000_000_000 + value.nanosec
+        received.append([time.time_ns(), value])
+
+    reliability = (ReliabilityPolicy.BEST_EFFORT if args.best_effort
+                   else ReliabilityPolicy.RELIABLE)
+    node.create_subscription(msg_type, args.topic, on_message,
+                             QoSProfile(depth=1000, reliability=reliability))
+    print(f'subscriber: listening on {args.topic}', flush=True)
+    deadline = time.monotonic() + args.timeout
+    if args.resume_service:
+        resume(node, args.topic, args.resume_service, deadline)
+    try:
+        while time.monotonic() < deadline and not (args.count and len(received) >= args.count):
+            rclpy.spin_once(node, timeout_sec=0.05)
+    except KeyboardInterrupt:
+        pass
+    with open(args.out, 'w', encoding='utf-8') as out:
+        json.dump(received, out)
+    print(f'subscriber: got {len(received)}', flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

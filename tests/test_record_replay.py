@@ -1,0 +1,210 @@
+"""Record and replay over real DDS: recorder, replay, publisher and subscriber processes."""
+
+import itertools
+import json
+import signal
+import statistics
+import sys
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rclpy.serialization import deserialize_message
+from rosbags.highlevel import AnyReader
+
+from pma_driver.bag import BagReader
+from pma_interfaces.msg import ModelParams, PmaState
+
+pytestmark = pytest.mark.integration
+
+HELPERS = Path(__file__).resolve().parent / 'helpers'
+STATE = 'pma_interfaces/msg/PmaState'
+COUNT = 400
+RATE_HZ = 200
+
+
+def record(procs, bag: Path, *, count: int, rate: float, namespace: str = '',
+           stop_signal=signal.SIGINT, latched: bool = False) -> str:
+    """Run recorder + publisher until the publisher is done; return the recorder output."""
+    ros_args = ['-r', f'__ns:={namespace}'] if namespace else None
+    recorder = procs.ros2_run('pma_driver', 'recorder', '-o', bag, ros_args=ros_args)
+    recorder.wait_for_line('recorder: recording', timeout=30)
+    extra = ['--latched-params', f'{namespace}/pma/model_params'] if latched else []
+    publisher = procs.python(HELPERS / 'bag_state_publisher.py',
+                             '--topic', f'{namespace}/pma/state', '--rate', str(rate),
+                             '--count', str(count), '--wait-subscribers', '1', *extra)
+    publisher.wait_for_line('publisher: done', timeout=count / rate + 40)
+    recorder.signal(stop_signal)
+    assert recorder.popen.wait(20) == 0, recorder.output
+    assert 'recorder: wrote' in recorder.output, recorder.output
+    return recorder.output
+
+
+@pytest.fixture(scope='module')
+def recorded(module_procs, tmp_path_factory):
+    bag = tmp_path_factory.mktemp('record') / 'run'
+    record(module_procs, bag, count=COUNT, rate=RATE_HZ, latched=True)
+    return bag
+
+
+def test_recording_is_complete_and_three_readers_agree(recorded):
+    with BagReader(recorded) as reader:
+        ours = [deserialize_message(m.data, PmaState).seq
+                for m in reader.messages(['/pma/state'])]
+        params = [deserialize_message(m.data, ModelParams)
+                  for m in reader.messages(['/pma/model_params'])]
+        qos = reader.topics['/pma/model_params'].offered_qos_profiles
+    assert ours == list(range(COUNT))
+    assert len(params) == 1 and params[0].form == 'sigmoid', 'latched message missed'
+    assert qos and all(p['durability'] == 'transient_local' for p in qos)
+    with AnyReader([recorded]) as reader:
+        connections = [c for c in reader.connections if c.topic == '/pma/state']
+        got = [reader.deserialize(raw, STATE).seq for _, _, raw in reader.messages(connections)]
+    assert got == ours
+    with open(recorded / 'run_0.mcap', 'rb') as stream:
+        decoded = make_reader(stream, decoder_factories=[DecoderFactory()])
+        got = [m.seq for _, _, _, m in decoded.iter_decoded_messages(topics=['/pma/state'])]
+    assert got == ours
+
+
+def recorded_offsets_s(bag: Path) -> list[float]:
+    with BagReader(bag) as reader:
+        times = [m.log_time_ns for m in reader.messages(['/pma/state'])]
+    return [(t - times[0]) / 1e9 for t in times]
+
+
+def replay_into(procs, tmp_path, bag, *replay_args, listen=(('/pma/state', STATE, 'seq'),),
+                timeout=30.0):
+    """Start subscribers, replay, wait for the end; return {topic: [(recv_ns, value), ...]}."""
+    outputs = {}
+    for index, (topic, type_name, field) in enumerate(listen):
+        out = tmp_path / f'got{index}.json'
+        extra = ['--best-effort'] if topic == '/clock' else []
+        if index == 0:
+            extra += ['--resume-service', '/replay/resume']
+        sub = procs.python(HELPERS / 'subscriber.py', '--topic', topic, '--type', type_name,
+                           '--field', field, '--out', str(out), '--timeout', str(timeout),
+                           *extra)
+        sub.wait_for_line('subscriber: listening', timeout=20)
+        outputs[topic] = (sub, out)
+    player = procs.ros2_run('pma_model', 'replay', bag, '--start-paused', *replay_args)
+    player.wait_for_line('replay: done', timeout=timeout)
+    assert player.popen.wait(10) == 0, player.output
+    results = {}
+    for topic, (sub, out) in outputs.items():
+        sub.signal(signal.SIGINT)
+        sub.popen.wait(10)
+        results[topic] = json.loads(out.read_text())
+    return results
+
+
+def test_replay_preserves_messages_and_timing(procs, tmp_path, recorded):
+    got = replay_into(procs, tmp_path, recorded)['/pma/state']
+    assert [value for _, value in got] == list(range(COUNT))
+    # Arrival time minus recorded offset is constant when timing is kept; DDS may delay the
+    # very first messages (matching), so compare each one to the median of that constant.
+    lags = [t / 1e9 - e for (t, _), e in zip(got, recorded_offsets_s(recorded), strict=True)]
+    errors = sorted(abs(lag - statistics.median(lags)) for lag in lags)
+    assert errors[len(errors) // 2] < 0.005 and errors[int(0.95 * len(errors))] < 0.02, errors
+
+
+def test_replay_rate_two_halves_the_duration(procs, tmp_path, recorded):
+    got = replay_into(procs, tmp_path, recorded, '--rate', '2')['/pma/state']
+    assert len(got) == COUNT
+    duration = (got[-1][0] - got[0][0]) / 1e9
+    assert duration == pytest.approx(recorded_offsets_s(recorded)[-1] / 2, rel=0.1)
+
+
+def test_replay_topics_remap_and_clock(procs, tmp_path, recorded):
+    results = replay_into(
+        procs, tmp_path, recorded, '--topics', 'pma/state', '--remap', '/pma/state:=/echo/state',
+        '--clock', '50',
+        listen=(('/echo/state', STATE, 'seq'), ('/pma/state', STATE, 'seq'),
+                ('/pma/model_params', 'pma_interfaces/msg/ModelParams', 'form'),
+                ('/clock', 'rosgraph_msgs/msg/Clock', 'clock')))
+    echoed = [v for _, v in results['/echo/state']]
+    # With four listeners the player's side may match this reader just after the first
+    # message (seen: seq 0 missing); completeness is test_replay_preserves_messages_and_timing's.
+    assert echoed == list(range(COUNT - len(echoed), COUNT)) and len(echoed) >= COUNT - 10
+    assert results['/pma/state'] == [] and results['/pma/model_params'] == []
+    with BagReader(recorded) as reader:
+        first, last = reader.time_range_ns()
+    clock = [v for _, v in results['/clock']]
+    assert len(clock) >= 5, 'best effort: only what arrives after discovery'
+    assert clock == sorted(clock)
+    intervals = [b[0] - a[0] for a, b in itertools.pairwise(results['/clock'])]
+    assert statistics.median(intervals) == pytest.approx(20e6, rel=0.5)  # --clock 50 Hz
+    assert first <= clock[-1] <= last + 200_000_000
+
+
+def test_replay_refuses_foreign_and_truncated_bags(procs, tmp_path, recorded):
+    foreign = tmp_path / 'foreign.mcap'
+    foreign.write_bytes(b'\x89MCAP0\r\n' + b'\x01' + (15).to_bytes(8, 'little')
+                        + (3).to_bytes(4, 'little') + b'xyz' + (0).to_bytes(4, 'little'))
+    truncated = tmp_path / 'truncated.mcap'
+    truncated.write_bytes((recorded / 'run_0.mcap').read_bytes()[:-200])
+    for bag, reason in ((foreign, 'profile'), (truncated, 'recover'),
+                        (tmp_path / 'missing', 'does not exist')):
+        player = procs.ros2_run('pma_model', 'replay', bag)
+        assert player.popen.wait(30) == 2
+        lines = player.output.strip().splitlines()
+        assert len(lines) == 1 and reason in lines[0] and 'Traceback' not in player.output
+
+
+def test_recorder_with_unwritable_path_reports_and_stays_up(procs, tmp_path):
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('x')
+    diagnostics = tmp_path / 'diag.json'
+    sub = procs.python(HELPERS / 'subscriber.py', '--topic', '/diagnostics', '--type',
+                       'diagnostic_msgs/msg/DiagnosticArray', '--field', 'status.0.message',
+                       '--count', '2', '--timeout', '20', '--out', str(diagnostics))
+    sub.wait_for_line('subscriber: listening', timeout=20)
+    recorder = procs.ros2_run('pma_driver', 'recorder', '-o', blocker / 'bag')
+    recorder.wait_for_line('recorder: ERROR', timeout=30)
+    sub.wait_for_line('subscriber: got', timeout=30)
+    messages = [v for _, v in json.loads(diagnostics.read_text())]
+    assert messages and all('cannot create bag' in m for m in messages)
+    assert recorder.alive()
+    recorder.signal(signal.SIGINT)
+    assert recorder.popen.wait(10) == 0
+
+
+def test_recover_command(procs, tmp_path, recorded):
+    broken = tmp_path / 'broken'
+    broken.mkdir()
+    (broken / 'broken_0.mcap').write_bytes((recorded / 'run_0.mcap').read_bytes()[:-300])
+    out = tmp_path / 'fixed'
+    proc = procs.ros2_run('pma_driver', 'recorder', 'recover', broken, '-o', out)
+    assert proc.popen.wait(30) == 0, proc.output
+    assert 'recovered' in proc.output
+    with BagReader(out) as reader:
+        got = [deserialize_message(m.data, PmaState).seq
+               for m in reader.messages(['/pma/state'])]
+    assert got == list(range(COUNT))
+
+
+def no_loss_at_1khz(procs, tmp_path, seconds: int) -> None:
+    bag = tmp_path / 'fast'
+    output = record(procs, bag, count=1000 * seconds, rate=1000, namespace='/rig1',
+                    stop_signal=signal.SIGTERM)
+    assert 'recording 2 topics' in output  # /rig1/pma/state and /diagnostics
+    with BagReader(bag) as reader:
+        got = [deserialize_message(m.data, PmaState).seq
+               for m in reader.messages(['/rig1/pma/state'])]
+    missing = sorted(set(range(1000 * seconds)) - set(got))
+    assert not missing, f'{len(missing)} lost, first {missing[:10]}'
+    assert got == sorted(got)
+
+
+def test_no_loss_at_1khz_for_10_s(procs, tmp_path):
+    no_loss_at_1khz(procs, tmp_path, 10)
+
+
+@pytest.mark.slow
+def test_no_loss_at_1khz_for_60_s(procs, tmp_path):
+    no_loss_at_1khz(procs, tmp_path, 60)
+
+
+if __name__ == '__main__':
+    sys.exit(pytest.main([__file__, '-q']))
