@@ -1,0 +1,544 @@
+"""The launch files, checked here without `launch` (not installable from PyPI) but against
+the real nodes.
+
+What runs for real: each launch file is imported and its generate_launch_description()
+called; the nodes are started as processes and asked over DDS which parameters they declare
+(rcl_interfaces ListParameters/DescribeParameters); fake_arduino's and the recorder's own
+argument parsers read the arguments the launch files pass. What is stood in: the `launch` and
+`launch_ros` modules, replaced in sys.modules for these tests only by small classes that record
+what a launch file builds, resolve substitutions the way launch does (launch arguments, package
+share/prefix, path joins, conditions, includes, OpaqueFunction) and refuse keyword arguments
+the real Jazzy classes do not take. Not checked: that `ros2 launch` really starts them (no
+launch here); docs/user-guide.md lists that as a check for a Jazzy install.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import os
+import sys
+import types
+from pathlib import Path
+
+import pytest
+import yaml
+from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.srv import DescribeParameters, ListParameters
+
+from support.procs import INSTALL, ROOT
+from support.ros import SpinningNode, shutdown, wait_until
+
+LAUNCH_FILES = {
+    'driver': ROOT / 'pma_driver' / 'launch' / 'driver.launch.py',
+    'bringup': ROOT / 'pma_driver' / 'launch' / 'pma_bringup.launch.py',
+    'model': ROOT / 'pma_model' / 'launch' / 'model.launch.py',
+}
+# (package, executable) -> the name the node gives itself in code.
+NODE_NAMES = {('pma_driver', 'driver_node'): 'pma_driver',
+              ('pma_model', 'model_node'): 'model_node',
+              ('pma_driver', 'recorder'): 'recorder'}
+
+# ---------------------------------------------------------------------------------------
+# Stand-ins for launch / launch_ros (Jazzy signatures, keyword names only).
+
+_PROCESS_KWARGS = {'name', 'cwd', 'env', 'additional_env', 'shell', 'sigterm_timeout',
+                   'sigkill_timeout', 'emulate_tty', 'output', 'output_format', 'log_cmd',
+                   'cached_output', 'on_exit', 'respawn', 'respawn_delay', 'respawn_max_retries',
+                   'prefix', 'condition'}
+_NODE_KWARGS = _PROCESS_KWARGS | {'executable', 'package', 'namespace', 'exec_name',
+                                  'parameters', 'remappings', 'ros_arguments', 'arguments'}
+
+
+class Context:
+    """The part of launch.LaunchContext that substitutions read."""
+
+    def __init__(self, configurations: dict[str, str]):
+        self.launch_configurations = dict(configurations)
+
+
+def perform(value, context: Context) -> str:
+    if isinstance(value, str | Path):
+        return str(value)
+    if isinstance(value, list | tuple):
+        return ''.join(perform(part, context) for part in value)
+    return value.perform(context)
+
+
+class StandIn:
+    ALLOWED: frozenset[str] = frozenset()
+    POSITIONAL = 0
+
+    def __init__(self, *args, **kwargs):
+        name = type(self).__name__
+        if len(args) > self.POSITIONAL:
+            raise TypeError(f'{name}() takes {self.POSITIONAL} positional arguments')
+        unknown = set(kwargs) - self.ALLOWED
+        if unknown:
+            raise TypeError(f'{name}() got unexpected keyword arguments {sorted(unknown)}')
+        self.args, self.kwargs = args, kwargs
+
+    @property
+    def condition(self):
+        return self.kwargs.get('condition')
+
+
+def stand_in(name: str, allowed=(), positional: int = 0, **methods) -> type:
+    return type(name, (StandIn,), {'ALLOWED': frozenset(allowed), 'POSITIONAL': positional,
+                                   **methods})
+
+
+def _launch_configuration_perform(self, context):
+    name = self.args[0]
+    if name in context.launch_configurations:
+        return context.launch_configurations[name]
+    if self.kwargs.get('default') is not None:
+        return perform(self.kwargs['default'], context)
+    raise KeyError(f'launch argument {name!r} used but never declared or given')
+
+
+def _find_share(self, context):
+    path = INSTALL / self.args[0] / 'share' / self.args[0]
+    assert path.is_dir(), f'{path} missing: package not built (make setup)'
+    return str(path)
+
+
+def _find_prefix(self, context):
+    path = INSTALL / self.args[0]
+    assert path.is_dir(), f'{path} missing: package not built (make setup)'
+    return str(path)
+
+
+def _truth(text: str) -> bool:
+    value = text.strip().lower()
+    assert value in ('true', 'false', '1', '0'), f'not a launch boolean: {text!r}'
+    return value in ('true', '1')
+
+
+def _parameter_value(self, context):
+    text = perform(self.args[0], context)
+    value_type = self.kwargs.get('value_type')
+    if value_type is str:
+        return text
+    value = yaml.safe_load(text)
+    if value_type is not None:
+        assert isinstance(value, value_type), f'{text!r} is not a {value_type.__name__}'
+    return value
+
+
+LaunchConfiguration = stand_in('LaunchConfiguration', ['default'], 1,
+                               perform=_launch_configuration_perform)
+PathJoinSubstitution = stand_in(
+    'PathJoinSubstitution', [], 1,
+    perform=lambda self, c: os.path.join(*[perform(p, c) for p in self.args[0]]))
+TextSubstitution = stand_in('TextSubstitution', ['text'],
+                            perform=lambda self, c: self.kwargs['text'])
+FindPackageShare = stand_in('FindPackageShare', [], 1, perform=_find_share)
+FindPackagePrefix = stand_in('FindPackagePrefix', [], 1, perform=_find_prefix)
+ParameterValue = stand_in('ParameterValue', ['value_type'], 1, evaluate=_parameter_value)
+IfCondition = stand_in('IfCondition', [], 1,
+                       evaluate=lambda self, c: _truth(perform(self.args[0], c)))
+UnlessCondition = stand_in('UnlessCondition', [], 1,
+                           evaluate=lambda self, c: not _truth(perform(self.args[0], c)))
+LaunchDescription = stand_in('LaunchDescription', [], 1)
+DeclareLaunchArgument = stand_in('DeclareLaunchArgument',
+                                 ['default_value', 'description', 'choices', 'condition'], 1)
+GroupAction = stand_in('GroupAction', ['scoped', 'forwarding', 'launch_configurations',
+                                       'condition'], 1)
+IncludeLaunchDescription = stand_in('IncludeLaunchDescription',
+                                    ['launch_arguments', 'condition'], 1)
+PythonLaunchDescriptionSource = stand_in('PythonLaunchDescriptionSource', [], 1)
+OpaqueFunction = stand_in('OpaqueFunction', ['function', 'args', 'kwargs', 'condition'])
+ExecuteProcess = stand_in('ExecuteProcess', _PROCESS_KWARGS | {'cmd'})
+Node = stand_in('Node', _NODE_KWARGS)
+RegisterEventHandler = stand_in('RegisterEventHandler', ['condition'], 1)
+EmitEvent = stand_in('EmitEvent', ['event', 'condition'])
+OnProcessStart = stand_in('OnProcessStart', ['target_action', 'on_start', 'handle_once'])
+OnStateTransition = stand_in('OnStateTransition', [
+    'entities', 'target_lifecycle_node', 'transition', 'start_state', 'goal_state', 'matcher',
+    'handle_once'])
+ChangeState = stand_in('ChangeState', ['lifecycle_node_matcher', 'transition_id'])
+MatchesAction = stand_in('MatchesAction', [], 1)
+
+
+class LifecycleNode(Node):
+    """Jazzy's LifecycleNode requires both name and namespace."""
+
+    def __init__(self, **kwargs):
+        for required in ('name', 'namespace'):
+            if required not in kwargs:
+                raise TypeError(f'LifecycleNode() missing keyword argument {required!r}')
+        super().__init__(**kwargs)
+
+
+STAND_INS = {
+    'launch': {'LaunchDescription': LaunchDescription},
+    'launch.actions': {c.__name__: c for c in (
+        DeclareLaunchArgument, GroupAction, IncludeLaunchDescription, OpaqueFunction,
+        ExecuteProcess, RegisterEventHandler, EmitEvent)},
+    'launch.substitutions': {c.__name__: c for c in (
+        LaunchConfiguration, PathJoinSubstitution, TextSubstitution)},
+    'launch.conditions': {'IfCondition': IfCondition, 'UnlessCondition': UnlessCondition},
+    'launch.event_handlers': {'OnProcessStart': OnProcessStart},
+    'launch.events': {'matches_action': MatchesAction},
+    'launch.launch_description_sources': {
+        'PythonLaunchDescriptionSource': PythonLaunchDescriptionSource},
+    'launch_ros': {},
+    'launch_ros.actions': {'Node': Node, 'LifecycleNode': LifecycleNode},
+    'launch_ros.substitutions': {'FindPackageShare': FindPackageShare,
+                                 'FindPackagePrefix': FindPackagePrefix},
+    'launch_ros.parameter_descriptions': {'ParameterValue': ParameterValue},
+    'launch_ros.event_handlers': {'OnStateTransition': OnStateTransition},
+    'launch_ros.events': {},
+    'launch_ros.events.lifecycle': {'ChangeState': ChangeState},
+}
+
+
+@pytest.fixture
+def stand_ins(monkeypatch):
+    """Install the stand-in modules for one test; monkeypatch removes them afterwards."""
+    for name, members in STAND_INS.items():
+        module = types.ModuleType(name)
+        module.__dict__.update(members)
+        monkeypatch.setitem(sys.modules, name, module)
+    for name in STAND_INS:
+        parent, _, child = name.rpartition('.')
+        if parent:
+            setattr(sys.modules[parent], child, sys.modules[name])
+
+
+# ---------------------------------------------------------------------------------------
+# Walking a launch description the way `ros2 launch` would, recording what would start.
+
+
+class Launched:
+    def __init__(self):
+        self.arguments: dict[str, StandIn] = {}
+        self.nodes: list[dict] = []
+        self.processes: list[list[str]] = []
+        self.handlers: list[StandIn] = []
+        self.included: list[Path] = []
+
+
+def load_description(path: Path):
+    spec = importlib.util.spec_from_file_location(f'launch_file_{path.stem}', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.generate_launch_description()
+
+
+def evaluate_parameters(parameters, context: Context) -> list:
+    """Files -> their path (must exist); dicts -> {name: value} as launch would write them."""
+    evaluated = []
+    for item in parameters or []:
+        if isinstance(item, dict):
+            evaluated.append({key: value.evaluate(context) if isinstance(value, ParameterValue)
+                              else yaml.safe_load(perform(value, context))
+                              if isinstance(value, StandIn) else value
+                              for key, value in item.items()})
+        else:
+            evaluated.append(Path(perform(item, context)))
+    return evaluated
+
+
+def walk(entities, context: Context, out: Launched) -> None:
+    for entity in entities:
+        if entity.condition is not None and not entity.condition.evaluate(context):
+            continue
+        kind = type(entity)
+        if kind is DeclareLaunchArgument:
+            name = entity.args[0]
+            assert entity.kwargs.get('description'), f'launch argument {name} has no description'
+            out.arguments[name] = entity
+            if name not in context.launch_configurations:
+                default = entity.kwargs.get('default_value')
+                if default is not None:
+                    context.launch_configurations[name] = perform(default, context)
+            choices = entity.kwargs.get('choices')
+            value = context.launch_configurations.get(name)
+            assert not choices or value in choices, f'{name}:={value} not in {choices}'
+        elif kind is GroupAction:
+            scoped = entity.kwargs.get('scoped', True)
+            walk(entity.args[0], Context(context.launch_configurations) if scoped else context,
+                 out)
+        elif kind is IncludeLaunchDescription:
+            path = Path(perform(entity.args[0].args[0], context))
+            assert path.is_file(), f'included {path} is not installed (make setup)'
+            out.included.append(path)
+            for key, value in entity.kwargs.get('launch_arguments') or ():
+                context.launch_configurations[perform(key, context)] = perform(value, context)
+            walk(load_description(path).args[0], context, out)
+        elif kind is OpaqueFunction:
+            function = entity.kwargs['function']
+            walk(function(context, *entity.kwargs.get('args', ()),
+                          **entity.kwargs.get('kwargs', {})) or [], context, out)
+        elif kind in (Node, LifecycleNode):
+            kw = entity.kwargs
+            out.nodes.append({
+                'action': entity, 'lifecycle': kind is LifecycleNode,
+                'package': perform(kw['package'], context),
+                'executable': perform(kw['executable'], context),
+                'name': perform(kw['name'], context) if 'name' in kw else None,
+                'namespace': perform(kw.get('namespace', ''), context),
+                'parameters': evaluate_parameters(kw.get('parameters'), context),
+                'arguments': [perform(a, context) for a in kw.get('arguments') or []]})
+        elif kind is ExecuteProcess:
+            out.processes.append([perform(part, context) for part in entity.kwargs['cmd']])
+        elif kind is RegisterEventHandler:
+            out.handlers.append(entity.args[0])
+        else:
+            raise AssertionError(f'the walker does not know {kind.__name__}')
+
+
+def launch(name: str, **arguments: str) -> Launched:
+    out = Launched()
+    walk(load_description(LAUNCH_FILES[name]).args[0], Context(arguments), out)
+    return out
+
+
+def flatten(tree: dict, prefix: str = '') -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(flatten(value, f'{prefix}{key}.'))
+        else:
+            flat[f'{prefix}{key}'] = value
+    return flat
+
+
+def parameters_given(node: dict) -> dict:
+    """Every parameter the launch gives the node, from its files (all `/**`) and dicts."""
+    given = {}
+    for item in node['parameters']:
+        if isinstance(item, Path):
+            assert item.is_file(), f'params file {item} does not exist'
+            document = yaml.safe_load(item.read_text())
+            assert list(document) == ['/**'], (
+                f'{item}: use the /** wildcard so the file fits any namespace')
+            given.update(flatten(document['/**']['ros__parameters']))
+        else:
+            given.update(flatten(item))
+    return given
+
+
+# ---------------------------------------------------------------------------------------
+# What the real nodes declare, asked over DDS.
+
+_TYPE_OF = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+            float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+_ARRAY_OF = {bool: ParameterType.PARAMETER_BOOL_ARRAY,
+             int: ParameterType.PARAMETER_INTEGER_ARRAY,
+             float: ParameterType.PARAMETER_DOUBLE_ARRAY,
+             str: ParameterType.PARAMETER_STRING_ARRAY}
+
+
+def parameter_type(value) -> int:
+    if isinstance(value, list):
+        kinds = {type(v) for v in value}
+        assert len(kinds) == 1, f'mixed list {value}'
+        return _ARRAY_OF[kinds.pop()]
+    return _TYPE_OF[type(value)]
+
+
+def _call(node, srv_type, name: str, request, timeout: float = 30.0):
+    client = node.create_client(srv_type, name)
+    try:
+        assert client.wait_for_service(timeout_sec=timeout), f'{name} not available'
+        future = client.call_async(request)
+        wait_until(future.done, timeout, f'{name} answer')
+        return future.result()
+    finally:
+        node.destroy_client(client)
+
+
+@pytest.fixture(scope='module')
+def declared(module_procs, tmp_path_factory) -> dict[tuple[str, str], dict[str, int]]:
+    """{(package, executable): {parameter name: declared type}} from the running nodes."""
+    bag = tmp_path_factory.mktemp('bag') / 'b'
+    module_procs.ros2_run('pma_driver', 'driver_node',
+                          ros_args=['-p', 'port:=/nonexistent/pma_launch_test'])
+    module_procs.ros2_run('pma_model', 'model_node')
+    module_procs.ros2_run('pma_driver', 'recorder', '-o', str(bag))
+    probe = SpinningNode('launch_file_probe')
+    try:
+        result = {}
+        for key, node_name in NODE_NAMES.items():
+            names = _call(probe.node, ListParameters, f'/{node_name}/list_parameters',
+                          ListParameters.Request()).result.names
+            described = _call(probe.node, DescribeParameters,
+                              f'/{node_name}/describe_parameters',
+                              DescribeParameters.Request(names=list(names))).descriptors
+            result[key] = {d.name: d.type for d in described}
+        return result
+    finally:
+        probe.close()
+        shutdown()
+
+
+def check_nodes_against_code(launched: Launched, declared: dict) -> None:
+    assert launched.nodes, 'no node would start'
+    for node in launched.nodes:
+        key = (node['package'], node['executable'])
+        exe = INSTALL / key[0] / 'lib' / key[0] / key[1]
+        assert exe.is_file() and os.access(exe, os.X_OK), f'{exe} is not installed'
+        assert key in NODE_NAMES, f'unexpected node {key}'
+        assert node['name'] in (None, NODE_NAMES[key]), (
+            f'{key}: launch renames the node to {node["name"]}; docs use {NODE_NAMES[key]}')
+        for name, value in parameters_given(node).items():
+            assert name in declared[key], f'{key[1]} does not declare parameter {name!r}'
+            assert parameter_type(value) == declared[key][name], (
+                f'{key[1]}: {name}={value!r} has another type than the node declares')
+        if key[1] == 'recorder':
+            from pma_driver.recorder_node import parse_args
+            assert parse_args(node['arguments']).output is not None
+
+
+# ---------------------------------------------------------------------------------------
+# Tests
+
+
+@pytest.mark.integration
+def test_driver_launch_defaults_and_manual_lifecycle(stand_ins, declared):
+    default = launch('driver')
+    assert [n['executable'] for n in default.nodes] == ['driver_node']
+    driver = default.nodes[0]
+    assert driver['lifecycle'] and driver['namespace'] == ''
+    assert driver['parameters'][0] == (INSTALL / 'pma_driver' / 'share' / 'pma_driver'
+                                       / 'config' / 'driver_node.yaml')
+    assert parameters_given(driver)['port'] == '/dev/ttyACM0'
+    assert parameters_given(driver)['autostart'] is True
+    assert default.handlers == [], 'with autostart the node drives its own lifecycle'
+    check_nodes_against_code(default, declared)
+
+    # autostart:=false: launch configures the process when it starts, activates once inactive.
+    managed = launch('driver', autostart='false', namespace='left', port='/dev/pma0')
+    check_nodes_against_code(managed, declared)
+    driver = managed.nodes[0]
+    assert parameters_given(driver)['autostart'] is False
+    assert parameters_given(driver)['port'] == '/dev/pma0'
+    on_start, on_inactive = managed.handlers
+    from lifecycle_msgs.msg import Transition
+    assert type(on_start) is OnProcessStart
+    assert on_start.kwargs['target_action'] is driver['action']
+    configure = on_start.kwargs['on_start'][0].kwargs['event']
+    assert configure.kwargs['transition_id'] == Transition.TRANSITION_CONFIGURE
+    assert configure.kwargs['lifecycle_node_matcher'].args[0] is driver['action']
+    assert type(on_inactive) is OnStateTransition
+    assert on_inactive.kwargs['target_lifecycle_node'] is driver['action']
+    assert (on_inactive.kwargs['start_state'], on_inactive.kwargs['goal_state']) == (
+        'configuring', 'inactive'), 'activate only after configure, not after a deactivate'
+    activate = on_inactive.kwargs['entities'][0].kwargs['event']
+    assert activate.kwargs['transition_id'] == Transition.TRANSITION_ACTIVATE
+
+
+@pytest.mark.integration
+def test_model_launch_passes_refit_file_for_hot_reload(stand_ins, declared, tmp_path):
+    default = launch('model')
+    check_nodes_against_code(default, declared)
+    given = parameters_given(default.nodes[0])
+    assert given['params_file'] == '' and given['use_sim_time'] is False
+    assert given['increasing.sigmoid.l0_m'] == pytest.approx(0.3006)
+
+    refit = tmp_path / 'refit.yaml'
+    with_refit = launch('model', refit_params_file=str(refit), use_sim_time='true',
+                        namespace='right')
+    check_nodes_against_code(with_refit, declared)
+    node = with_refit.nodes[0]
+    assert node['namespace'] == 'right'
+    assert parameters_given(node)['params_file'] == str(refit)
+    assert parameters_given(node)['use_sim_time'] is True
+
+
+@pytest.mark.integration
+def test_bringup_on_hardware_starts_driver_and_model_only(stand_ins, declared):
+    launched = launch('bringup')
+    check_nodes_against_code(launched, declared)
+    assert sorted(n['executable'] for n in launched.nodes) == ['driver_node', 'model_node']
+    assert launched.processes == [], 'no fake_arduino without use_fake_arduino'
+    driver = next(n for n in launched.nodes if n['executable'] == 'driver_node')
+    assert parameters_given(driver)['port'] == '/dev/ttyACM0'
+    assert {p.name for p in launched.included} == {'driver.launch.py', 'model.launch.py'}
+
+
+@pytest.mark.integration
+def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_ins, declared,
+                                                                         tmp_path):
+    from pma_driver.fake_arduino import parse_args as fake_arduino_args
+    from pma_driver.recorder_node import parse_args as recorder_args
+
+    seen = {}
+    for side in ('left', 'right'):
+        launched = launch('bringup', namespace=side, use_fake_arduino='true', record='true')
+        check_nodes_against_code(launched, declared)
+        nodes = {n['executable']: n for n in launched.nodes}
+        assert sorted(nodes) == ['driver_node', 'model_node', 'recorder']
+        assert {n['namespace'] for n in nodes.values()} == {side}
+        [fake] = launched.processes
+        assert fake[0] == str(INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'fake_arduino')
+        fake_args = fake_arduino_args(fake[1:])        # fake_arduino's own parser accepts them
+        port = parameters_given(nodes['driver_node'])['port']
+        assert str(fake_args.link) == port and port.startswith('/tmp/')
+        bag = recorder_args(nodes['recorder']['arguments']).output
+        topics = parameters_given(nodes['recorder'])['topics']
+        assert 'pma/state' in topics and '/diagnostics' in topics
+        seen[side] = (port, bag.name)
+    assert seen['left'][0] != seen['right'][0]
+    assert seen['left'][1] != seen['right'][1] and 'left' in seen['left'][1]
+
+    explicit = launch('bringup', use_fake_arduino='true', record='true',
+                      port=str(tmp_path / 'dev'), bag_dir=str(tmp_path / 'bag'))
+    nodes = {n['executable']: n for n in explicit.nodes}
+    assert fake_arduino_args(explicit.processes[0][1:]).link == tmp_path / 'dev'
+    assert recorder_args(nodes['recorder']['arguments']).output == tmp_path / 'bag'
+
+
+def test_launch_arguments_refuse_values_outside_their_choices(stand_ins):
+    with pytest.raises(AssertionError, match='not in'):
+        launch('bringup', use_fake_arduino='yes')
+
+
+def test_launch_files_parse_and_use_known_api():
+    """ast fallback, independent of the stand-ins: imports and node literals."""
+    known = {module: set(members) for module, members in STAND_INS.items()}
+    known['lifecycle_msgs.msg'] = {'Transition'}
+    known['datetime'] = {'datetime'}
+    for path in LAUNCH_FILES.values():
+        tree = ast.parse(path.read_text(), filename=str(path))
+        functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+        assert 'generate_launch_description' in functions, path
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                assert node.module in known, f'{path.name}: unexpected import {node.module}'
+                for alias in node.names:
+                    assert alias.name in known[node.module], (
+                        f'{path.name}: {node.module}.{alias.name} is not known Jazzy API')
+            if isinstance(node, ast.Call):
+                literal = {k.arg: k.value.value for k in node.keywords
+                           if isinstance(k.value, ast.Constant)}
+                if 'package' in literal and 'executable' in literal:
+                    exe = (INSTALL / literal['package'] / 'lib' / literal['package']
+                           / literal['executable'])
+                    assert exe.is_file(), f'{path.name}: {exe} not installed'
+
+
+def test_setup_py_installs_launch_and_config_files():
+    """The share/ paths the launch files resolve come from these data_files globs."""
+    for package in ('pma_driver', 'pma_model'):
+        setup = (ROOT / package / 'setup.py').read_text()
+        assert "glob('launch/*.launch.py')" in setup and "glob('config/*.yaml')" in setup
+        for launch_file in (ROOT / package / 'launch').glob('*.launch.py'):
+            installed = INSTALL / package / 'share' / package / 'launch' / launch_file.name
+            assert installed.is_file(), f'{installed} missing: run make setup'
+    assert (INSTALL / 'pma_driver' / 'share' / 'pma_driver' / 'config' / 'recorder.yaml'
+            ).is_file()
+
+
+def test_stand_ins_catch_a_wrong_keyword(stand_ins):
+    """The stand-ins are strict, so a misspelt keyword in a launch file fails here too."""
+    with pytest.raises(TypeError, match='parameter'):
+        Node(package='pma_driver', executable='driver_node', parameter=[])
+    with pytest.raises(TypeError, match='namespace'):
+        LifecycleNode(package='pma_driver', executable='driver_node', name='pma_driver')
+    context = Context({})
+    with pytest.raises(KeyError, match='never declared'):
+        LaunchConfiguration('nope').perform(context)
