@@ -44,13 +44,16 @@ from pma_driver.calibration import LengthCalibration, PressureCalibration
 from pma_driver.clock_sync import ClockSync
 from pma_driver.link import LinkError, LinkState, PortOpenError, SerialLink
 from pma_driver.protocol import Ack, Command, Hello
+from pma_driver.recorder_node import DEFAULT_TOPICS
 from pma_driver.sweep import SweepError, SweepPlan, plan_sweep
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
 
 FIELD_OF_VIEW_RAD = 0.26          # HC-SR04: about 15 degrees
 # The recorder prints this when ready, and again whenever its topic count changes; we wait
-# for our own four topics (pma/state, pma/pressure, pma/range, /diagnostics).
+# until it records every one of its default topics that has a publisher now (at least our
+# own four: pma/state, pma/pressure, pma/range, /diagnostics), so that e.g. model_node's
+# pma/prediction is in the bag from the first step on.
 RECORDER_READY_RE = re.compile(r'recorder: recording (\d+) topics')
 RECORDER_TOPICS = 4
 FAULT_BITS = (protocol.STATUS_OVERPRESSURE | protocol.STATUS_HEARTBEAT_LOST
@@ -515,7 +518,7 @@ class PmaDriver(Node):
     def _run_sweep(self, goal_handle):
         goal = goal_handle.request
         result = Sweep.Result()
-        start_count = self._published
+        start_count = self._published   # reset once the recorder runs: count what it can see
 
         def finish(outcome: str, message: str):
             result.message = message
@@ -540,6 +543,7 @@ class PmaDriver(Node):
             except RuntimeError as error:
                 return finish('abort', f'recorder: {error}')
             result.bag_path = str(bag.resolve())
+            start_count = self._published
         try:
             outcome, message = self._follow_plan(goal_handle, plan, start_count)
         finally:
@@ -617,7 +621,10 @@ class PmaDriver(Node):
         proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, text=True, start_new_session=True,
                                 env=dict(os.environ, PYTHONUNBUFFERED='1'))
-        ready = threading.Event()       # the recorder has subscribed our data topics
+        expected = max(RECORDER_TOPICS, sum(
+            1 for topic in DEFAULT_TOPICS
+            if self.count_publishers(self.resolve_topic_name(topic)) > 0))
+        ready = threading.Event()       # the recorder has subscribed every published topic
         announced = threading.Event()   # it has started (maybe with 0 topics yet)
         tail: list[str] = []
 
@@ -628,7 +635,7 @@ class PmaDriver(Node):
                 match = RECORDER_READY_RE.search(line)
                 if match:
                     announced.set()
-                    if int(match.group(1)) >= RECORDER_TOPICS:
+                    if int(match.group(1)) >= expected:
                         ready.set()
                 self.get_logger().debug(f'recorder: {line.rstrip()}')
 
@@ -642,7 +649,8 @@ class PmaDriver(Node):
                                    + ' | '.join(tail[-5:]))
             if announced.is_set() and waited > 5.0:
                 self.get_logger().warning(
-                    f'recorder: not all of our topics subscribed after 5 s: {tail[-1:]}')
+                    f'recorder: not all of the {expected} published topics subscribed after '
+                    f'5 s: {tail[-1:]}')
                 break
         self.get_logger().info(f'recording to {bag}')
         return proc

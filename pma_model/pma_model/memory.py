@@ -101,6 +101,13 @@ class _Curve:
         return float(self.major.inverse_unchecked(shape))
 
 
+def _as_float(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 class HysteresisModel:
     """Length of the muscle for a pressure history, and the inverse for a target length.
 
@@ -299,36 +306,51 @@ class HysteresisModel:
         return BRANCH_INCREASING if length_m < self._l else BRANCH_DECREASING
 
     def pressure_for_length(self, length_m: float, branch: int = BRANCH_AUTO) -> InverseResult:
-        """Gauge pressure [Pa] that gives length_m when pressure moves along `branch`.
+        """Gauge pressure [Pa] that gives length_m, never outside 0..max_gauge_pressure_pa.
 
-        Madelung: the path pressure would follow from the current state in that direction -
-        the current scanning curve if the state is already moving that way, else the curve a
-        reversal right now would start (the rescaled major branch from the current point),
-        continuing through wiping-out to 0 Pa or the maximum pressure. Switch: the major
-        branch. Never answers outside 0..max_gauge_pressure_pa; refusals carry the range.
+        INCREASING / DECREASING: that direction's major branch over 0..max (the paper's
+        per-branch inverse; the state does not matter). AUTO: from the current state, in
+        the direction the target needs (shorter -> rising); with 'madelung' memory along the
+        path pressure would really follow (`path_pressure_for_length`), with 'switch' on
+        that direction's major branch. Refusals carry the reachable range.
         """
         if branch not in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING):
             return InverseResult(False, f'unknown branch {branch!r}: use 0 (auto), '
                                  '1 (increasing) or 2 (decreasing)', math.nan, 0, math.nan,
                                  math.nan)
-        try:
-            length_m = float(length_m)
-        except (TypeError, ValueError):
-            length_m = math.nan
+        length_m = _as_float(length_m)
         if not math.isfinite(length_m):
             return InverseResult(False, f'target length must be finite, got {length_m!r}',
                                  math.nan, 0, math.nan, math.nan)
         if branch == BRANCH_AUTO:
-            branch = self.auto_branch(length_m)
-        rising = branch == BRANCH_INCREASING
-        name = BRANCH_NAMES[branch]
-        if self.memory == 'switch':
-            ends = (0.0, self.max_gauge_pressure_pa)
-            segments = [(_Curve(self._major(rising)), *(ends if rising else ends[::-1]))]
-            where = f'{name} major branch'
+            rising = self.auto_branch(length_m) == BRANCH_INCREASING
+            if self.memory == 'madelung':
+                return self.path_pressure_for_length(length_m, rising)
         else:
-            segments = self._future_segments(rising)
-            where = f'{name} path from the current state ({self._p:.6g} Pa, {self._l:.6g} m)'
+            rising = branch == BRANCH_INCREASING
+        ends = (0.0, self.max_gauge_pressure_pa)
+        segments = [(_Curve(self._major(rising)), *(ends if rising else ends[::-1]))]
+        name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
+        return self._invert_along(segments, rising, length_m, f'{name} major branch')
+
+    def path_pressure_for_length(self, length_m: float, rising: bool) -> InverseResult:
+        """The pressure at which length_m is reached if pressure moves from the current state.
+
+        The path is the current scanning curve if the state already moves that way, else
+        the curve a reversal right now would start, continuing through wiping-out to 0 Pa
+        or the maximum: what a controller needs, since that is what the muscle will do.
+        """
+        length_m = _as_float(length_m)
+        if not math.isfinite(length_m):
+            return InverseResult(False, f'target length must be finite, got {length_m!r}',
+                                 math.nan, 0, math.nan, math.nan)
+        name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
+        where = f'{name} path from the current state ({self._p:.6g} Pa, {self._l:.6g} m)'
+        return self._invert_along(self._future_segments(rising), rising, length_m, where)
+
+    def _invert_along(self, segments: list[tuple[_Curve, float, float]], rising: bool,
+                      length_m: float, where: str) -> InverseResult:
+        branch = BRANCH_INCREASING if rising else BRANCH_DECREASING
         pieces = []
         for curve, p_from, p_to in segments:
             # Only the part of each piece that lies ahead of us and inside 0..limit counts.

@@ -168,15 +168,19 @@ def test_inverse_round_trip_on_a_scanning_curve(form):
     model = model_of(form)
     model.advance(ramp(0, 350, 150))
     assert len(model.turning_points) == 1  # falling on a scanning curve from 350 kPa
-    for fraction, branch in ((0.3, BRANCH_DECREASING), (0.7, BRANCH_INCREASING)):
-        probe = model.pressure_for_length(model.length_m, branch)
+    for fraction, rising in ((0.3, False), (0.7, True)):
+        probe = model.path_pressure_for_length(model.length_m, rising)
         assert probe.success and probe.gauge_pressure_pa == pytest.approx(150 * KPA)
         low, high = probe.min_length_m, probe.max_length_m
         target = low + fraction * (high - low)
-        result = model.pressure_for_length(target, branch)
+        result = model.path_pressure_for_length(target, rising)
         assert result.success, result.message
-        assert result.branch == branch
+        assert result.branch == (BRANCH_INCREASING if rising else BRANCH_DECREASING)
         assert simulate_to(model, result.gauge_pressure_pa) == pytest.approx(target, abs=1e-9)
+        # AUTO picks the same path: the direction the target needs.
+        auto = model.pressure_for_length(target, BRANCH_AUTO)
+        assert (auto.branch, auto.gauge_pressure_pa) == (result.branch,
+                                                         result.gauge_pressure_pa)
 
 
 @settings(max_examples=60, deadline=None)
@@ -186,18 +190,36 @@ def test_inverse_round_trip_on_a_scanning_curve(form):
 def test_inverse_round_trip_property(turns, fraction, rising, form):
     model = model_of(form)
     model.advance(ramp(*turns, step_kpa=5.0))
-    branch = BRANCH_INCREASING if rising else BRANCH_DECREASING
-    span = model.pressure_for_length(model.length_m, branch)
+    span = model.path_pressure_for_length(model.length_m, rising)
     if not span.success:  # already at 0 Pa going down, or at the maximum going up
         assert model.pressure_pa in (0.0, model.max_gauge_pressure_pa)
         return
     target = span.min_length_m + fraction * (span.max_length_m - span.min_length_m)
-    result = model.pressure_for_length(target, branch)
+    result = model.path_pressure_for_length(target, rising)
     assert result.success, result.message
     assert 0.0 <= result.gauge_pressure_pa <= model.max_gauge_pressure_pa
     assert (result.gauge_pressure_pa >= model.pressure_pa) == rising or \
         result.gauge_pressure_pa == pytest.approx(model.pressure_pa)
     assert simulate_to(model, result.gauge_pressure_pa) == pytest.approx(target, abs=1e-8)
+
+
+@pytest.mark.parametrize('memory', ['madelung', 'switch'])
+def test_explicit_branch_is_the_major_branch_whatever_the_state(memory):
+    model = model_of(memory=memory)
+    target = 0.27
+    at_rest = {b: model.pressure_for_length(target, b)
+               for b in (BRANCH_INCREASING, BRANCH_DECREASING)}
+    model.advance(ramp(0, 400, 200, 300))
+    for branch, major in ((BRANCH_INCREASING, model.increasing),
+                          (BRANCH_DECREASING, model.decreasing)):
+        result = model.pressure_for_length(target, branch)
+        assert result.success and 'major branch' in result.message
+        assert result.gauge_pressure_pa == pytest.approx(major.pressure(target), abs=1e-6)
+        assert result.gauge_pressure_pa == at_rest[branch].gauge_pressure_pa
+        assert (result.min_length_m, result.max_length_m) == pytest.approx(major.length_range())
+    # the loop is open: the decreasing branch needs less pressure for the same length
+    assert at_rest[BRANCH_DECREASING].gauge_pressure_pa < \
+        at_rest[BRANCH_INCREASING].gauge_pressure_pa
 
 
 def test_auto_branch_rule():
@@ -230,13 +252,12 @@ def test_inverse_never_answers_above_the_maximum_pressure():
                 assert 0.0 <= answer.gauge_pressure_pa <= 300 * KPA
 
 
-def test_switch_inverse_is_the_major_branch_inverse():
+def test_switch_auto_inverse_is_the_major_branch_inverse():
     model = model_of(memory='switch')
     model.advance(ramp(0, 400, 200))
-    target = 0.27
-    for branch, major in ((BRANCH_INCREASING, model.increasing),
-                          (BRANCH_DECREASING, model.decreasing)):
-        result = model.pressure_for_length(target, branch)
+    for target, major in ((model.length_m - 0.005, model.increasing),
+                          (model.length_m + 0.005, model.decreasing)):
+        result = model.pressure_for_length(target, BRANCH_AUTO)
         assert result.success
         assert result.gauge_pressure_pa == pytest.approx(major.pressure(target), abs=1e-6)
         assert (result.min_length_m, result.max_length_m) == pytest.approx(major.length_range())
@@ -249,8 +270,11 @@ def test_bad_inverse_requests_are_refused_with_a_message():
         assert not result.success and 'finite' in result.message
     result = model.pressure_for_length(0.27, 7)
     assert not result.success and 'unknown branch' in result.message
-    at_rest_down = model.pressure_for_length(0.26, BRANCH_DECREASING)
+    # From rest, falling pressure cannot shorten the muscle: refused, with the (empty) range.
+    at_rest_down = model.path_pressure_for_length(0.26, rising=False)
     assert not at_rest_down.success and 'reachable' in at_rest_down.message
+    longer_than_rest = model.pressure_for_length(model.length_m + 0.001, BRANCH_AUTO)
+    assert not longer_than_rest.success and 'reachable' in longer_than_rest.message
 
 
 def test_constructor_validates():

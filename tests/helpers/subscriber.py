@@ -15,6 +15,8 @@ import time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+RESUME_GRACE_S = 3.0
+
 
 def field_value(msg, path):
     for part in path.split('.'):
@@ -22,17 +24,23 @@ def field_value(msg, path):
     return msg
 
 
-def resume(node, topic: str, service: str, deadline: float) -> None:
-    """Wait until a publisher of topic is discovered, then call the Trigger service."""
+def resume(node, subscription, service: str, deadline: float) -> None:
+    """Once our reader has matched the player's writer, call its Trigger service.
+
+    The reader matching the writer does not prove the writer has matched the reader yet
+    (each side learns of the other from its own SEDP message, and a lost one is resent only
+    at the next discovery heartbeat, seen to take over 1 s under load), and a volatile
+    writer drops what it publishes before then: hence the grace period after the match.
+    """
     from std_srvs.srv import Trigger
 
-    while node.count_publishers(topic) < 1 and time.monotonic() < deadline:
+    while subscription.get_publisher_count() < 1 and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
     client = node.create_client(Trigger, service)
     if not client.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic())):
         print(f'subscriber: no service {service}', flush=True)
         return
-    time.sleep(1.0)  # endpoint matching completes shortly after graph discovery
+    time.sleep(RESUME_GRACE_S)
     future = client.call_async(Trigger.Request())
     rclpy.spin_until_future_complete(node, future, timeout_sec=10)
     print(f'subscriber: called {service}: {future.result()}', flush=True)
@@ -65,12 +73,12 @@ def main() -> int:
 
     reliability = (ReliabilityPolicy.BEST_EFFORT if args.best_effort
                    else ReliabilityPolicy.RELIABLE)
-    node.create_subscription(msg_type, args.topic, on_message,
-                             QoSProfile(depth=1000, reliability=reliability))
+    subscription = node.create_subscription(msg_type, args.topic, on_message,
+                                            QoSProfile(depth=1000, reliability=reliability))
     print(f'subscriber: listening on {args.topic}', flush=True)
     deadline = time.monotonic() + args.timeout
     if args.resume_service:
-        resume(node, args.topic, args.resume_service, deadline)
+        resume(node, subscription, args.resume_service, deadline)
     try:
         while time.monotonic() < deadline and not (args.count and len(received) >= args.count):
             rclpy.spin_once(node, timeout_sec=0.05)

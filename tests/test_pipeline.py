@@ -1,0 +1,347 @@
+"""The whole pipeline on the simulated rig, every piece a real process over real DDS.
+
+fake_arduino -> driver_node -> model_node, the paper's sweep through the Sweep action with
+its own bag; then the bag in three readers, replayed into a second model_node, refitted,
+and the refit loaded back. What the issues' "done when" lines ask, in one module so the
+sweep (the slow part) runs once.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rclpy.action import ActionClient
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from rclpy.serialization import deserialize_message
+from rosbags.highlevel import AnyReader
+
+from pma_driver.bag import BagReader
+from pma_interfaces.action import Sweep
+from pma_interfaces.msg import ModelParams, PmaPrediction, PmaState
+from support.ros import SpinningNode, shutdown, wait_until
+
+pytestmark = pytest.mark.integration
+
+TABLE1 = Path(__file__).resolve().parents[1] / 'pma_model' / 'pma_model' / 'data' / \
+    'paper_table1.csv'
+SENSOR_ACCURACY_M = 0.003       # HC-SR04, about +/-3 mm (the issue's figure)
+RATE_HZ = 50
+STATE = 'pma_interfaces/msg/PmaState'
+
+
+@dataclass
+class Hold:
+    """One step of the staircase, reduced to its settled second half."""
+
+    setpoint_pa: float
+    increasing: bool
+    pressure_pa: float
+    measured_m: float
+    predicted_m: float
+
+
+class Stream:
+    """PmaState and PmaPrediction as another process sees them."""
+
+    def __init__(self, node, namespace: str = ''):
+        self.lock = threading.Lock()
+        self.states: list[PmaState] = []
+        self.predictions: list[PmaPrediction] = []
+        self.params: list[ModelParams] = []
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._subs = [
+            node.create_subscription(PmaState, f'{namespace}/pma/state',
+                                     self._keep(self.states), 1000),
+            node.create_subscription(PmaPrediction, f'{namespace}/pma/prediction',
+                                     self._keep(self.predictions), 1000),
+            node.create_subscription(ModelParams, f'{namespace}/pma/model_params',
+                                     self._keep(self.params), latched),
+        ]
+
+    def _keep(self, into: list):
+        def keep(msg) -> None:
+            with self.lock:
+                into.append(msg)
+        return keep
+
+    def count(self, what: str) -> int:
+        with self.lock:
+            return len(getattr(self, what))
+
+
+def stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+@pytest.fixture(scope='module')
+def probe():
+    node = SpinningNode('pipeline_probe')
+    yield node
+    node.close()
+    shutdown()
+
+
+@pytest.fixture(scope='module')
+def swept(module_procs, probe, tmp_path_factory):
+    """Rig + driver + model; one full 0 -> 500 -> 0 kPa sweep recorded by the action."""
+    work = tmp_path_factory.mktemp('pipeline')
+    port = work / 'ttyPMA'
+    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', port, '--seed', '3')
+    fake.wait_for_line('fake_arduino: device at', 20)
+    model = module_procs.ros2_run('pma_model', 'model_node')
+    model.wait_for_line('model_node ready', 30)
+    live = Stream(probe.node)
+    driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[
+        '-p', f'port:={port}', '-p', f'sample_rate_hz:={float(RATE_HZ)}'])
+    driver.wait_for_line('active: publishing', 30)
+    wait_until(lambda: live.count('predictions') >= 10, 30, 'live predictions')
+
+    client = ActionClient(probe.node, Sweep, 'pma/sweep')
+    assert client.wait_for_server(timeout_sec=20)
+    bag = work / 'sweep_bag'
+    goal = Sweep.Goal(max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=1.0, cycles=1,
+                      record=True, bag_path=str(bag))
+    with live.lock:
+        first_state = len(live.states)
+    sent = client.send_goal_async(goal)
+    wait_until(sent.done, 20, 'goal accepted')
+    assert sent.result().accepted
+    result_future = sent.result().get_result_async()
+    wait_until(result_future.done, 240, 'sweep result')
+    result = result_future.result().result
+    client.destroy()
+    assert result.success, result.message
+    assert result.bag_path == str(bag)
+    with live.lock:
+        states = live.states[first_state:]
+        predictions = list(live.predictions)
+    return {'work': work, 'bag': bag, 'states': states, 'predictions': predictions,
+            'live': live, 'driver': driver, 'result': result}
+
+
+def holds(states: list[PmaState], predictions: list[PmaPrediction]) -> list[Hold]:
+    """Each staircase step: consecutive samples with one device setpoint, settled half."""
+    predicted = {stamp_ns(p): p.predicted_length_m for p in predictions}
+    steps = []
+    for setpoint, group in itertools.groupby(states, key=lambda s: s.gauge_setpoint_pa):
+        samples = list(group)
+        steps.append((setpoint, samples[len(samples) // 2:]))
+    peak = max(range(len(steps)), key=lambda i: steps[i][0])
+    out = []
+    for index, (setpoint, settled) in enumerate(steps):
+        pairs = [(s, predicted[stamp_ns(s)]) for s in settled if stamp_ns(s) in predicted]
+        if len(pairs) < 5:
+            continue
+        out.append(Hold(setpoint, index <= peak,
+                        float(np.mean([s.gauge_pressure_pa for s, _ in pairs])),
+                        float(np.mean([s.length_m for s, _ in pairs])),
+                        float(np.mean([p for _, p in pairs]))))
+    return out
+
+
+def table1() -> dict[tuple[float, bool], float]:
+    with open(TABLE1, newline='', encoding='utf-8') as stream:
+        rows = list(csv.DictReader(stream))
+    table = {}
+    for row in rows:
+        pressure_pa = float(row['pressure_kpa']) * 1e3
+        table[pressure_pa, True] = float(row['length_increasing_cm']) / 100
+        table[pressure_pa, False] = float(row['length_decreasing_cm']) / 100
+    return table
+
+
+def test_sweep_through_the_driver_yields_the_loop_of_table_1(swept):
+    steps = holds(swept['states'], swept['predictions'])
+    table = table1()
+    errors = {True: [], False: []}
+    for step in steps:
+        key = (step.setpoint_pa, step.increasing)
+        if key in table:
+            errors[step.increasing].append(step.measured_m - table[key])
+    assert len(errors[True]) >= 10 and len(errors[False]) >= 9, steps
+    every = np.array(errors[True] + errors[False])
+    rmse, worst = float(np.sqrt(np.mean(every ** 2))), float(np.max(np.abs(every)))
+    print(f'\nsweep via driver_node vs Table 1: RMSE {rmse * 100:.3f} cm, '
+          f'max {worst * 100:.3f} cm over {every.size} holds')
+    assert worst < SENSOR_ACCURACY_M, errors
+    # Hysteresis, not noise: at 200 kPa the decreasing branch is 3.6 mm shorter in Table 1.
+    mid = [s for s in steps if s.setpoint_pa == 200e3]
+    up, down = (next(s.measured_m for s in mid if s.increasing is d) for d in (True, False))
+    assert up - down > 0.002
+
+
+def test_live_predictions_follow_the_measured_length_on_both_branches(swept):
+    predictions = swept['predictions']
+    branches = {p.branch for p in predictions}
+    assert branches == {PmaPrediction.BRANCH_INCREASING, PmaPrediction.BRANCH_DECREASING}
+    steps = holds(swept['states'], predictions)
+    report = []
+    for increasing in (True, False):
+        errors = np.array([s.predicted_m - s.measured_m for s in steps
+                           if s.increasing is increasing])
+        rmse, worst = float(np.sqrt(np.mean(errors ** 2))), float(np.max(np.abs(errors)))
+        report.append(f'{"increasing" if increasing else "decreasing"}: RMSE '
+                      f'{rmse * 100:.3f} cm, max {worst * 100:.3f} cm ({errors.size} holds)')
+        # The paper's sigmoid (the default) misses the 0-50 kPa dead zone by up to ~4 mm on
+        # Table 1 itself; everywhere else it is within the sensor's accuracy.
+        assert rmse < SENSOR_ACCURACY_M, report
+        assert worst < 2 * SENSOR_ACCURACY_M, report
+    print('\nlive predictions vs measured (hold means): ' + '; '.join(report))
+    # Every sample got a prediction with its own header (stamps line up one to one).
+    stamps = {stamp_ns(s) for s in swept['states']}
+    predicted = {stamp_ns(p) for p in predictions}
+    assert len(stamps - predicted) <= 2, 'predictions missing for live samples'
+
+
+def test_the_sweep_bag_opens_in_three_readers(swept):
+    bag = swept['bag']
+    assert (bag / 'metadata.yaml').is_file() and (bag / f'{bag.name}_0.mcap').is_file()
+    with BagReader(bag) as reader:
+        ours = [deserialize_message(m.data, PmaState).seq
+                for m in reader.messages(['/pma/state'])]
+        topics = set(reader.topics)
+    assert {'/pma/state', '/pma/pressure', '/pma/range', '/pma/prediction',
+            '/pma/model_params', '/diagnostics'} <= topics
+    assert len(ours) >= swept['result'].sample_count * 0.9
+    assert ours == sorted(ours) and len(set(ours)) == len(ours)
+    with AnyReader([bag]) as reader:
+        connections = [c for c in reader.connections if c.topic == '/pma/state']
+        theirs = [reader.deserialize(raw, STATE).seq for _, _, raw in
+                  reader.messages(connections)]
+    assert theirs == ours
+    with open(bag / f'{bag.name}_0.mcap', 'rb') as stream:
+        decoded = make_reader(stream, decoder_factories=[DecoderFactory()])
+        mcaps = [m.seq for _, _, _, m in decoded.iter_decoded_messages(topics=['/pma/state'])]
+    assert mcaps == ours
+    metadata = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    counts = {t['topic_metadata']['name']: t['message_count']
+              for t in metadata['topics_with_message_count']}
+    assert counts['/pma/state'] == len(ours)
+
+
+@pytest.fixture(scope='module')
+def replayed(swept, module_procs, probe):
+    """The bag's pma/state replayed into a second model_node in the namespace /replayed."""
+    model = module_procs.ros2_run('pma_model', 'model_node', name='replayed_model',
+                                  ros_args=['-r', '__ns:=/replayed'])
+    model.wait_for_line('model_node ready', 30)
+    stream = Stream(probe.node, '/replayed')
+    wait_until(lambda: stream.count('params') >= 1, 20, 'replayed model parameters')
+    player = module_procs.ros2_run('pma_model', 'replay', swept['bag'], '--start-paused',
+                                   '--topics', 'pma/state',
+                                   '--remap', '/pma/state:=/replayed/pma/state')
+    player.wait_for_line('replay: playing', 30)
+    wait_until(lambda: probe.node.count_publishers('/replayed/pma/state') >= 1, 20,
+               'the player on /replayed/pma/state')
+    from std_srvs.srv import Trigger
+    client = probe.node.create_client(Trigger, '/replay/resume')
+    assert client.wait_for_service(timeout_sec=20)
+    # The graph shows the player before its writer has matched model_node's reader, and
+    # nothing outside the two processes can see that match: give it the same grace as
+    # helpers/subscriber.py. Samples lost anyway are at rest (the 0 kPa hold).
+    time.sleep(3.0)
+    future = client.call_async(Trigger.Request())
+    wait_until(future.done, 10, 'resume')
+    player.wait_for_line('replay: done', timeout=180)
+    assert player.popen.wait(10) == 0, player.output
+    with BagReader(swept['bag']) as reader:
+        expected = reader.topics['/pma/state'].message_count
+    try:
+        wait_until(lambda: stream.count('predictions') >= expected * 0.95, 10,
+                   'predictions of the replayed samples')
+    except TimeoutError as error:
+        raise AssertionError(f'{stream.count("predictions")} predictions for {expected} '
+                             f'replayed samples') from error
+    probe.node.destroy_client(client)
+    return {'model': model, 'stream': stream}
+
+
+def test_replay_into_model_node_reproduces_the_live_predictions(swept, replayed):
+    with BagReader(swept['bag']) as reader:
+        recorded = {stamp_ns(p): p for p in (deserialize_message(m.data, PmaPrediction)
+                                             for m in reader.messages(['/pma/prediction']))}
+        state_count = reader.topics['/pma/state'].message_count
+    stream = replayed['stream']
+    with stream.lock:
+        again = list(stream.predictions)
+    # The sweep waits for the recorder to subscribe model_node's topic too.
+    assert len(recorded) >= 0.99 * state_count, (len(recorded), state_count)
+    matched = [(recorded[stamp_ns(p)], p) for p in again if stamp_ns(p) in recorded]
+    order = sorted(recorded)
+    got = {stamp_ns(p) for p in again}
+    missing = [i for i, stamp in enumerate(order) if stamp not in got]
+    print(f'\nmissing replayed predictions at bag positions {missing[:5]}..{missing[-5:]}')
+    assert len(matched) >= 0.95 * state_count, (len(matched), state_count)
+    differences = np.array([abs(a.predicted_length_m - b.predicted_length_m)
+                            for a, b in matched])
+    branches_agree = np.mean([a.branch == b.branch for a, b in matched])
+    identical = float(np.mean(differences == 0.0))
+    print(f'\nreplayed vs live predictions: {len(matched)} of {state_count} samples matched, '
+          f'{100 * identical:.1f} % identical, max |difference| {differences.max():.3g} m, '
+          f'branches agree {100 * branches_agree:.2f} %')
+    # Same inputs in the same order, same model: the same numbers, except while the live
+    # model's memory still holds the noise loops it saw at rest before the bag started
+    # (micrometres, wiped out by the first pressure step).
+    assert differences.max() < 5e-5
+    assert identical >= 0.95
+    assert branches_agree >= 0.99
+    assert all(a.gauge_pressure_pa == b.gauge_pressure_pa for a, b in matched)
+
+
+def test_refit_of_the_bag_writes_params_that_model_node_loads(swept, replayed, module_procs,
+                                                             probe):
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    work, bag = swept['work'], swept['bag']
+    out = work / 'refit'
+    refit = module_procs.ros2_run('pma_model', 'refit', bag, '--json', out / 'report.json',
+                                  '--params-out', out / 'params.yaml', '--plots', out / 'plots')
+    assert refit.popen.wait(120) == 0, refit.output
+    report = json.loads((out / 'report.json').read_text())
+    for branch in ('increasing', 'decreasing'):
+        models = report['branches'][branch]['models']
+        assert {'sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen',
+                'bouc_wen_nonlinear'} <= set(models)
+        for name, entry in models.items():
+            assert {'mae_cm', 'mse_cm2', 'rmse_cm', 'max_cm', 'r2', 'r', 'aic', 'aicc', 'bic',
+                    'n', 'k'} <= set(entry['metrics']), name
+        hill = models['hill']['metrics']
+        # The simulated rig follows Table 1; the Hill branch fits it within the sensor noise.
+        assert hill['rmse_cm'] < 0.3 and hill['r2'] > 0.99, hill
+    assert sorted(p.name for p in (out / 'plots').glob('*.png')) == \
+        ['comparison.png', 'loop.png', 'residuals.png']
+
+    written = yaml.safe_load((out / 'params.yaml').read_text())['/**']['ros__parameters']
+    stream = replayed['stream']
+    before = stream.count('params')
+    client = probe.node.create_client(SetParameters, '/replayed/model_node/set_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=20)
+        future = client.call_async(SetParameters.Request(parameters=[
+            Parameter('params_file', value=str(out / 'params.yaml')).to_parameter_msg()]))
+        wait_until(future.done, 10, 'set_parameters answer')
+        assert all(r.successful for r in future.result().results), future.result()
+    finally:
+        probe.node.destroy_client(client)
+    wait_until(lambda: stream.count('params') > before, 15, 'model_node reloading the refit')
+    replayed['model'].wait_for_line('loaded model parameters from', 10)
+    with stream.lock:
+        active = stream.params[-1]
+    form = written['branch_form']
+    assert active.form == form
+    loaded = yaml.safe_load(active.parameters_yaml)['/**']['ros__parameters']
+    for key in ('increasing', 'decreasing'):
+        for field, value in written[key][form].items():
+            assert loaded[key][form][field] == pytest.approx(value, rel=1e-9), (key, field)
