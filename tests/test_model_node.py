@@ -98,22 +98,35 @@ def test_every_state_gets_a_prediction_with_its_header(procs, probe):
     try:
         wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,
                    'model_node publisher')
-        procs.python(HELPERS / 'rig_stand_in.py', '--rate', '100').wait_for_line('ready')
-        wait_until(lambda: len(predictions) >= 200, 30, '200 predictions')
+        procs.python(HELPERS / 'rig_stand_in.py', '--rate', '100',
+                     '--nan-every', '25').wait_for_line('ready')
+        def stamps(messages):
+            return {(m.header.stamp.sec, m.header.stamp.nanosec) for m in list(messages)}
+
+        # Both subscriptions match the stand-in at their own pace: wait for an overlap.
+        wait_until(lambda: len(stamps(predictions) & stamps(states)) >= 200, 30,
+                   '200 samples seen both as state and as prediction')
         by_stamp = {(s.header.stamp.sec, s.header.stamp.nanosec): s for s in list(states)}
-        matched = 0
+        matched = broken = 0
         for prediction in list(predictions):
             key = (prediction.header.stamp.sec, prediction.header.stamp.nanosec)
             if key in by_stamp:
                 state = by_stamp[key]
                 matched += 1
+                if math.isnan(state.gauge_pressure_pa):
+                    # a broken reading still gets its prediction: NaN, nothing made up
+                    broken += 1
+                    assert math.isnan(prediction.gauge_pressure_pa)
+                    assert math.isnan(prediction.predicted_length_m)
+                    assert math.isnan(prediction.residual_m)
+                    continue
                 assert prediction.gauge_pressure_pa == state.gauge_pressure_pa
                 assert prediction.measured_length_m == state.length_m
                 assert math.isclose(prediction.residual_m,
                                     state.length_m - prediction.predicted_length_m,
                                     abs_tol=1e-12)
                 assert prediction.header.frame_id == state.header.frame_id
-        assert matched >= 150
+        assert matched >= 150 and broken >= 5
         # The stand-in publisher holds ~250 kPa: the prediction is the model's length there.
         last = predictions[-1]
         assert 0.24 < last.predicted_length_m < 0.28
@@ -165,6 +178,9 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
         units_slip = set_atomically(max_gauge_pressure_pa=500.0)
         assert not units_slip.successful
         assert len(published) == 1, 'a rejected change must not republish the model'
+        # Node-level parameters are not the model's business: accepted, model untouched.
+        assert set_atomically(use_sim_time=False).successful
+        assert len(published) == 1
 
         good = set_atomically(memory='switch', branch_form='hill')
         assert good.successful, good.reason

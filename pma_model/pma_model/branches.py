@@ -12,6 +12,7 @@ muscle does not lengthen under a slight vacuum, so the forward map holds its res
 from __future__ import annotations
 
 import abc
+import functools
 import math
 from dataclasses import asdict, dataclass, fields
 from typing import ClassVar
@@ -21,11 +22,18 @@ from scipy.optimize import least_squares
 
 DEFAULT_MAX_GAUGE_PRESSURE_PA = 500_000.0
 
-# Lengths closer than this fraction of the stroke to a branch's saturation asymptote are
-# refused by the inverse: there dP/dL grows without bound, so a sensor-sized length error
-# maps to an arbitrarily large pressure. With the paper's sigmoid this only bites above
-# about 1.4 MPa, i.e. only when max_gauge_pressure_pa is raised far beyond the muscle.
-SATURATION_MARGIN_FRACTION = 1e-6
+# Sanity limits that catch unit mix-ups (cm for m, b per kPa for per Pa, K in kPa). The
+# fitter's bounds stay inside them, so a refit never writes parameters the node refuses.
+MAX_L0_M = 2.0
+MAX_B_PER_PA = 1e-3
+MIN_K_PA = 1_000.0
+
+# Towards saturation dP/dL grows without bound, so a sensor-sized length error maps to an
+# arbitrarily large pressure. The inverse refuses lengths beyond the pressure where 0.1 mm
+# of length moves the answer by 100 kPa (1e9 Pa/m): for the paper's sigmoids that is
+# 650-750 kPa, so it only bites when max_gauge_pressure_pa is raised beyond the muscle's
+# range (at 500 kPa the figure is 7-15 kPa per 0.1 mm).
+MAX_INVERSE_SENSITIVITY_PA_PER_M = 1e9
 
 
 class UnreachableLengthError(ValueError):
@@ -83,9 +91,31 @@ class Branch(abc.ABC):
         return float(self.length(p_max_pa)), float(self.length(0.0))
 
     def invertible_pressure_limit(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
-        """Highest pressure the inverse may answer: p_max_pa or the saturation margin."""
-        margin_floor = self.saturation_length_m() + SATURATION_MARGIN_FRACTION * self.stroke_m()
-        return min(float(p_max_pa), float(self.inverse_unchecked(margin_floor)))
+        """Highest pressure the inverse may answer: p_max_pa or the conditioning limit."""
+        return min(float(p_max_pa), self._well_conditioned_limit_pa)
+
+    def slope_m_per_pa(self, p_pa: float) -> float:
+        """|dL/dP| at p_pa (central difference; the forms are smooth)."""
+        step = max(1.0, 1e-6 * p_pa)
+        low = max(0.0, p_pa - step)
+        return abs(float(self.length(p_pa + step)) - float(self.length(low))) / (p_pa + step - low)
+
+    @functools.cached_property
+    def _well_conditioned_limit_pa(self) -> float:
+        """Pressure past the steepest point where |dP/dL| reaches the sensitivity limit."""
+        threshold = 1.0 / MAX_INVERSE_SENSITIVITY_PA_PER_M
+        grid = np.geomspace(1e3, 1e8, 200)
+        slopes = np.array([self.slope_m_per_pa(p) for p in grid])
+        steepest = int(np.argmax(slopes))
+        beyond = np.nonzero(slopes[steepest:] < threshold)[0]
+        if slopes[steepest] < threshold or beyond.size == 0:
+            return math.inf  # no well-conditioned part to cut off (or not a muscle at all)
+        low, high = grid[steepest + beyond[0] - 1], grid[steepest + beyond[0]]
+        for _ in range(60):  # bisection on the falling side of the slope
+            middle = 0.5 * (low + high)
+            low, high = (middle, high) if self.slope_m_per_pa(middle) >= threshold \
+                else (low, middle)
+        return float(low)
 
     def invertible_range(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
         """(min_length_m, max_length_m) the inverse answers for: 0..invertible_pressure_limit."""
@@ -105,7 +135,7 @@ class Branch(abc.ABC):
             raise UnreachableLengthError(
                 f'length {first:.6g} m is outside the {self.form} branch range '
                 f'[{low:.6g}, {high:.6g}] m reachable with 0..{p_max_pa:.6g} Pa '
-                '(less the saturation margin)',
+                '(and where 0.1 mm moves the answer by less than 100 kPa)',
                 low, high)
         limit_pa = self.invertible_pressure_limit(p_max_pa)
         pressures = np.clip(self.inverse_unchecked(lengths), 0.0, limit_pa)
@@ -187,7 +217,8 @@ class SigmoidBranch(Branch):
 
     @classmethod
     def bounds(cls):
-        return (np.array([1e-3, 1e-6, 1e-9, 1e-2]), np.array([10.0, 1.0 - 1e-9, 1e-2, 100.0]))
+        return (np.array([1e-3, 1e-6, 1e-9, 1e-2]),
+                np.array([MAX_L0_M, 1.0 - 1e-9, MAX_B_PER_PA, 100.0]))
 
 
 @dataclass(frozen=True)
@@ -233,7 +264,7 @@ class HillBranch(Branch):
 
     @classmethod
     def bounds(cls):
-        return (np.array([1e-3, 1e-6, 1.0, 0.1]), np.array([10.0, 10.0, 1e7, 20.0]))
+        return (np.array([1e-3, 1e-6, MIN_K_PA, 0.1]), np.array([MAX_L0_M, MAX_L0_M, 1e7, 20.0]))
 
 
 BRANCH_FORMS: dict[str, type[Branch]] = {'sigmoid': SigmoidBranch, 'hill': HillBranch}

@@ -33,6 +33,7 @@ from pma_model.detector import (
     BRANCH_DECREASING,
     BRANCH_INCREASING,
     BRANCH_NAMES,
+    DEFAULT_DEADBAND_PA,
     BranchDetector,
 )
 
@@ -115,7 +116,7 @@ class HysteresisModel:
     """
 
     def __init__(self, increasing: Branch, decreasing: Branch, memory: str = 'madelung',
-                 deadband_pa: float = 20_000.0,
+                 deadband_pa: float = DEFAULT_DEADBAND_PA,
                  max_gauge_pressure_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
         if memory not in MEMORY_MODES:
             raise ValueError(f'memory must be one of {MEMORY_MODES}, got {memory!r}')
@@ -140,6 +141,23 @@ class HysteresisModel:
         self._stack: list[tuple[float, float]] = []
         self._cached_key = None
         self._cached_curve: _Curve | None = None
+
+    def resume_from(self, other: HysteresisModel) -> None:
+        """Take over another model's state, recomputed with this model's branches.
+
+        The Madelung state is fully given by the turning-point pressures and the current
+        pressure, so replaying those rebuilds it; the detector keeps its branch and extreme.
+        A parameter change at run time thus keeps the muscle's history instead of
+        pretending it is at rest.
+        """
+        self.reset()
+        for p_pa, _ in other.turning_points:
+            self._step_madelung(p_pa)
+        self._step_madelung(other.pressure_pa)
+        if self.memory == 'switch':
+            self._l = float(self._major(other.branch == BRANCH_INCREASING).length(self._p))
+        self._detector.branch = other._detector.branch
+        self._detector._extreme_pa = other._detector._extreme_pa
 
     @property
     def deadband_pa(self) -> float:

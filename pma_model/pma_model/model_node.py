@@ -73,9 +73,13 @@ class ModelNode(Node):
             self._params = ModelParams.from_ros_parameters(self._model_parameter_values())
         except ParamsError as error:
             # Overrides given with --ros-args/--params-file that do not validate: say so and
-            # run on the shipped defaults rather than not at all.
+            # run on the shipped defaults rather than not at all, and show the defaults as
+            # the parameters (else `ros2 param get` would show values not in use, and every
+            # later change would be judged together with the bad one).
             self.get_logger().error(f'invalid model parameters, using the defaults: {error}')
             self._params = defaults
+            self.set_parameters([Parameter(name, value=value) for name, value
+                                 in defaults.to_ros_parameters().items()])
         self._model = self._params.build_model()
         self._adapter = self._params.build_adapter()
         self._latest_state: PmaState | None = None
@@ -113,8 +117,8 @@ class ModelNode(Node):
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         """Validate the new set as a whole; no side effects here (rclpy's contract)."""
-        changes = {p.name: p.value for p in parameters
-                   if p.name not in ('params_file', 'params_file_check_period_s')}
+        model_names = default_params().to_ros_parameters()
+        changes = {p.name: p.value for p in parameters if p.name in model_names}
         if not changes:
             return SetParametersResult(successful=True)
         try:
@@ -129,16 +133,21 @@ class ModelNode(Node):
         if any(p.name == 'params_file' for p in parameters):
             self._params_file_mtime = None
             self._check_params_file()
-        if all(p.name in ('params_file', 'params_file_check_period_s') for p in parameters):
+        model_names = default_params().to_ros_parameters()
+        if not any(p.name in model_names for p in parameters):
             return
         params = ModelParams.from_ros_parameters(self._model_parameter_values())
         with self._lock:
+            model = params.build_model()
+            model.resume_from(self._model)  # keep the muscle's history, not "at rest"
+            if params.adaptation != self._params.adaptation or \
+                    params.branches() != self._params.branches():
+                self._adapter = params.build_adapter()
             self._params = params
-            self._model = params.build_model()
-            self._adapter = params.build_adapter()
+            self._model = model
         self.get_logger().info(
             f'model updated: {params.branch_form} branches, {params.memory} memory, adaptation '
-            f'{"on" if params.adaptation.enabled else "off"} (memory state reset to rest)')
+            f'{"on" if params.adaptation.enabled else "off"}')
         self._publish_params()
 
     def _check_params_file(self) -> None:
@@ -189,27 +198,33 @@ class ModelNode(Node):
         with self._lock:
             self._stats['samples'] += 1
             if not math.isfinite(pressure):
+                # Still one prediction per sample (NaN), so the two streams line up.
                 self._stats['nan_pressure'] += 1
                 self.get_logger().warning(
-                    f'sample seq {state.seq}: pressure is {pressure}; not predicted',
+                    f'sample seq {state.seq}: pressure is {pressure}; predicted length NaN',
                     throttle_duration_sec=5.0)
-                return
-            self._latest_state = state
-            base_length, branch = self._model.update(pressure)
-            adapting = self._params.adaptation.enabled
-            if adapting:
-                self._adapter.update(base_length, measured)
-                predicted = float(self._adapter.correct(base_length))
-                offset, gain = self._adapter.offset_m, self._adapter.gain
+                predicted, branch = math.nan, self._model.branch
+                offset, gain = ((self._adapter.offset_m, self._adapter.gain)
+                                if self._params.adaptation.enabled else (0.0, 1.0))
             else:
-                predicted, offset, gain = base_length, 0.0, 1.0
-            if math.isfinite(measured):
+                self._latest_state = state
+                base_length, branch = self._model.update(pressure)
+                if self._params.adaptation.enabled:
+                    # Predict first, then learn from this measurement: the published
+                    # prediction and residual stay out-of-sample.
+                    predicted = float(self._adapter.correct(base_length))
+                    self._adapter.update(base_length, measured)
+                    offset, gain = self._adapter.offset_m, self._adapter.gain
+                else:
+                    predicted, offset, gain = base_length, 0.0, 1.0
+            if math.isfinite(measured) and math.isfinite(predicted):
                 residual = measured - predicted
                 self._stats['sum_sq_residual'] += residual * residual
                 self._stats['residuals'] += 1
             else:
                 residual = math.nan
-                self._stats['nan_length'] += 1
+                if not math.isfinite(measured):
+                    self._stats['nan_length'] += 1
         msg = PmaPrediction()
         msg.header = state.header
         msg.gauge_pressure_pa = pressure
@@ -247,13 +262,17 @@ class ModelNode(Node):
             if self._params.adaptation.enabled:
                 base_target = float(self._adapter.uncorrect(target))
             result = self._model.pressure_for_length(base_target, request.branch)
+            message = result.message
             if self._params.adaptation.enabled:
                 low, high = self._adapter.correct([result.min_length_m, result.max_length_m])
-                result_min, result_max = float(low), float(high)
+                result_min, result_max = float(min(low, high)), float(max(low, high))
+                if not result.success and math.isfinite(result_min):
+                    message += (f' (lengths of the unadapted model; with the adapted offset '
+                                f'and gain: reachable [{result_min:.6g}, {result_max:.6g}] m)')
             else:
                 result_min, result_max = result.min_length_m, result.max_length_m
         response.success = result.success
-        response.message = result.message
+        response.message = message
         response.gauge_pressure_pa = result.gauge_pressure_pa
         response.branch = result.branch
         response.min_length_m, response.max_length_m = result_min, result_max

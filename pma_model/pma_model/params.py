@@ -21,17 +21,23 @@ import yaml
 
 from pma_model import units
 from pma_model.adaptation import AdaptationSettings, DriftAdapter
-from pma_model.branches import Branch, HillBranch, SigmoidBranch, branch_class
+from pma_model.branches import (
+    MAX_B_PER_PA,
+    MAX_L0_M,
+    MIN_K_PA,
+    Branch,
+    HillBranch,
+    SigmoidBranch,
+    branch_class,
+)
+from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.memory import MEMORY_MODES, HysteresisModel
 
 BRANCH_FORM_NAMES = ('sigmoid', 'hill')
 DIRECTIONS = ('increasing', 'decreasing')
 
-# Sanity ranges that catch unit mix-ups (kPa for Pa, cm for m, b per kPa for per Pa).
+# Sanity range that catches unit mix-ups (kPa for Pa); the branch ones live in branches.py.
 MAX_GAUGE_PRESSURE_RANGE_PA = (10_000.0, 1_000_000.0)
-MAX_L0_M = 2.0
-MAX_B_PER_PA = 1e-3
-MIN_K_PA = 1_000.0
 
 
 class ParamsError(ValueError):
@@ -294,7 +300,7 @@ def default_params() -> ModelParams:
 # from_ros_parameters needs a complete base to merge into; this seed is only that scaffold
 # (every value is overwritten by the data file, and the file must name every field).
 _SEED = ModelParams(
-    branch_form='sigmoid', memory='madelung', deadband_pa=20_000.0,
+    branch_form='sigmoid', memory='madelung', deadband_pa=DEFAULT_DEADBAND_PA,
     max_gauge_pressure_pa=500_000.0, adaptation=AdaptationSettings(),
     increasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)),
     decreasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)))

@@ -13,6 +13,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.report import BRANCH_MODEL_FORMS, MODEL_NAMES, build_report, format_table
 from pma_model.samples import SamplesError, load_branch_data
 
@@ -37,8 +38,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument('--steady-state', action=argparse.BooleanOptionalAction, default=None,
                         help='reduce each hold to its steady-state mean (default: when the '
                         'data are mostly holds)')
-    parser.add_argument('--deadband-pa', type=float, default=20_000.0, metavar='X',
-                        help='branch detector deadband [Pa] (default 20000)')
+    parser.add_argument('--deadband-pa', type=float, default=DEFAULT_DEADBAND_PA, metavar='X',
+                        help=f'branch detector deadband [Pa] (default {DEFAULT_DEADBAND_PA:g})')
     parser.add_argument('--no-holdout', action='store_true',
                         help='skip the interleaved hold-out refits')
     args = parser.parse_args(argv)

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from pma_model import units
-from pma_model.detector import BRANCH_INCREASING, detect_branches
+from pma_model.detector import BRANCH_INCREASING, DEFAULT_DEADBAND_PA, detect_branches
 
 STATE_TOPIC = 'pma/state'
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
@@ -320,7 +320,8 @@ def split_branches(samples: Samples, deadband_pa: float,
                       dropped_nan=samples.dropped_nan, steady_state=steady_state)
 
 
-def load_branch_data(path, deadband_pa: float = 20_000.0, steady_state: bool | None = None,
+def load_branch_data(path, deadband_pa: float = DEFAULT_DEADBAND_PA,
+                     steady_state: bool | None = None,
                      progress: bool = True) -> BranchData:
     """Whatever the input is (bag, sample log, branch table), its fit data per branch."""
     path = Path(path)

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from pma_model import units
 from pma_model.branches import (
     DEFAULT_MAX_GAUGE_PRESSURE_PA,
+    MAX_INVERSE_SENSITIVITY_PA_PER_M,
     HillBranch,
     SigmoidBranch,
     UnreachableLengthError,
@@ -108,13 +109,21 @@ def test_a_length_needing_more_than_the_maximum_pressure_is_unreachable_not_bigg
     assert branch.pressure(branch.length(500_000.0)) == pytest.approx(500_000.0, abs=1e-3)
 
 
-def test_saturation_margin_limits_huge_maximum_pressures():
-    branch = PARAMS.increasing.sigmoid
-    limit = branch.invertible_pressure_limit(5_000_000.0)
-    assert 1.0e6 < limit < 2.0e6  # the margin bites near 1.4 MPa for the paper's sigmoid
+@pytest.mark.parametrize('direction', ['increasing', 'decreasing'])
+@pytest.mark.parametrize('form', ['sigmoid', 'hill'])
+def test_ill_conditioned_end_is_refused_only_beyond_the_default_range(direction, form):
+    branch = getattr(PARAMS, direction).of_form(form)
+    limit = branch.invertible_pressure_limit(1e8)
     assert branch.invertible_pressure_limit(500_000.0) == 500_000.0
-    with pytest.raises(UnreachableLengthError):
-        branch.pressure(branch.length(3_000_000.0), p_max_pa=5_000_000.0)
+    # at the limit 0.1 mm of length moves the answer by 100 kPa
+    assert branch.slope_m_per_pa(limit) * MAX_INVERSE_SENSITIVITY_PA_PER_M == \
+        pytest.approx(1.0, rel=1e-3)
+    assert branch.slope_m_per_pa(0.999 * limit) > branch.slope_m_per_pa(limit)
+    beyond = branch.length(1.2 * limit)
+    with pytest.raises(UnreachableLengthError, match='100 kPa'):
+        branch.pressure(beyond, p_max_pa=1e8)
+    if form == 'sigmoid':
+        assert 600e3 < limit < 900e3
 
 
 def test_ends_of_the_range_invert_exactly():

@@ -42,6 +42,19 @@ def test_plus_minus_10_kpa_noise_does_not_chatter_with_the_default_deadband():
     assert np.count_nonzero(np.diff(labels.astype(int)) != 0) == 1
 
 
+def test_an_hour_of_gaussian_sensor_noise_does_not_chatter_with_the_default_deadband():
+    # One hour at 100 Hz on a 250 kPa hold, noise like the simulated rig's (sigma 2.5 kPa,
+    # then 10-bit steps of 611 Pa): the tails reach further than +/-10 kPa.
+    rng = np.random.default_rng(11)
+    hold = 611.0 * np.round((250e3 + rng.normal(0.0, 2_500.0, 360_000)) / 611.0)
+    ramp_up = np.linspace(0.0, 250e3, 200)
+    pressures = np.concatenate((ramp_up, hold))
+    assert np.all(detect_branches(pressures) == BRANCH_INCREASING)
+    flips_at_20_kpa = np.count_nonzero(np.diff(detect_branches(pressures, 20_000.0)
+                                               .astype(int)))
+    assert flips_at_20_kpa > 0, 'the old 20 kPa default would chatter here'
+
+
 @settings(max_examples=60, deadline=None)
 @given(deadband=st.floats(1_000.0, 50_000.0), seed=st.integers(0, 2 ** 32 - 1))
 def test_noise_narrower_than_the_deadband_never_flips(deadband, seed):

@@ -14,6 +14,8 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument('--rate', type=float, default=50.0)
     parser.add_argument('--topic', default='pma/state')
+    parser.add_argument('--nan-every', type=int, default=0,
+                        help='every Nth sample carries a NaN pressure (a broken reading)')
     args, ros_args = parser.parse_known_args()
     rclpy.init(args=ros_args)
     node = Node('rig_stand_in')
@@ -28,6 +30,8 @@ def main() -> None:
         msg.seq = seq
         msg.device_time_s = seq / args.rate
         msg.gauge_pressure_pa = 250_000.0 + 1000.0 * math.sin(seq / 10.0)
+        if args.nan_every and seq % args.nan_every == args.nan_every - 1:
+            msg.gauge_pressure_pa = math.nan
         msg.length_m = 0.26
         msg.gauge_setpoint_pa = 250_000.0
         msg.valve_state = PmaState.VALVE_HOLD
