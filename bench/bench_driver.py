@@ -88,7 +88,7 @@ class BenchDevice:
             for cmd in decoder.feed(data):
                 if cmd.command == 'HELLO':
                     self._write(protocol.encode_ack('HELLO') + protocol.encode_hello(
-                        protocol.Hello(1, 'bench', '0', 20, 100_000, 500_000, 1000)))
+                        protocol.Hello(1, 'bench', '0', 20, 100_000, 500_000, 500_000, 1000)))
                     self.started.set()
                 elif cmd.command != 'HB':
                     try:

@@ -1,8 +1,10 @@
 """fake_arduino: the simulated rig behind a pseudo-terminal, speaking protocol v1.
 
 Prints `fake_arduino: device at /dev/pts/N` on stdout (again after every simulated
-reconnect); everything else is logged to stderr. The device clock follows
-time.monotonic since (re)boot; the physics runs at 1 ms steps in between.
+reconnect), and `fake_arduino: stats sent=... echo_timeouts=...` (see `LinkStats`) when it
+closes its pty for a simulated unplug and when it exits; everything else is logged to
+stderr. The device clock follows time.monotonic since (re)boot; the physics runs at 1 ms
+steps in between.
 
 Like a real USB-serial adapter, output is dropped while no host has the port open
 or while the host does not read (the master is non-blocking), and bytes left unread
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import errno
 import logging
 import os
@@ -24,6 +27,7 @@ import time
 import tty
 from pathlib import Path
 
+from pma_driver import protocol
 from pma_driver.protocol import Valve
 from pma_driver.sim.device import (
     COMPILED_CEILING_PA,
@@ -41,6 +45,9 @@ OUTBOX_LIMIT_BYTES = 4096    # like the adapter's buffer: beyond it, new lines a
 READ_CHUNK = 4096
 IDLE_POLL_S = 0.05           # how often presence is re-checked while no host is attached
 BLOCKED_RETRY_S = 0.005      # retry period while the host has the port open but does not read
+# After a host opens the port, output waits this long (a real board is still in its bootloader
+# then): a host that flushes its input right after opening, as the driver does, loses nothing.
+ATTACH_SETTLE_S = 0.05
 
 
 MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
@@ -164,49 +171,120 @@ class Link:
         self.target = None
 
 
-class Writer:
-    """Queued chunks with not-before times (split lines); writes what the pty accepts."""
+@dataclasses.dataclass
+class LinkStats:
+    """What reached the pty, line by line, since start (docs/simulated-rig.md).
 
-    def __init__(self):
-        self._queue: collections.deque[tuple[float, bytes]] = collections.deque()
+    A line counts once the pty has taken its last byte (a split line: its second half).
+    `sent`: sample lines written whole with a valid checksum: a host that reads everything
+    decodes exactly these. `bad_checksum`, `garbage`, `split`: lines of any type written
+    with that fault (a garbage run is a line of its own before an intact line). `dropped`:
+    lines of any type the --drop-rate fault removed while a host had the port open (outside
+    stalls). `echo_timeouts`: the `sent` samples with echo_us = 0.
+    """
+
+    sent: int = 0
+    bad_checksum: int = 0
+    garbage: int = 0
+    dropped: int = 0
+    split: int = 0
+    echo_timeouts: int = 0
+
+    def text(self) -> str:
+        fields = ' '.join(f'{name}={value}' for name, value in dataclasses.asdict(self).items())
+        return f'fake_arduino: stats {fields}'
+
+    def count_written(self, line: _LineRecord) -> None:
+        for fault in ('bad_checksum', 'garbage', 'split'):
+            if fault in line.faults:
+                setattr(self, fault, getattr(self, fault) + 1)
+        if line.sample is not None and 'bad_checksum' not in line.faults:
+            self.sent += 1
+            self.echo_timeouts += line.sample.echo_us == 0
+
+
+@dataclasses.dataclass(frozen=True)
+class _LineRecord:
+    faults: frozenset[str]
+    sample: protocol.Sample | None
+
+
+@dataclasses.dataclass
+class _Chunk:
+    due: float
+    data: bytes
+    line: _LineRecord | None   # on a line's last chunk: counted when it is written
+    last: bool                 # the last chunk of its line
+
+
+def describe_line(line: bytes, faults: frozenset[str]) -> _LineRecord:
+    try:
+        frame = protocol.parse_device_line(line.rstrip(b'\n'))
+    except protocol.FrameError:
+        frame = None
+    return _LineRecord(faults, frame if isinstance(frame, protocol.Sample) else None)
+
+
+class Writer:
+    """Queued chunks with not-before times (split lines); writes what the pty accepts.
+
+    Counts each line in `stats` when the pty takes its last byte.
+    """
+
+    def __init__(self, stats: LinkStats):
+        self._queue: collections.deque[_Chunk] = collections.deque()
+        self._hold_until = 0.0
+        self.stats = stats
         self.dropped_lines = 0
 
     def queued_bytes(self) -> int:
-        return sum(len(chunk) for _, chunk in self._queue)
+        return sum(len(chunk.data) for chunk in self._queue)
 
-    def push(self, chunks: list[bytes], now: float) -> None:
+    def push(self, chunks: list[bytes], now: float, line: _LineRecord | None = None) -> None:
         if not chunks:
             return
         if self.queued_bytes() > OUTBOX_LIMIT_BYTES:
             self.dropped_lines += 1
             return
-        due = now
+        due = max(now, self._hold_until)
         for index, chunk in enumerate(chunks):
             if index:
                 due += SPLIT_PAUSE_S
-            self._queue.append((due, chunk))
+            last = index == len(chunks) - 1
+            self._queue.append(_Chunk(due, chunk, line if last else None, last))
 
     def clear(self) -> None:
         self._queue.clear()
 
+    def hold(self, until: float) -> None:
+        """Write nothing before `until` (lines pushed meanwhile wait for it)."""
+        self._hold_until = until
+
     def next_due(self) -> float | None:
-        return self._queue[0][0] if self._queue else None
+        return self._queue[0].due if self._queue else None
 
     def flush(self, port: PtyPort, now: float) -> bool:
-        """Write every chunk that is due; True while a partly written line waits for room.
+        """Write every chunk that is due; True while a partly written chunk waits for room.
 
-        A chunk the pty takes nothing of is lost (the host is not reading), like bytes a
-        USB-serial adapter drops, so fresh output goes through once the host reads again.
+        A chunk the pty takes nothing of is lost with the rest of its line (the host is not
+        reading), like bytes a USB-serial adapter drops, so fresh output goes through once
+        the host reads again. Lines are only cut short that way, while the host is not
+        reading; a host that keeps reading gets every line whole.
         """
-        while self._queue and self._queue[0][0] <= now:
-            due, chunk = self._queue[0]
-            written = port.write(chunk)
-            if 0 < written < len(chunk):
-                self._queue[0] = (due, chunk[written:])
+        while self._queue and self._queue[0].due <= now:
+            head = self._queue[0]
+            written = port.write(head.data)
+            if 0 < written < len(head.data):
+                head.data = head.data[written:]
                 return True
             self._queue.popleft()
-            if not written:
-                self.dropped_lines += 1
+            if written:
+                if head.last and head.line is not None:
+                    self.stats.count_written(head.line)
+                continue
+            self.dropped_lines += 1
+            while not head.last:      # the rest of the line (a split line's second half)
+                head = self._queue.popleft()
         return False
 
 
@@ -233,7 +311,8 @@ def run(args: argparse.Namespace) -> int:
     link = Link(args.link)
     rig = Rig(config)
     device = SimDevice(config, rig)
-    writer = Writer()
+    stats = LinkStats()
+    writer = Writer(stats)
     start = time.monotonic()
     stall = (None if args.stall_after is None
              else (start + args.stall_after, start + args.stall_after + args.stall_for))
@@ -261,6 +340,7 @@ def run(args: argparse.Namespace) -> int:
                 link.remove()
                 port.close()
                 writer.clear()
+                print(stats.text(), flush=True)
                 port, unplug_at, unplugged_at = None, None, now
                 replug_at = now + args.reconnect_after
                 continue
@@ -280,10 +360,21 @@ def run(args: argparse.Namespace) -> int:
             if in_stall != stalled:
                 log.warning('simulated stall %s', 'begins' if in_stall else 'ends')
                 stalled = in_stall
+            was_attached = port.host_attached
             attached = port.check_host()
+            if attached and not was_attached:
+                # Output starts after a pause and with a newline: a host that drops its
+                # first (partial) line after opening drops just that empty line.
+                writer.clear()
+                writer.hold(now + ATTACH_SETTLE_S)
+                writer.push([b'\n'], now)
             for line in device.take_output():
                 if attached and not in_stall:
-                    writer.push(faults.apply(line), now)
+                    faulted = faults.apply(line)
+                    if faulted.chunks:
+                        writer.push(faulted.chunks, now, describe_line(line, faulted.faults))
+                    else:
+                        stats.dropped += 1
             if not attached:
                 writer.clear()
             blocked = writer.flush(port, now)
@@ -307,6 +398,7 @@ def run(args: argparse.Namespace) -> int:
             log.info('%d lines dropped because the host did not read', writer.dropped_lines)
         if any(faults.counts.values()):
             log.info('faults injected: %s', faults.counts)
+        print(stats.text(), flush=True)
     return 0
 
 

@@ -8,6 +8,7 @@ frames and counts every dropped line by reason.
 from __future__ import annotations
 
 import enum
+import re
 from collections import Counter
 from dataclasses import dataclass
 
@@ -74,12 +75,19 @@ class Sample:
 
 @dataclass(frozen=True)
 class Hello:
+    """The device's banner; fields in wire order.
+
+    `ceiling_pa` is the current ceiling (lowered by `MAX`), `limit_pa` the firmware's
+    compiled limit: the most `MAX` accepts, so the most a host may ever ask for.
+    """
+
     proto: int
     firmware: str
     fw_version: str
     rate_hz: int
     max_rate_hz: int
     ceiling_pa: int
+    limit_pa: int
     hb_timeout_ms: int
 
 
@@ -140,7 +148,7 @@ def encode_sample(sample: Sample) -> bytes:
 
 def encode_hello(hello: Hello) -> bytes:
     return frame('HELLO', hello.proto, hello.firmware, hello.fw_version, hello.rate_hz,
-                 hello.max_rate_hz, hello.ceiling_pa, hello.hb_timeout_ms)
+                 hello.max_rate_hz, hello.ceiling_pa, hello.limit_pa, hello.hb_timeout_ms)
 
 
 def encode_ack(command: str, value: int | None = None) -> bytes:
@@ -151,9 +159,13 @@ def encode_nak(command: str, reason: NakReason | str) -> bytes:
     return frame('NAK', command, reason.value if isinstance(reason, NakReason) else reason)
 
 
+_HEX_PAIR = re.compile(rb'[0-9A-Fa-f]{2}')
+
+
 def split_frame(line: bytes) -> list[str]:
     """Check framing and checksum of one line (without its newline); return the fields."""
-    line = line.rstrip(b'\r')
+    if line.endswith(b'\r'):
+        line = line[:-1]   # one '\r' before the '\n' is tolerated, as by the firmware
     if len(line) + 1 > MAX_LINE_BYTES:
         raise FrameError('overlong', f'{len(line) + 1} bytes > {MAX_LINE_BYTES}')
     start = line.rfind(b'$')
@@ -166,10 +178,10 @@ def split_frame(line: bytes) -> list[str]:
     if star < 0 or len(line) - star != 3:
         raise FrameError('framing', 'no "*HH" checksum at the end')
     body = line[1:star]
-    try:
-        expected = int(line[star + 1:], 16)
-    except ValueError:
-        raise FrameError('framing', 'checksum is not hex') from None
+    # Exactly two hex digits: int(..., 16) alone would also take ' A', '+A' or '-A'.
+    if not _HEX_PAIR.fullmatch(line, star + 1):
+        raise FrameError('framing', 'checksum is not two hex digits')
+    expected = int(line[star + 1:], 16)
     if checksum(body) != expected:
         raise FrameError('checksum', f'got {expected:02X}, computed {checksum(body):02X}')
     try:
@@ -211,15 +223,17 @@ def parse_device_line(line: bytes) -> Sample | Hello | Ack | Nak:
             status=_int(fields[7], 'status', 0, 0xFFFF),
         )
     if kind == 'HELLO':
-        _expect(fields, 8)
+        _expect(fields, 9)
+        limit_pa = _int(fields[7], 'limit_pa', 0, 10_000_000)
         return Hello(
             proto=_int(fields[1], 'proto', 0, 255),
             firmware=fields[2],
             fw_version=fields[3],
             rate_hz=_int(fields[4], 'rate_hz', 1, 100_000),
             max_rate_hz=_int(fields[5], 'max_rate_hz', 1, 100_000),
-            ceiling_pa=_int(fields[6], 'ceiling_pa', 0, 10_000_000),
-            hb_timeout_ms=_int(fields[7], 'hb_timeout_ms', 0, 3_600_000),
+            ceiling_pa=_int(fields[6], 'ceiling_pa', 0, limit_pa),
+            limit_pa=limit_pa,
+            hb_timeout_ms=_int(fields[8], 'hb_timeout_ms', 0, 3_600_000),
         )
     if kind == 'ACK':
         if len(fields) == 2:
@@ -240,10 +254,12 @@ _COMMAND_ARITY = {
 
 
 def parse_host_line(line: bytes) -> HostCommand:
-    """Parse one host-to-device line (the device side: firmware twin, fake_arduino).
+    """Parse one host-to-device line, strictly (for test doubles of the device).
 
     Raises FrameError; `reason` maps onto the NAK the device answers with
     (`checksum` -> CHECKSUM, `fields`/`value` -> SYNTAX, `unknown_type` -> UNKNOWN).
+    The simulated device uses `sim.device.parse_firmware_line` instead, which follows the
+    firmware's handleLine exactly (silent drops, saturating integers, cut names).
     """
     fields = split_frame(line)
     name = fields[0]

@@ -14,6 +14,14 @@ from pma_driver.calibration import PressureCalibration
 from pma_driver.protocol import Ack, FrameDecoder, Hello, Sample
 
 DEVICE_LINE = re.compile(r'^fake_arduino: device at (/dev/pts/\d+)$')
+STATS_FIELDS = ('sent', 'bad_checksum', 'garbage', 'dropped', 'split', 'echo_timeouts')
+STATS_LINE = re.compile(
+    r'^fake_arduino: stats ' + ' '.join(rf'{name}=(\d+)' for name in STATS_FIELDS) + '$')
+
+
+def stats_lines(output: str) -> list[dict[str, int]]:
+    return [dict(zip(STATS_FIELDS, map(int, match.groups()), strict=True))
+            for match in map(STATS_LINE.match, output.splitlines()) if match]
 
 
 def start(procs, *args):
@@ -66,8 +74,8 @@ def test_banner_samples_at_the_rate_and_clean_exit(procs, tmp_path):
     port.send('HELLO')
     frames = port.collect(2.0)
     hello = next(f for f in frames if isinstance(f, Hello))
-    assert (hello.proto, hello.rate_hz, hello.max_rate_hz, hello.ceiling_pa,
-            hello.hb_timeout_ms) == (1, 20, 1000, 500_000, 1000)
+    assert (hello.proto, hello.rate_hz, hello.max_rate_hz, hello.ceiling_pa, hello.limit_pa,
+            hello.hb_timeout_ms) == (1, 20, 1000, 500_000, 500_000, 1000)
     samples = samples_of(frames)
     assert 35 <= len(samples) <= 42
     assert {b.seq - a.seq for a, b in itertools.pairwise(samples)} == {1}
@@ -77,15 +85,39 @@ def test_banner_samples_at_the_rate_and_clean_exit(procs, tmp_path):
     proc.signal(signal.SIGINT)
     assert proc.popen.wait(5) == 0
     assert not os.path.lexists(link)
+    proc.wait_for_line(STATS_LINE.match, timeout=5)
 
 
-def test_sigterm_removes_the_link(procs, tmp_path):
+def test_sigterm_removes_the_link_and_prints_the_stats(procs, tmp_path):
     link = tmp_path / 'ttyPMA'
     proc, _ = start(procs, '--link', link)
     assert os.path.islink(link)
     proc.signal(signal.SIGTERM)
     assert proc.popen.wait(5) == 0
     assert not os.path.lexists(link)
+    proc.wait_for_line(STATS_LINE.match, timeout=5)
+    assert stats_lines(proc.output) == [dict.fromkeys(STATS_FIELDS, 0)]   # no host, no lines
+
+
+def test_stats_on_exit_equal_what_the_host_decoded(procs):
+    proc, path = start(procs, '--rate', '200', '--seed', '5', '--garbage-rate', '0.1',
+                       '--bad-checksum-rate', '0.1', '--drop-rate', '0.1', '--split-rate', '0.2',
+                       '--echo-timeout-rate', '0.2', '--stall-after', '2.0', '--stall-for', '100')
+    port = Port(path)
+    frames = port.collect(2.6)   # output stops for good at 2 s: read all of it
+    proc.signal(signal.SIGINT)
+    assert proc.popen.wait(5) == 0
+    proc.wait_for_line(STATS_LINE.match, timeout=5)
+    [stats] = stats_lines(proc.output)
+    samples = samples_of(frames)
+    dropped = port.decoder.dropped
+    assert stats['sent'] == len(samples) > 200
+    assert stats['bad_checksum'] == dropped['checksum'] > 10
+    assert stats['garbage'] == port.decoder.dropped_total - dropped['checksum'] > 10
+    assert stats['echo_timeouts'] == sum(s.echo_us == 0 for s in samples) > 10
+    assert stats['dropped'] > 10 and stats['split'] > 10
+    gaps = sum(protocol.seq_gap(a.seq, b.seq) for a, b in itertools.pairwise(samples))
+    assert 0 < gaps <= stats['dropped'] + stats['bad_checksum']
 
 
 def test_commanded_sweep_reaches_each_setpoint(procs):
@@ -227,6 +259,15 @@ def test_disconnect_then_reconnect_on_a_new_pty_with_the_link_re_pointed(procs, 
     assert samples and samples[0].t_ms < 1500 and samples[0].seq < 75   # rebooted
     assert samples[-1].setpoint_pa == 0                                 # setpoint lost
     port.close()
+    # The stats at the unplug (between the two device lines), then totals again at exit.
+    kinds = ['device' if DEVICE_LINE.match(text) else 'stats'
+             for text in proc.output.splitlines()
+             if DEVICE_LINE.match(text) or STATS_LINE.match(text)]
+    assert kinds == ['device', 'stats', 'device']
+    proc.signal(signal.SIGINT)
+    assert proc.popen.wait(5) == 0
+    at_unplug, at_exit = stats_lines(proc.output)
+    assert len(before) <= at_unplug['sent'] < at_exit['sent']
 
 
 def test_bad_options_exit_with_a_message(procs):

@@ -1,12 +1,13 @@
 """The Arduino Mega 2560 firmware (pma_driver/firmware/pma_firmware/).
 
-Three kinds of check:
+Four kinds of check:
 * it compiles for the atmega2560 with the real AVR toolchain (tools/firmware.sh, which installs
   the toolchain when missing), and a broken sketch fails that build;
 * its constants agree with their other homes: the pin table in docs/hardware.md, protocol.py,
-  calibration.py and docs/serial-protocol.md, each read from its file;
+  calibration.py, docs/serial-protocol.md and the simulated rig (sim/device.py);
 * the unmodified sketch, compiled for the PC against a simulated rig
-  (test/firmware_host/), behaves as the protocol says, judged by the host's own parser.
+  (test/firmware_host/), behaves as the protocol says, judged by the host's own parser;
+* the simulated rig (fake_arduino's device) answers the same command lines the same way.
 """
 
 from __future__ import annotations
@@ -224,9 +225,26 @@ def test_defaults_and_limits_match_the_protocol_spec():
     assert integers['DEFAULT_RATE_HZ'] == int(banner['rate_hz'])
     assert integers['MAX_RATE_HZ'] == int(banner['max_rate_hz'])
     assert integers['CEILING_LIMIT_PA'] == int(banner['ceiling_pa'])
+    assert integers['CEILING_LIMIT_PA'] == int(banner['limit_pa'])
     assert integers['DEFAULT_HEARTBEAT_TIMEOUT_MS'] == int(banner['hb_timeout_ms'])
     assert (integers['MIN_HEARTBEAT_TIMEOUT_MS'], integers['MAX_HEARTBEAT_TIMEOUT_MS']) \
         == spec_doc_range('HBTO')
+
+
+def test_the_spec_s_example_lines_are_valid_frames():
+    lines = re.findall(r'^(?:host|device) +(\$\S+)$', PROTOCOL_DOC.read_text(), re.M)
+    assert len(lines) >= 6
+    for line in lines:
+        protocol.split_frame(line.encode('ascii'))   # raises on a wrong checksum
+
+
+def test_the_spec_states_the_firmware_s_safety_numbers():
+    integers = firmware_integers()
+    text = ' '.join(PROTOCOL_DOC.read_text().split())
+    for name in ('OVERPRESSURE_MARGIN_PA', 'TARE_MAX_OFFSET_PA', 'DEADBAND_PA'):
+        assert f'{integers[name] // 1000} kPa' in text, name
+    assert f'{integers["REGULATION_PERIOD_MS"]} ms' in text
+    assert f'{integers["ECHO_TIMEOUT_US"] // 1000} ms' in text
 
 
 def test_sensor_constants_match_calibration_py():
@@ -280,6 +298,12 @@ def raw_command(body: str) -> str:
 
 def adc_for(gauge_pa: float) -> int:
     return calibration.PressureCalibration().pa_to_adc(gauge_pa)
+
+
+def largest_adc_at_or_below(gauge_pa: float) -> int:
+    """The highest ADC count whose (untared) reading is at most gauge_pa."""
+    sensor = calibration.PressureCalibration()
+    return max(adc for adc in range(1024) if sensor.adc_to_pa(adc) <= gauge_pa)
 
 
 def run_rig(binary: Path, *items: str, start_us: int = 0) -> RigRun:
@@ -357,6 +381,8 @@ COMMAND_CASES = [
     (command('MAX', CEILING + 1), [protocol.Nak('MAX', 'RANGE')]),
     (command('TARE'), [protocol.Ack('TARE', adc_for(0))]),
     (command('FOO'), [protocol.Nak('FOO', 'UNKNOWN')]),
+    (command('X' * 40), [protocol.Nak('X' * 12, 'UNKNOWN')]),     # the echo is cut
+    (raw_command('SET,-99999999999'), [protocol.Nak('SET', 'RANGE')]),
     (raw_command('SET'), [protocol.Nak('SET', 'SYNTAX')]),
     (raw_command('SET,12a'), [protocol.Nak('SET', 'SYNTAX')]),
     (raw_command('SET,'), [protocol.Nak('SET', 'SYNTAX')]),
@@ -364,6 +390,8 @@ COMMAND_CASES = [
     (command('HB')[:-2] + f'{int(command("HB")[-2:], 16) ^ 0xFF:02X}',
      [protocol.Nak('?', 'CHECKSUM')]),
     ('$HB', [protocol.Nak('?', 'SYNTAX')]),
+    ('$HB*+A', [protocol.Nak('?', 'SYNTAX')]),
+    (command('HB') + '\r\r', [protocol.Nak('?', 'SYNTAX')]),
     (command('HB').lower().replace('$hb', '$HB'), [protocol.Ack('HB')]),
     (command('HB') + '\r', [protocol.Ack('HB')]),
     ('garbage' + command('HB'), []),
@@ -380,10 +408,13 @@ def test_every_command_gets_its_ack_or_nak(rig_binary, line, replies):
 def test_hello_acks_and_resends_the_banner_with_the_applied_settings(rig_binary):
     run = run_rig(rig_binary, *IDLE_RIG, command('RATE', 10), command('MAX', 300_000),
                   command('HBTO', 2000), command('HELLO'), '!run 10')
+    integers = firmware_integers()
+    # ceiling_pa is the lowered ceiling; limit_pa the compiled limit MAX may go back up to.
     assert run.replies[-2:] == [
         protocol.Ack('HELLO'),
         protocol.Hello(protocol.PROTOCOL_VERSION, 'pma_firmware', spec_doc_banner()['fw_version'],
-                       10, firmware_integers()['MAX_RATE_HZ'], 300_000, 2000)]
+                       10, integers['MAX_RATE_HZ'], 300_000, integers['CEILING_LIMIT_PA'],
+                       2000)]
 
 
 def test_lower_ceiling_refuses_setpoints_above_it_and_clamps_the_current_one(rig_binary):
@@ -391,6 +422,17 @@ def test_lower_ceiling_refuses_setpoints_above_it_and_clamps_the_current_one(rig
                   command('SET', 300_001), '!run 60')
     assert run.replies[-1] == protocol.Nak('SET', 'RANGE')
     assert run.samples[-1].setpoint_pa == 300_000
+
+
+def test_tare_window_and_span(rig_binary):
+    window = firmware_integers()['TARE_MAX_OFFSET_PA']
+    inside = largest_adc_at_or_below(window)
+    below_span = largest_adc_at_or_below(-window / 2)   # out of span, yet near zero
+    for adc, reply in [(inside, protocol.Ack('TARE', inside)),
+                       (inside + 1, protocol.Nak('TARE', 'RANGE')),
+                       (below_span, protocol.Nak('TARE', 'RANGE'))]:
+        run = run_rig(rig_binary, f'!adc {adc}', '!run 10', command('TARE'), '!run 10')
+        assert run.replies[-1] == reply, adc
 
 
 def test_tare_refused_when_the_muscle_is_not_empty(rig_binary):
@@ -429,9 +471,27 @@ def test_bang_bang_regulation_with_a_deadband(rig_binary):
     assert _valve_at(rig_binary, 0, 0) == (protocol.Valve.VENT, (0, 1))
 
 
+def tripping_adc() -> int:
+    """The lowest reading above ceiling + margin: the first count that trips."""
+    return largest_adc_at_or_below(CEILING + firmware_integers()['OVERPRESSURE_MARGIN_PA']) + 1
+
+
+@pytest.mark.parametrize('trips', [False, True])
+def test_overpressure_trips_only_above_the_ceiling_plus_the_margin(rig_binary, trips):
+    # At a setpoint equal to the ceiling, a reading up to 10 kPa above it is regulation
+    # overshoot and noise: vented by the bang-bang loop, not tripped.
+    adc = tripping_adc() - (0 if trips else 1)
+    run = run_rig(rig_binary, *IDLE_RIG, command('SET', CEILING), '!run 60', f'!adc {adc}',
+                  '!run 120', '!pins')
+    last = run.samples[-1]
+    assert bool(last.status & protocol.STATUS_OVERPRESSURE) == trips
+    assert last.setpoint_pa == (0 if trips else CEILING)
+    assert last.valve == protocol.Valve.VENT and run.pins[-1] == (0, 1)
+
+
 def test_overpressure_vents_and_latches_until_the_next_set(rig_binary):
     run = run_rig(rig_binary, *IDLE_RIG, command('SET', 250_000), '!run 60',
-                  f'!adc {adc_for(CEILING + 8_000)}', '!run 60', f'!adc {adc_for(0)}',
+                  f'!adc {tripping_adc()}', '!run 60', f'!adc {adc_for(0)}',
                   '!run 200', '!pins')
     after_trip = run.samples[-4:]
     assert all(s.status & protocol.STATUS_OVERPRESSURE for s in after_trip)
@@ -439,7 +499,7 @@ def test_overpressure_vents_and_latches_until_the_next_set(rig_binary):
     assert run.pins[-1] == (0, 1)
 
     run = run_rig(rig_binary, *IDLE_RIG, command('SET', 250_000), '!run 60',
-                  f'!adc {adc_for(CEILING + 8_000)}', '!run 60', f'!adc {adc_for(0)}',
+                  f'!adc {tripping_adc()}', '!run 60', f'!adc {adc_for(0)}',
                   command('SET', 100_000), '!run 60')
     assert run.samples[-1].status & protocol.STATUS_OVERPRESSURE == 0
     assert run.samples[-1].valve == protocol.Valve.FILL
@@ -476,14 +536,25 @@ def test_echo_timeout_reports_zero_and_keeps_the_rate(rig_binary):
     assert len(run.samples) in (19, 20)
 
 
-def test_50_hz_without_echo_stretches_the_period_but_never_bursts(rig_binary):
+def test_50_hz_keeps_its_period_with_or_without_echo(rig_binary):
+    # The echo timeout (6 ms) fits in the 20 ms period: a missing echo no longer stretches it.
     run = run_rig(rig_binary, f'!adc {adc_for(0)}', '!echo 583', command('RATE', 50),
                   '!run 1000', '!echo 0', '!run 1000')
-    gaps = gaps_ms(run.samples)
-    assert min(gaps) >= 19
-    with_echo = [gap for sample, gap in zip(run.samples[1:], gaps, strict=True)
-                 if 100 < sample.t_ms < 1000]
-    assert set(with_echo) <= {19, 20, 21}
+    # t_ms is read after the echo wait, so the switch itself shows once as a longer gap.
+    for echo, phase in [(True, (100, 1000)), (False, (1100, 2000))]:
+        samples = [s for s in run.samples if phase[0] < s.t_ms < phase[1]]
+        assert all((s.echo_us != 0) == echo for s in samples)
+        assert set(gaps_ms(samples)) <= {19, 20, 21}
+        assert len(samples) >= 43
+
+
+@pytest.mark.parametrize(('echo_us', 'measured'), [(5500, True), (5600, False)])
+def test_echo_timeout_is_about_a_metre_of_range(rig_binary, echo_us, measured):
+    # pulseIn's timeout also covers the ~0.45 ms before the sensor raises Echo.
+    assert calibration.LengthCalibration().echo_to_range_m(5500) > 0.9
+    run = run_rig(rig_binary, f'!adc {adc_for(0)}', f'!echo {echo_us}', '!run 500')
+    assert {s.echo_us for s in run.samples} == {echo_us if measured else 0}
+    assert all(bool(s.status & protocol.STATUS_ECHO_TIMEOUT) != measured for s in run.samples)
 
 
 def test_sensor_out_of_span_vents_and_flags_it(rig_binary):
@@ -504,3 +575,54 @@ def test_overlong_lines_are_dropped_whole(rig_binary):
     too_long = raw_command(longest_body.replace('SET,', 'SET,0'))
     run = run_rig(rig_binary, *IDLE_RIG, 'X' * 300, longest, too_long, command('HB'), '!run 10')
     assert run.replies[1:] == [protocol.Ack('SET', 123_456), protocol.Ack('HB')]
+
+
+# ---- The simulated rig against the firmware ------------------------------------------------
+
+@pytest.fixture(scope='module')
+def sim():
+    return pytest.importorskip('pma_driver.sim.device')
+
+
+def test_the_simulated_rig_uses_the_firmware_s_constants(sim):
+    integers = firmware_integers()
+    for name in ('OVERPRESSURE_MARGIN_PA', 'TARE_MAX_OFFSET_PA', 'DEADBAND_PA',
+                 'REGULATION_PERIOD_MS', 'ADC_OVERSAMPLING', 'ECHO_TIMEOUT_US', 'NAK_NAME_MAX',
+                 'MIN_HEARTBEAT_TIMEOUT_MS', 'MAX_HEARTBEAT_TIMEOUT_MS'):
+        assert getattr(sim, name) == integers[name], name
+    assert sim.COMPILED_CEILING_PA == integers['CEILING_LIMIT_PA']
+    assert sim.UNTRUSTED_COMMAND.decode() == firmware_strings()['UNTRUSTED_COMMAND']
+    defaults = sim.DeviceConfig()
+    assert defaults.rate_hz == integers['DEFAULT_RATE_HZ']
+    assert defaults.hb_timeout_ms == integers['DEFAULT_HEARTBEAT_TIMEOUT_MS']
+    assert defaults.ceiling_pa == integers['CEILING_LIMIT_PA']
+    assert defaults.deadband_pa == integers['DEADBAND_PA']
+    # The sensor's delay before Echo rises, which the host rig and the sim both count.
+    harness = (RIG_DIR / 'host_main.cpp').read_text()
+    assert re.search(rf'ECHO_START_US = {sim.ECHO_START_US};', harness)
+
+
+def sim_replies(sim, line: str) -> list:
+    config = sim.DeviceConfig(max_rate_hz=firmware_integers()['MAX_RATE_HZ'],
+                              pressure_noise_pa=0.0)
+    device = sim.SimDevice(config)
+    device.advance(10)
+    device.take_output()   # the banner and samples
+    device.receive(line.encode('ascii') + b'\n')
+    device.advance(10)
+    decoder = protocol.FrameDecoder(protocol.parse_device_line)
+    frames = decoder.feed(b''.join(device.take_output()))
+    assert decoder.dropped_total == 0, decoder.last_error
+    return [f for f in frames if not isinstance(f, protocol.Sample)]
+
+
+@pytest.mark.parametrize(('line', 'replies'), COMMAND_CASES)
+def test_the_simulated_rig_answers_every_line_as_the_firmware(sim, line, replies):
+    assert sim_replies(sim, line) == replies
+
+
+def test_the_simulated_rig_drops_overlong_lines_as_the_firmware(sim):
+    longest_body = 'SET,' + '0' * (protocol.MAX_LINE_BYTES - len('$SET,*HH\n') - 6) + '123456'
+    assert sim_replies(sim, raw_command(longest_body)) == [protocol.Ack('SET', 123_456)]
+    assert sim_replies(sim, raw_command(longest_body.replace('SET,', 'SET,0'))) == []
+    assert sim_replies(sim, 'X' * 300) == []

@@ -69,7 +69,8 @@ class PtyDevice:
             os.write(self._master, data)
 
     def hello(self) -> Hello:
-        return Hello(1, 'pty_device', '0.0.1', int(self.rate_hz), 1000, CEILING_PA, 1000)
+        return Hello(1, 'pty_device', '0.0.1', int(self.rate_hz), 1000, CEILING_PA, CEILING_PA,
+                     1000)
 
     def _run(self) -> None:
         decoder = protocol.FrameDecoder(parse=protocol.parse_host_line)

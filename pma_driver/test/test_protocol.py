@@ -28,10 +28,11 @@ samples = st.builds(
     setpoint_pa=st.integers(0, 10_000_000), status=st.integers(0, 0xFFFF))
 names = st.text(st.characters(min_codepoint=0x21, max_codepoint=0x7E, exclude_characters=',$*'),
                 min_size=1, max_size=12)
-hellos = st.builds(
+hellos = st.integers(0, 10_000_000).flatmap(lambda limit: st.builds(
     Hello, proto=st.integers(0, 255), firmware=names, fw_version=names,
     rate_hz=st.integers(1, 100_000), max_rate_hz=st.integers(1, 100_000),
-    ceiling_pa=st.integers(0, 10_000_000), hb_timeout_ms=st.integers(0, 3_600_000))
+    ceiling_pa=st.integers(0, limit), limit_pa=st.just(limit),
+    hb_timeout_ms=st.integers(0, 3_600_000)))
 acks = st.one_of(st.builds(Ack, command=names),
                  st.builds(Ack, command=names, value=st.integers(-(2**31), U32 - 1)))
 naks = st.builds(Nak, command=names, reason=st.sampled_from([r.value for r in NakReason]))
@@ -85,10 +86,39 @@ def test_checksum_is_the_xor_of_the_body_in_either_hex_case():
     (b'$HB*ZZ', 'framing'),
     (b'$HB*00', 'checksum'),
     (b'$' + b'A' * 100 + b'*00', 'overlong'),
+    (b'$HB*0A\r\r', 'framing'),                          # one '\r' is tolerated, not two
 ])
 def test_bad_framing_is_classified(line, reason):
     with pytest.raises(FrameError) as info:
         protocol.parse_device_line(line)
+    assert info.value.reason == reason
+
+
+@pytest.mark.parametrize('digits', [b' A', b'A ', b'+A', b'-A', b'0x', b'_A', b'\xff\xff'])
+def test_checksum_must_be_exactly_two_hex_digits(digits):
+    """int(b' A', 16) and int(b'+A', 16) parse: the check must not rely on int() alone."""
+    body = b'HB'
+    with pytest.raises(FrameError) as info:
+        protocol.split_frame(b'$' + body + b'*' + digits)
+    assert info.value.reason == 'framing'
+    assert protocol.split_frame(b'$HB*%02X' % protocol.checksum(body)) == ['HB']
+
+
+def test_hello_carries_the_current_ceiling_and_the_compiled_limit():
+    hello = Hello(1, 'pma_firmware', '0.1.0', 20, 50, 300_000, 500_000, 1000)
+    line = protocol.encode_hello(hello)
+    assert line == protocol.frame('HELLO', 1, 'pma_firmware', '0.1.0', 20, 50, 300_000, 500_000,
+                                  1000)
+    assert protocol.parse_device_line(line[:-1]) == hello
+
+
+@pytest.mark.parametrize('fields, reason', [
+    (('HELLO', 1, 'f', '0', 20, 50, 500_000, 1000), 'fields'),            # v1 without limit_pa
+    (('HELLO', 1, 'f', '0', 20, 50, 500_001, 500_000, 1000), 'value'),    # ceiling above limit
+])
+def test_bad_hello_is_dropped(fields, reason):
+    with pytest.raises(FrameError) as info:
+        protocol.parse_device_line(protocol.frame(*fields)[:-1])
     assert info.value.reason == reason
 
 

@@ -5,8 +5,9 @@
 // the device side of docs/serial-protocol.md (protocol v1); the wiring is in docs/hardware.md.
 //
 // The device enforces its own safety whatever the host says or does: a ceiling on the
-// setpoint and on the measured pressure, a heartbeat timeout that vents when the host link
-// is lost, and venting when the pressure sensor reads outside its span.
+// setpoint and on the measured pressure (ceiling + OVERPRESSURE_MARGIN_PA), a heartbeat
+// timeout that vents when the host link is lost, and venting when the pressure sensor reads
+// outside its span. The simulated rig (pma_driver/sim/device.py) follows the same rules.
 
 #include "pma_protocol.h"
 
@@ -18,10 +19,14 @@ const uint8_t PIN_INLET_VALVE = 5;
 const uint8_t PIN_EXHAUST_VALVE = 6;
 const uint8_t PIN_STATUS_LED = 13;
 
-// HIGH switches the MOSFET on and opens a normally-closed valve. Swap both for a driver
-// board with active-low inputs.
-const uint8_t OPEN_VALVE_LEVEL = HIGH;
-const uint8_t CLOSED_VALVE_LEVEL = LOW;
+// The pin level that opens and the one that closes each valve. HIGH switches the MOSFET on,
+// which opens a normally-closed valve. For a normally-open exhaust valve (docs/hardware.md
+// recommends one: it vents when the power fails) swap the exhaust pair; for a driver board
+// with active-low inputs swap both pairs.
+const uint8_t INLET_OPEN_LEVEL = HIGH;
+const uint8_t INLET_CLOSED_LEVEL = LOW;
+const uint8_t EXHAUST_OPEN_LEVEL = HIGH;
+const uint8_t EXHAUST_CLOSED_LEVEL = LOW;
 
 // ---- Pressure sensor: the integer twin of calibration.PressureCalibration's defaults.
 const int32_t ADC_REFERENCE_MV = 5000;  // AVcc: the sensor is ratiometric to the same 5 V
@@ -33,7 +38,8 @@ const int32_t SENSOR_SPAN_MARGIN_MV = 100;  // calibration.adc_in_span's margin
 const int32_t PA_PER_MV = SENSOR_FULL_SCALE_PA / (SENSOR_FULL_MV - SENSOR_ZERO_MV);
 static_assert(PA_PER_MV * (SENSOR_FULL_MV - SENSOR_ZERO_MV) == SENSOR_FULL_SCALE_PA,
               "a whole number of Pa per mV keeps the conversion exact in 32 bits");
-// Averaging a few conversions (~0.1 ms each) keeps one noisy count from tripping the ceiling.
+// Each reading is the rounded mean of a few conversions (~0.1 ms each), which keeps one noisy
+// count from tripping the ceiling. There is no other filter.
 const uint8_t ADC_OVERSAMPLING = 4;
 // A zero offset beyond this is not sensor drift but air left in the muscle.
 const int32_t TARE_MAX_OFFSET_PA = 25000;
@@ -44,8 +50,12 @@ const int32_t DEADBAND_PA = 5000;
 // The valves are decided between samples too, so the pressure is held at 200 Hz.
 const uint8_t REGULATION_PERIOD_MS = 5;
 
-// ---- HC-SR04: a ~5 m round trip, beyond the sensor's 4 m range; no echo means none is coming.
-const uint32_t ECHO_TIMEOUT_US = 30000;
+// ---- HC-SR04. pulseIn() blocks until the echo ends or this timeout passes, and nothing else
+// runs meanwhile (no regulation, no ceiling check), so it is only as long as the rig needs.
+// The timeout runs from the call: it covers the ~0.45 ms the sensor takes to raise Echo
+// and the echo itself, which leaves echoes up to ~5.5 ms, a target up to ~0.95 m away.
+// The sensor sits within ~0.5 m of the plate; anything farther is no echo from it.
+const uint32_t ECHO_TIMEOUT_US = 6000;
 const uint8_t TRIGGER_PULSE_US = 10;
 
 // ---- State.
@@ -104,10 +114,10 @@ int16_t readPressureAdc() {
 
 void applyValves(uint8_t valve) {
   // Close before opening: both open at once would blow the supply straight to the exhaust.
-  if (valve != VALVE_FILL) digitalWrite(PIN_INLET_VALVE, CLOSED_VALVE_LEVEL);
-  if (valve != VALVE_VENT) digitalWrite(PIN_EXHAUST_VALVE, CLOSED_VALVE_LEVEL);
-  if (valve == VALVE_FILL) digitalWrite(PIN_INLET_VALVE, OPEN_VALVE_LEVEL);
-  if (valve == VALVE_VENT) digitalWrite(PIN_EXHAUST_VALVE, OPEN_VALVE_LEVEL);
+  if (valve != VALVE_FILL) digitalWrite(PIN_INLET_VALVE, INLET_CLOSED_LEVEL);
+  if (valve != VALVE_VENT) digitalWrite(PIN_EXHAUST_VALVE, EXHAUST_CLOSED_LEVEL);
+  if (valve == VALVE_FILL) digitalWrite(PIN_INLET_VALVE, INLET_OPEN_LEVEL);
+  if (valve == VALVE_VENT) digitalWrite(PIN_EXHAUST_VALVE, EXHAUST_OPEN_LEVEL);
   valveState = valve;
 }
 
@@ -121,8 +131,10 @@ void regulate() {
   lastAdc = readPressureAdc();
   sensorInSpan = adcInSensorSpan(lastAdc);
   const int32_t pressurePa = untaredPressurePa(lastAdc) - tareOffsetPa;
-  // Checked even outside the span: a saturated sensor may well be a real overpressure.
-  if (pressurePa > ceilingPa) tripOverpressure();
+  // Checked even outside the span: a saturated sensor may well be a real overpressure. The
+  // margin keeps regulation overshoot and noise at a setpoint equal to the ceiling from
+  // tripping it (pma_protocol.h).
+  if (pressurePa > ceilingPa + OVERPRESSURE_MARGIN_PA) tripOverpressure();
 
   uint8_t valve;
   if (!sensorInSpan || setpointPa == 0) {
@@ -163,6 +175,10 @@ void appendChar(char c) {
 
 void appendText(const char *text) {
   while (*text) appendChar(*text++);
+}
+
+void appendTextCut(const char *text, uint8_t maxLength) {
+  for (; *text && maxLength > 0; --maxLength) appendChar(*text++);
 }
 
 void appendText_P(const char *flashText) {
@@ -213,6 +229,7 @@ void sendHello() {
   addUnsigned(rateHz);
   addUnsigned(MAX_RATE_HZ);
   addSigned(ceilingPa);
+  addSigned(CEILING_LIMIT_PA);
   addUnsigned(heartbeatTimeoutMs);
   sendFrame();
 }
@@ -232,7 +249,8 @@ void sendAckValue(const char *command, int32_t value) {
 
 void sendNak(const char *command, const char *flashReason) {
   beginFrame(MESSAGE_NAK);
-  addField(command);
+  appendChar(',');
+  appendTextCut(command, NAK_NAME_MAX);
   addField_P(flashReason);
   sendFrame();
 }
@@ -461,8 +479,8 @@ void checkHeartbeat() {
 
 void setup() {
   // Closed first, then outputs: the pins never drive a valve open during boot.
-  digitalWrite(PIN_INLET_VALVE, CLOSED_VALVE_LEVEL);
-  digitalWrite(PIN_EXHAUST_VALVE, CLOSED_VALVE_LEVEL);
+  digitalWrite(PIN_INLET_VALVE, INLET_CLOSED_LEVEL);
+  digitalWrite(PIN_EXHAUST_VALVE, EXHAUST_CLOSED_LEVEL);
   pinMode(PIN_INLET_VALVE, OUTPUT);
   pinMode(PIN_EXHAUST_VALVE, OUTPUT);
   pinMode(PIN_ULTRASONIC_TRIGGER, OUTPUT);

@@ -47,14 +47,24 @@ const char NAK_UNKNOWN[] PROGMEM = "UNKNOWN";
 const char NAK_CHECKSUM[] PROGMEM = "CHECKSUM";
 // The command name of a NAK for a line whose name cannot be trusted (bad checksum or framing).
 const char UNTRUSTED_COMMAND[] = "?";
+// A NAK echoes at most this many characters of the command's name, so that the NAK of an
+// unknown name as long as a whole line still fits in a line.
+const uint8_t NAK_NAME_MAX = 12;
 
 // Defaults reported in the HELLO banner and the limits of the commands that change them.
-// 20 Hz leaves the HC-SR04 its ~38 ms no-echo cycle between pings. At 50 Hz an echo from up
-// to 3 m fits in the period, but each echo timeout (30 ms) stretches it.
+// 20 Hz leaves the HC-SR04 its ~38 ms no-echo cycle between pings. At 50 Hz a sample,
+// echo timeout (6 ms) included, still fits in the 20 ms period.
 const uint8_t DEFAULT_RATE_HZ = 20;
 const uint8_t MAX_RATE_HZ = 50;
-// The compiled pressure limit: the default ceiling and the most `MAX` may set.
+// The compiled pressure limit: the default ceiling and the most `MAX` may set. HELLO
+// reports it as `limit_pa`, next to the current ceiling (`ceiling_pa`).
 const int32_t CEILING_LIMIT_PA = 500000;
+// A measured pressure above ceiling + this margin vents and latches OVERPRESSURE. Setpoints
+// up to the ceiling itself are allowed, so at a setpoint equal to the ceiling the reading
+// sits at the ceiling plus the regulation band (DEADBAND_PA, 5 kPa) plus sensor noise; a
+// trip at the bare ceiling would fire there on every top step. 10 kPa is 2 % of the
+// sensor's span, about 16 ADC counts.
+const int32_t OVERPRESSURE_MARGIN_PA = 10000;
 const uint16_t DEFAULT_HEARTBEAT_TIMEOUT_MS = 1000;
 const uint16_t MIN_HEARTBEAT_TIMEOUT_MS = 100;
 const uint16_t MAX_HEARTBEAT_TIMEOUT_MS = 10000;

@@ -5,9 +5,15 @@ emits samples on a drift-free schedule in device time; `receive(bytes)` handles 
 commands at the current device time. The caller (fake_arduino, or a test) decides how
 device time relates to wall time, so tests can step it exactly.
 
-Firmware behaviour mirrored here (docs/serial-protocol.md, docs/simulated-rig.md):
-bang-bang with deadband on the filtered pressure, device-side ceiling, overpressure and
-heartbeat-loss venting, latched status bits, ACK/NAK for every command line.
+It mirrors the firmware (pma_driver/firmware/pma_firmware/pma_firmware.ino) rule for rule,
+with the same constants under the same names (test_firmware_build.py compares them):
+each pressure reading is the rounded mean of ADC_OVERSAMPLING conversions (no other
+filter); a reading is taken and the valves decided every REGULATION_PERIOD_MS and for
+every sample; bang-bang with a DEADBAND_PA band; setpoint 0 or a reading outside the
+sensor's span vents; a reading above ceiling + OVERPRESSURE_MARGIN_PA vents and latches
+OVERPRESSURE; heartbeat loss vents and latches HEARTBEAT_LOST; host lines are handled as
+the firmware's handleLine does (`parse_firmware_line`). docs/simulated-rig.md lists the
+few deliberate differences (faster rates, a 1 ms step).
 """
 
 from __future__ import annotations
@@ -24,12 +30,26 @@ from pma_driver.sim.pneumatics import PneumaticParams, Pneumatics
 
 FIRMWARE_NAME = 'fake_arduino'
 FIRMWARE_VERSION = '0.1.0'
-COMPILED_CEILING_PA = 500_000   # the firmware's compiled limit for MAX
-STEP_MS = 1                     # physics and control period
-HBTO_RANGE_MS = (100, 10_000)
-TARE_WINDOW_PA = 20_000         # TARE only when the reading is this close to nominal zero
-NAK_NAME_MAX = 12               # echoed command names are cut (keeps the NAK line short)
+STEP_MS = 1                     # physics step; the firmware's loop passes are finer still
+
+# The firmware's constants (pma_protocol.h / pma_firmware.ino), same names where it has one.
+COMPILED_CEILING_PA = 500_000   # CEILING_LIMIT_PA: default ceiling, most MAX may set, limit_pa
+OVERPRESSURE_MARGIN_PA = 10_000  # trip at a reading above ceiling + this (see the firmware)
+TARE_MAX_OFFSET_PA = 25_000     # TARE only when the untared reading is this close to zero
+DEADBAND_PA = 5_000             # bang-bang band around the setpoint
+REGULATION_PERIOD_MS = 5        # valves decided this often between samples
+ADC_OVERSAMPLING = 4            # conversions averaged into one reading
+ECHO_TIMEOUT_US = 6_000         # pulseIn timeout, counted from the trigger
+ECHO_START_US = 450             # HC-SR04: trigger to rising echo, inside that timeout
+NAK_NAME_MAX = 12               # a NAK echoes at most this much of the command's name
+MIN_HEARTBEAT_TIMEOUT_MS = 100
+MAX_HEARTBEAT_TIMEOUT_MS = 10_000
+HBTO_RANGE_MS = (MIN_HEARTBEAT_TIMEOUT_MS, MAX_HEARTBEAT_TIMEOUT_MS)
+UNTRUSTED_COMMAND = b'?'        # the name of a NAK for a line whose name cannot be trusted
+
 _NOISE_BYTES = bytes(b for b in range(256) if b != 0x0A)
+_HEX_DIGITS = b'0123456789ABCDEFabcdef'
+_COMMAND_ARITY = {name.encode('ascii'): count for name, count in protocol._COMMAND_ARITY.items()}
 
 
 @dataclass(frozen=True)
@@ -39,12 +59,8 @@ class DeviceConfig:
     ceiling_pa: int = COMPILED_CEILING_PA
     hb_timeout_ms: int = 1000
     heartbeat_check: bool = True
-    deadband_pa: float = 5_000.0
-    # Measured pressure above ceiling + margin vents: the margin keeps sensor noise at
-    # a setpoint equal to the ceiling from tripping (2 % FS, about 16 ADC counts).
-    overpressure_margin_pa: float = 10_000.0
-    pressure_filter_s: float = 0.010           # firmware's EMA on the ADC before control
-    pressure_noise_pa: float = 2_500.0         # 0.5 % FS, one sigma
+    deadband_pa: float = DEADBAND_PA
+    pressure_noise_pa: float = 2_500.0         # per conversion: 0.5 % FS, one sigma
     length_noise_m: float = 0.0015             # HC-SR04: about +/-3 mm (two sigma)
     length_resolution_m: float = 0.003         # HC-SR04 datasheet resolution
     echo_timeout_rate: float = 0.0             # probability a sample has no echo
@@ -72,6 +88,8 @@ class Rig:
         self.muscle = PreisachMuscle()
         self.pressure_sensor = PressureCalibration()
         self.range_sensor = LengthCalibration()
+        # A broken or unplugged pressure sensor: every conversion reads this count.
+        self.pressure_sensor_fault_adc: int | None = None
         self._config = config
         self._rng = random.Random(f'rig-{config.seed}')
 
@@ -87,16 +105,24 @@ class Rig:
         self.muscle.update(self.pneumatics.step(dt_s, valve))
 
     def read_adc(self) -> int:
+        """One ADC conversion of the pressure sensor, with its own noise."""
+        if self.pressure_sensor_fault_adc is not None:
+            return self.pressure_sensor_fault_adc
         noisy = self.pneumatics.pressure_pa + self._rng.gauss(0.0, self._config.pressure_noise_pa)
         return self.pressure_sensor.pa_to_adc(noisy)
 
     def read_echo_us(self) -> int:
-        """One HC-SR04 reading; 0 when the echo timed out."""
+        """One HC-SR04 reading as pulseIn() returns it; 0 when the echo timed out.
+
+        Lost at random (`echo_timeout_rate`), or when the rising edge plus the echo do not
+        fit in the firmware's ECHO_TIMEOUT_US (a target farther than ~0.95 m).
+        """
         if self._rng.random() < self._config.echo_timeout_rate:
             return 0
         resolution = self._config.length_resolution_m
         noisy = self.muscle.length_m + self._rng.gauss(0.0, self._config.length_noise_m)
-        return self.range_sensor.length_to_echo_us(round(noisy / resolution) * resolution)
+        echo_us = self.range_sensor.length_to_echo_us(round(noisy / resolution) * resolution)
+        return 0 if ECHO_START_US + echo_us > ECHO_TIMEOUT_US else echo_us
 
 
 def bang_bang(measured_pa: float, setpoint_pa: float, deadband_pa: float) -> Valve:
@@ -109,24 +135,57 @@ def bang_bang(measured_pa: float, setpoint_pa: float, deadband_pa: float) -> Val
 
 
 @dataclass(frozen=True)
-class _Rejected:
-    """A host line that cannot be carried out: answered with NAK `command,reason`."""
+class Rejected:
+    """A host line answered with NAK `command,reason` (the name as the firmware echoes it)."""
 
-    command: str
+    command: bytes
     reason: NakReason
 
 
-def _parse_host_line_or_reject(line: bytes):
-    try:
-        return protocol.parse_host_line(line)
-    except protocol.FrameError as error:
-        if error.reason == 'checksum':
-            return _Rejected('?', NakReason.CHECKSUM)
-        if error.reason in ('fields', 'value', 'unknown_type'):
-            name = protocol.split_frame(line)[0][:NAK_NAME_MAX] or '?'
-            reason = NakReason.UNKNOWN if error.reason == 'unknown_type' else NakReason.SYNTAX
-            return _Rejected(name, reason)
-        return _Rejected('?', NakReason.SYNTAX)   # framing: nothing in it can be trusted
+def _firmware_integer(text: bytes) -> int | None:
+    """The firmware's parseInteger: decimal with an optional '-', saturating at 32 bits."""
+    negative = text.startswith(b'-')
+    digits = text[1:] if negative else text
+    if not digits or not all(0x30 <= byte <= 0x39 for byte in digits):
+        return None
+    magnitude = min(int(digits), 2**31 if negative else 2**31 - 1)
+    return -magnitude if negative else magnitude
+
+
+def parse_firmware_line(line: bytes) -> protocol.HostCommand | Rejected:
+    """One host line (without its '\\n') as the firmware's handleLine takes it.
+
+    Returns the command to carry out or the NAK to answer with. Raises FrameError for the
+    lines the firmware drops without an answer: overlong, empty, or not starting with '$'.
+    """
+    if line.endswith(b'\r'):
+        line = line[:-1]
+    if len(line) + 1 > protocol.MAX_LINE_BYTES:
+        raise protocol.FrameError('overlong', f'{len(line) + 1} bytes')
+    if not line.startswith(b'$'):
+        raise protocol.FrameError('framing', 'no "$" at the start of the line')
+    if len(line) < 4 or line[-3:-2] != b'*':
+        return Rejected(UNTRUSTED_COMMAND, NakReason.SYNTAX)
+    if any(digit not in _HEX_DIGITS for digit in line[-2:]):
+        return Rejected(UNTRUSTED_COMMAND, NakReason.SYNTAX)
+    if protocol.checksum(line[1:-3]) != int(line[-2:], 16):
+        return Rejected(UNTRUSTED_COMMAND, NakReason.CHECKSUM)
+    body = line[1:-3].split(b'\0', 1)[0]    # the firmware's C strings end at a NUL byte
+    fields = body.split(b',')
+    name = fields[0]
+    arity = _COMMAND_ARITY.get(name)
+    if arity is None:
+        return Rejected(name[:NAK_NAME_MAX], NakReason.UNKNOWN)
+    value = _firmware_integer(fields[1]) if arity == 1 and len(fields) == 2 else None
+    if len(fields) != arity + 1 or (arity == 1 and value is None):
+        return Rejected(name, NakReason.SYNTAX)
+    return protocol.HostCommand(name.decode('ascii'), () if value is None else (value,))
+
+
+def encode_nak(command: bytes, reason: NakReason) -> bytes:
+    """A NAK echoing the command's name byte for byte, as the firmware does."""
+    body = b'NAK,' + command + b',' + reason.value.encode('ascii')
+    return b'$' + body + b'*' + b'%02X' % protocol.checksum(body) + b'\n'
 
 
 class SimDevice:
@@ -136,7 +195,6 @@ class SimDevice:
         self.config = config
         self.rig = rig or Rig(config)
         self._calibration = PressureCalibration()
-        self._filter_alpha = 1.0 - math.exp(-STEP_MS * 1e-3 / config.pressure_filter_s)
         self.boot()
 
     # -- state ------------------------------------------------------------------------------
@@ -151,14 +209,16 @@ class SimDevice:
         self.setpoint_pa = 0
         self.valve = Valve.HOLD
         self.latched_status = 0
-        self.forced_vent = False
         self.tare_adc = self._calibration.pa_to_adc(0.0)
         self._tared = self._calibration
-        self.last_adc = self.rig.read_adc()
-        self.filtered_pa = self._tared.adc_to_pa(self.last_adc)
+        # As in the firmware: no reading yet; the first regulation, 5 ms in, takes one.
+        self.last_adc = 0
+        self.sensor_in_span = False
+        self.pressure_reading_pa = 0.0
+        self._last_regulation_ms = 0
         self._last_command_ms = 0
         self._restart_schedule()
-        self._decoder = protocol.FrameDecoder(parse=_parse_host_line_or_reject)
+        self._decoder = protocol.FrameDecoder(parse=parse_firmware_line)
         self._outbox: list[bytes] = [self._banner()]
 
     def _restart_schedule(self) -> None:
@@ -190,37 +250,50 @@ class SimDevice:
         self.advance_to(self.t_ms + ms)
 
     def _step(self) -> None:
-        c = self.config
+        """One pass of the firmware's loop() (commands arrive through receive())."""
         self.t_ms += STEP_MS
         self.rig.step(STEP_MS * 1e-3, self.valve)
-        self.last_adc = self.rig.read_adc()
-        measured = self._tared.adc_to_pa(self.last_adc)
-        self.filtered_pa += self._filter_alpha * (measured - self.filtered_pa)
-        if (c.heartbeat_check and not self.latched_status & protocol.STATUS_HEARTBEAT_LOST
+        if (self.config.heartbeat_check
+                and not self.latched_status & protocol.STATUS_HEARTBEAT_LOST
                 and self.t_ms - self._last_command_ms >= self.hb_timeout_ms):
-            self._safety_vent(protocol.STATUS_HEARTBEAT_LOST)
-        if self.filtered_pa > self.ceiling_pa + c.overpressure_margin_pa:
-            self._safety_vent(protocol.STATUS_OVERPRESSURE)
-        if self.forced_vent:
-            self.valve = Valve.VENT
-        else:
-            self.valve = bang_bang(self.filtered_pa, self.setpoint_pa, c.deadband_pa)
+            # The host is gone or hung: nobody is watching the muscle, so empty it.
+            self.latched_status |= protocol.STATUS_HEARTBEAT_LOST
+            self.setpoint_pa = 0
+            self._regulate()
         if self.t_ms >= self.next_sample_ms:
             self._samples_since_anchor += 1
             self._outbox.append(protocol.encode_sample(self._sample()))
+        elif self.t_ms - self._last_regulation_ms >= REGULATION_PERIOD_MS:
+            self._regulate()
 
-    def _safety_vent(self, bit: int) -> None:
-        self.latched_status |= bit
-        self.setpoint_pa = 0
-        self.forced_vent = True
-        self.valve = Valve.VENT
+    def read_pressure_adc(self) -> int:
+        """One reading: the rounded mean of ADC_OVERSAMPLING conversions (readPressureAdc)."""
+        total = sum(self.rig.read_adc() for _ in range(ADC_OVERSAMPLING))
+        return (total + ADC_OVERSAMPLING // 2) // ADC_OVERSAMPLING
+
+    def _regulate(self) -> None:
+        """Measure, check the safety limits and decide the valves (the firmware's regulate)."""
+        self.last_adc = self.read_pressure_adc()
+        self.sensor_in_span = self._calibration.adc_in_span(self.last_adc)
+        self.pressure_reading_pa = self._tared.adc_to_pa(self.last_adc)
+        # Checked even outside the span: a saturated sensor may well be a real overpressure.
+        if self.pressure_reading_pa > self.ceiling_pa + OVERPRESSURE_MARGIN_PA:
+            self.latched_status |= protocol.STATUS_OVERPRESSURE
+            self.setpoint_pa = 0
+        if not self.sensor_in_span or self.setpoint_pa == 0:
+            self.valve = Valve.VENT   # blind, or asked for nothing: empty is the safe state
+        else:
+            self.valve = bang_bang(self.pressure_reading_pa, self.setpoint_pa,
+                                   self.config.deadband_pa)
+        self._last_regulation_ms = self.t_ms
 
     def _sample(self) -> protocol.Sample:
         echo_us = self.rig.read_echo_us()
+        self._regulate()   # a fresh pressure reading and valve decision for this sample
         status = self.latched_status
         if echo_us == 0:
             status |= protocol.STATUS_ECHO_TIMEOUT
-        if not self._calibration.adc_in_span(self.last_adc):
+        if not self.sensor_in_span:
             status |= protocol.STATUS_SENSOR_RANGE
         sample = protocol.Sample(
             seq=self.seq, t_ms=self.t_ms % protocol.U32, adc=self.last_adc, echo_us=echo_us,
@@ -232,15 +305,16 @@ class SimDevice:
     def receive(self, data: bytes) -> None:
         """Bytes from the host; answers go to the outbox."""
         for item in self._decoder.feed(data):
-            if isinstance(item, _Rejected):
-                self._outbox.append(protocol.encode_nak(item.command, item.reason))
+            if isinstance(item, Rejected):
+                self._outbox.append(encode_nak(item.command, item.reason))
             else:
+                # A well-formed command proves the host alive, even one refused for its value.
                 self._last_command_ms = self.t_ms
                 self._outbox.extend(self._execute(item))
 
     @property
     def decoder_dropped(self):
-        """Host lines discarded without any answer (overlong runs without a newline)."""
+        """Host lines dropped without an answer, by reason (no '$', overlong, ...)."""
         return self._decoder.dropped
 
     def _execute(self, command: protocol.HostCommand) -> list[bytes]:
@@ -255,12 +329,12 @@ class SimDevice:
             if not 0 <= value <= self.ceiling_pa:
                 return [protocol.encode_nak(name, NakReason.RANGE)]
             self.setpoint_pa = value
-            self.forced_vent = False
-            self.latched_status = 0
+            # A new setpoint is the host's acknowledgement of the faults that vented.
+            self.latched_status &= ~(protocol.STATUS_OVERPRESSURE | protocol.STATUS_HEARTBEAT_LOST)
             return [protocol.encode_ack(name, value)]
         if name == Command.VENT:
             self.setpoint_pa = 0
-            self.forced_vent = True
+            self._regulate()   # open the exhaust now, not at the next regulation
             return [protocol.encode_ack(name)]
         if name == Command.RATE:
             if not 1 <= value <= self.config.max_rate_hz:
@@ -269,12 +343,13 @@ class SimDevice:
             self._restart_schedule()
             return [protocol.encode_ack(name, value)]
         if name == Command.TARE:
-            if abs(self._calibration.adc_to_pa(self.last_adc)) > TARE_WINDOW_PA:
+            adc = self.read_pressure_adc()   # a fresh reading, as the firmware takes
+            offset_pa = self._calibration.adc_to_pa(adc)
+            if not self._calibration.adc_in_span(adc) or abs(offset_pa) > TARE_MAX_OFFSET_PA:
                 return [protocol.encode_nak(name, NakReason.RANGE)]
-            self.tare_adc = self.last_adc
-            self._tared = self._calibration.with_tare(self.tare_adc)
-            self.filtered_pa = self._tared.adc_to_pa(self.last_adc)
-            return [protocol.encode_ack(name, self.tare_adc)]
+            self.tare_adc = adc
+            self._tared = self._calibration.with_tare(adc)
+            return [protocol.encode_ack(name, adc)]
         if name == Command.HEARTBEAT_TIMEOUT:
             if not HBTO_RANGE_MS[0] <= value <= HBTO_RANGE_MS[1]:
                 return [protocol.encode_nak(name, NakReason.RANGE)]
@@ -286,13 +361,14 @@ class SimDevice:
             self.ceiling_pa = value
             self.setpoint_pa = min(self.setpoint_pa, value)  # never regulate above it
             return [protocol.encode_ack(name, value)]
-        return [protocol.encode_nak(name[:NAK_NAME_MAX], NakReason.UNKNOWN)]  # arity table only
+        raise AssertionError(f'no handler for {name}')   # parse_firmware_line knows them all
 
     def _banner(self) -> bytes:
         return protocol.encode_hello(protocol.Hello(
             proto=protocol.PROTOCOL_VERSION, firmware=FIRMWARE_NAME, fw_version=FIRMWARE_VERSION,
             rate_hz=self.rate_hz, max_rate_hz=self.config.max_rate_hz,
-            ceiling_pa=self.ceiling_pa, hb_timeout_ms=self.hb_timeout_ms))
+            ceiling_pa=self.ceiling_pa, limit_pa=COMPILED_CEILING_PA,
+            hb_timeout_ms=self.hb_timeout_ms))
 
 
 @dataclass(frozen=True)
@@ -310,31 +386,48 @@ class LinkFaultConfig:
                 raise ValueError(f'{name} must be within 0..1')
 
 
+@dataclass(frozen=True)
+class FaultedLine:
+    """One device line after the link: the chunks to write and the faults applied to it."""
+
+    chunks: list[bytes]          # [] when dropped, two when split
+    faults: frozenset[str]       # keys of LinkFaults.counts
+
+
 class LinkFaults:
-    """Deterministic (seeded) corruption of device lines; counts what it did."""
+    """Deterministic (seeded) corruption of device lines; counts what it did.
+
+    A garbage run is a line of its own (newline-terminated, never blank) written just before
+    the line, so it costs the host that one bad line and leaves the line after it intact.
+    """
+
+    FAULTS = ('garbage', 'bad_checksum', 'dropped', 'split')
 
     def __init__(self, config: LinkFaultConfig, seed: int = 0):
         self.config = config
         self._rng = random.Random(f'link-{seed}')
-        self.counts = {'garbage': 0, 'bad_checksum': 0, 'dropped': 0, 'split': 0}
+        self.counts = dict.fromkeys(self.FAULTS, 0)
 
-    def apply(self, line: bytes) -> list[bytes]:
-        """The chunks to write for one line: [] dropped, two chunks when split."""
+    def apply(self, line: bytes) -> FaultedLine:
         c, rng = self.config, self._rng
+        faults: set[str] = set()
         if c.drop_rate and rng.random() < c.drop_rate:
             self.counts['dropped'] += 1
-            return []
+            return FaultedLine([], frozenset({'dropped'}))
         if c.bad_checksum_rate and rng.random() < c.bad_checksum_rate:
-            self.counts['bad_checksum'] += 1
+            faults.add('bad_checksum')
             good = int(line[-3:-1], 16)
             line = line[:-3] + f'{good ^ rng.randint(1, 255):02X}'.encode('ascii') + b'\n'
         if c.garbage_rate and rng.random() < c.garbage_rate:
-            self.counts['garbage'] += 1
+            faults.add('garbage')
             # Its own line (newline-terminated, first byte printable so it is never blank).
             noise = bytes(rng.choice(_NOISE_BYTES) for _ in range(rng.randint(0, 30)))
             line = bytes([rng.randint(0x21, 0x7E)]) + noise + b'\n' + line
+        chunks = [line]
         if c.split_rate and rng.random() < c.split_rate and len(line) > 1:
-            self.counts['split'] += 1
+            faults.add('split')
             cut = rng.randint(1, len(line) - 1)
-            return [line[:cut], line[cut:]]
-        return [line]
+            chunks = [line[:cut], line[cut:]]
+        for fault in faults:
+            self.counts[fault] += 1
+        return FaultedLine(chunks, frozenset(faults))

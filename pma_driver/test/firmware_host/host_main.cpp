@@ -2,10 +2,10 @@
 //
 // Reads a script on stdin, one item a line:
 //   !adc N       the pressure sensor's ADC count from now on
-//   !echo N      the HC-SR04 echo width in us from now on (0: no echo, pulseIn times out)
+//   !echo N      the HC-SR04 echo width in us from now on (0 or too long: pulseIn times out)
 //   !run MS      run loop() for MS ms of simulated time
 //   !loop_us N   simulated time one pass of loop() takes besides the sensor reads (default 40)
-//   !pins        print "!pins <inlet> <exhaust>" (the valve pins' levels)
+//   !pins        print "!pins <inlet> <exhaust>", 1 for an open valve (from the pins' levels)
 //   anything else: sent to the firmware's serial input, with a '\n'
 // and writes what the firmware sends, interleaved with the "!" lines it prints, on stdout.
 // The clock starts at the microsecond count given as the first argument (default 0), so a
@@ -42,9 +42,12 @@ void delayMicroseconds(unsigned int us) { nowUs += us; }
 void pinMode(uint8_t, uint8_t) {}
 void analogReference(uint8_t) {}
 
+static bool inletOpen() { return pinLevels[PIN_INLET_VALVE] == INLET_OPEN_LEVEL; }
+static bool exhaustOpen() { return pinLevels[PIN_EXHAUST_VALVE] == EXHAUST_OPEN_LEVEL; }
+
 void digitalWrite(uint8_t pin, uint8_t level) {
   pinLevels[pin] = level;
-  if (pinLevels[PIN_INLET_VALVE] && pinLevels[PIN_EXHAUST_VALVE]) {
+  if (inletOpen() && exhaustOpen()) {
     fprintf(stdout, "!error both valves open at t=%llu us\n", (unsigned long long)nowUs);
     exit(2);
   }
@@ -55,12 +58,16 @@ int analogRead(uint8_t) {
   return adcCount;
 }
 
+// The HC-SR04 raises its echo line ~450 us after the trigger; pulseIn's timeout runs from its
+// call, so it covers that wait too (as in the Arduino core's countPulseASM).
+const unsigned long ECHO_START_US = 450;
+
 unsigned long pulseIn(uint8_t, uint8_t, unsigned long timeoutUs) {
-  if (echoUs == 0 || echoUs > timeoutUs) {
+  if (echoUs == 0 || ECHO_START_US + echoUs > timeoutUs) {
     nowUs += timeoutUs;
     return 0;
   }
-  nowUs += echoUs + 450;  // the HC-SR04 raises its echo line ~450 us after the trigger
+  nowUs += ECHO_START_US + echoUs;
   return echoUs;
 }
 
@@ -108,7 +115,7 @@ int main(int argc, char **argv) {
         nowUs += loopOverheadUs;
       }
     } else if (item == "!pins") {
-      printf("!pins %d %d\n", pinLevels[PIN_INLET_VALVE], pinLevels[PIN_EXHAUST_VALVE]);
+      printf("!pins %d %d\n", inletOpen() ? 1 : 0, exhaustOpen() ? 1 : 0);
     } else {
       serialInput += item;
       serialInput += '\n';
