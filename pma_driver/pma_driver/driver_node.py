@@ -58,8 +58,6 @@ RECORDER_READY_RE = re.compile(r'recorder: recording (\d+) topics')
 RECORDER_TOPICS = 4
 FAULT_BITS = (protocol.STATUS_OVERPRESSURE | protocol.STATUS_HEARTBEAT_LOST
               | protocol.STATUS_SENSOR_RANGE)
-_LEVELS = {logging.DEBUG: 'debug', logging.INFO: 'info', logging.WARNING: 'warning',
-           logging.ERROR: 'error', logging.CRITICAL: 'fatal'}
 
 
 def _floats(low: float, high: float) -> list[FloatingPointRange]:
@@ -77,8 +75,8 @@ PARAMETERS = {
     'baud': (115200, 'Serial baud rate (the firmware uses 115200)',
              {'read_only': True, 'integer_range': _ints(1200, 4_000_000)}),
     'frame_id': ('pma_link', 'frame_id of every published header', {'read_only': True}),
-    'sample_rate_hz': (20.0, 'Sample rate asked of the device (RATE) [Hz]',
-                       {'floating_point_range': _floats(0.1, 5000.0)}),
+    'sample_rate_hz': (20.0, 'Sample rate asked of the device (RATE, whole Hz) [Hz]',
+                       {'floating_point_range': _floats(1.0, 5000.0)}),
     'max_gauge_pressure_pa': (500_000.0, 'Highest gauge pressure ever commanded (MAX) [Pa]; '
                               'never above the device ceiling',
                               {'floating_point_range': _floats(1000.0, 1_000_000.0)}),
@@ -139,8 +137,9 @@ def check_parameters(values: dict, hello: Hello | None) -> str:
             return f'{name} must be finite, got {value}'
     if values['qos_reliability'] not in ('reliable', 'best_effort'):
         return "qos_reliability must be 'reliable' or 'best_effort'"
-    if not values['sample_rate_hz'] > 0:
-        return f'sample_rate_hz must be > 0 Hz, got {values["sample_rate_hz"]}'
+    if not values['sample_rate_hz'] >= 1.0:
+        return f'sample_rate_hz must be >= 1 Hz (the device takes whole Hz), got ' \
+            f'{values["sample_rate_hz"]}'
     if not values['max_gauge_pressure_pa'] > 0:
         return 'max_gauge_pressure_pa must be > 0 Pa'
     if values['heartbeat_period_s'] * 1000.0 > values['heartbeat_timeout_ms'] / 2:
@@ -150,9 +149,11 @@ def check_parameters(values: dict, hello: Hello | None) -> str:
         if values['sample_rate_hz'] > hello.max_rate_hz:
             return (f'sample_rate_hz {values["sample_rate_hz"]} Hz is above the device maximum '
                     f'{hello.max_rate_hz} Hz')
-        if values['max_gauge_pressure_pa'] > hello.ceiling_pa:
+        # limit_pa is the firmware's compiled hard limit; its current ceiling_pa is only what
+        # the last MAX set, which this parameter is about to set again.
+        if values['max_gauge_pressure_pa'] > hello.limit_pa:
             return (f'max_gauge_pressure_pa {values["max_gauge_pressure_pa"]:.0f} Pa is above '
-                    f'the device ceiling {hello.ceiling_pa} Pa')
+                    f'the device limit {hello.limit_pa} Pa')
     try:
         calibrations(values)
     except ValueError as error:
@@ -191,11 +192,15 @@ class PmaDriver(Node):
         self._ambient_pa = self.get_parameter('ambient_pressure_pa').value
         self._active = False
         self._published = 0
+        self._unpublished = 0           # decoded while configured but not active
         self._latest: protocol.Sample | None = None
         self._latest_gauge_pa = math.nan
         self._last_fault = ('', '')          # (status text, ROS time) of the last fault bits
         self._sweep_lock = threading.Lock()
         self._sweep_running = False
+        # Held from "may this pressure be commanded?" to "sent", and by deactivate around
+        # "inactive + VENT", so no SET can overtake the VENT of a deactivation.
+        self._command_lock = threading.RLock()
         self._rate_count = (0, time.monotonic())
         self._rate_hz = 0.0
         self._configure_error = ''
@@ -242,7 +247,7 @@ class PmaDriver(Node):
         link.reconnect_period_s = values['reconnect_period_s']
         link.handshake_timeout_s = values['handshake_timeout_s']
         link.stall_timeout_s = self._stall_timeout(values)
-        commands = {'sample_rate_hz': (Command.RATE, round(values['sample_rate_hz'])),
+        commands = {'sample_rate_hz': (Command.RATE, max(1, round(values['sample_rate_hz']))),
                     'max_gauge_pressure_pa': (Command.MAX, self._device_max_pa(values)),
                     'heartbeat_timeout_ms': (Command.HEARTBEAT_TIMEOUT,
                                              values['heartbeat_timeout_ms'])}
@@ -260,15 +265,15 @@ class PmaDriver(Node):
         limit = values['max_gauge_pressure_pa']
         hello = self._link.hello if self._link is not None else None
         if hello is not None:
-            limit = min(limit, hello.ceiling_pa)
+            limit = min(limit, hello.limit_pa)
         return math.floor(limit)
 
     def _startup_commands(self, hello: Hello):
         values = self._values()
-        if values['max_gauge_pressure_pa'] > hello.ceiling_pa:
+        if values['max_gauge_pressure_pa'] > hello.limit_pa:
             self.get_logger().warning(
                 f'max_gauge_pressure_pa {values["max_gauge_pressure_pa"]:.0f} Pa is above the '
-                f'device ceiling {hello.ceiling_pa} Pa: using the device ceiling')
+                f'device limit {hello.limit_pa} Pa: using the device limit')
         rate = round(values['sample_rate_hz'])
         if rate > hello.max_rate_hz:
             self.get_logger().warning(f'sample_rate_hz {rate} is above the device maximum '
@@ -342,13 +347,15 @@ class PmaDriver(Node):
         return result
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
-        self._active = False
-        self._vent('deactivated')
+        with self._command_lock:
+            self._active = False
+            self._vent('deactivated')
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
-        self._active = False
-        self._close_link(vent=True)
+        with self._command_lock:
+            self._active = False
+            self._close_link(vent=True)
         for pub in self._pubs or ():
             self.destroy_publisher(pub)
         self._pubs = None
@@ -364,8 +371,9 @@ class PmaDriver(Node):
 
     def shutdown_hardware(self) -> None:
         """Vent the muscle and close the port (shutdown, Ctrl-C, errors)."""
-        self._active = False
-        self._close_link(vent=True)
+        with self._command_lock:
+            self._active = False
+            self._close_link(vent=True)
 
     def _close_link(self, vent: bool) -> None:
         link, self._link = self._link, None
@@ -377,7 +385,16 @@ class PmaDriver(Node):
     # -- link callbacks (link thread) ------------------------------------------------------
 
     def _on_link_event(self, level: int, message: str) -> None:
-        getattr(self.get_logger(), _LEVELS.get(level, 'info'))(message)
+        # One call site per severity: rclpy refuses to log from one line at two severities.
+        logger = self.get_logger()
+        if level >= logging.ERROR:
+            logger.error(message)
+        elif level >= logging.WARNING:
+            logger.warning(message)
+        elif level >= logging.INFO:
+            logger.info(message)
+        else:
+            logger.debug(message)
 
     def _on_hello(self, hello: Hello) -> None:
         # The device clock restarted: the old offset means nothing now.
@@ -393,6 +410,7 @@ class PmaDriver(Node):
                                 f'{stamp_ns / 1e9:.3f}')
         pubs = self._pubs
         if not self._active or pubs is None:
+            self._unpublished += 1
             return
         header_stamp = to_time_msg(stamp_ns)
         state = PmaState()
@@ -470,20 +488,25 @@ class PmaDriver(Node):
                                 f'{limit} Pa')
         if not self._active:
             return 'inactive', f'driver is {self._state_label()}, not active'
-        if self._sweep_running:
-            return 'sweep', 'a sweep is running'
+        link = self._link
+        if link is None or link.state is not LinkState.STREAMING:
+            # Stalled too: no pressure is commanded that nobody can watch.
+            return 'link', f'link {link.state.value if link else "closed"}'
         return '', ''
 
     def _on_setpoint(self, msg: Float64) -> None:
-        kind, reason = self.setpoint_refusal(msg.data)
-        if reason:
-            # Throttled per kind, so a flood of one kind of refusal hides no other kind.
-            now = time.monotonic()
-            if now - self._refusal_logged.get(kind, -math.inf) >= 1.0:
-                self._refusal_logged[kind] = now
-                self.get_logger().warning(f'refused setpoint: {reason}')
-            return
-        self._send(Command.SET, round(msg.data))
+        with self._command_lock:
+            kind, reason = self.setpoint_refusal(msg.data)
+            if not reason and self._sweep_running:
+                kind, reason = 'sweep', 'a sweep is running'
+            if not reason:
+                self._send(Command.SET, round(msg.data))
+                return
+        # Throttled per kind, so a flood of one kind of refusal hides no other kind.
+        now = time.monotonic()
+        if now - self._refusal_logged.get(kind, -math.inf) >= 1.0:
+            self._refusal_logged[kind] = now
+            self.get_logger().warning(f'refused setpoint: {reason}')
 
     # -- sweep action ----------------------------------------------------------------------
 
@@ -521,13 +544,20 @@ class PmaDriver(Node):
         start_count = self._published   # reset once the recorder runs: count what it can see
 
         def finish(outcome: str, message: str):
+            if outcome != 'succeed':
+                # Whatever stopped the run (cancel, NAK, lost reply, stall, deactivation), the
+                # muscle must not stay at the last step's pressure.
+                self._vent(f'sweep {outcome}')
             result.message = message
             result.sample_count = self._published - start_count
             result.success = outcome == 'succeed'
             getattr(goal_handle, {'succeed': 'succeed', 'abort': 'abort',
                                   'cancel': 'canceled'}[outcome])()
-            log = self.get_logger().info if result.success else self.get_logger().warning
-            log(f'sweep {outcome}: {message} ({result.sample_count} samples)')
+            summary = f'sweep {outcome}: {message} ({result.sample_count} samples)'
+            if result.success:
+                self.get_logger().info(summary)
+            else:
+                self.get_logger().warning(summary)
             return result
 
         try:
@@ -567,26 +597,30 @@ class PmaDriver(Node):
 
         def interrupted() -> tuple[str, str] | None:
             if goal_handle.is_cancel_requested:
-                self._vent('sweep canceled')
                 return 'cancel', 'canceled; vented to 0 Pa'
             if not self._active:
                 return 'abort', 'driver deactivated; vented'
-            if self._link is None or not self._link.connected:
-                return 'abort', (f'link {self._link.state.value if self._link else "closed"}'
-                                 ' during the sweep (the device vents on heartbeat loss)')
+            link = self._link
+            if link is None or link.state is not LinkState.STREAMING:
+                return 'abort', (f'link {link.state.value if link else "closed"} during the '
+                                 'sweep; vented (the device also vents on heartbeat loss)')
             return None
 
         for index, setpoint in enumerate(plan.setpoints_pa):
-            stop = interrupted()
-            if stop:
-                return stop
-            try:
-                reply = self._link.send(Command.SET, round(setpoint))
-            except (LinkError, AttributeError) as error:
-                return 'abort', f'SET {setpoint:.0f} Pa failed: {error}'
+            with self._command_lock:
+                stop = interrupted()
+                if stop:
+                    return stop
+                limit = self._device_max_pa()   # the parameter may have been lowered
+                if setpoint > limit:
+                    return 'abort', (f'step {setpoint:.0f} Pa is above max_gauge_pressure_pa '
+                                     f'{limit} Pa (lowered during the sweep); vented')
+                reply, error = self._set_with_retry(round(setpoint))
+            if reply is None:
+                return 'abort', f'SET {setpoint:.0f} Pa failed: {error}; vented'
             if not isinstance(reply, Ack):
-                self._vent('sweep aborted')
-                return 'abort', f'device refused SET {setpoint:.0f} Pa: NAK {reply.reason}'
+                return 'abort', (f'device refused SET {setpoint:.0f} Pa: NAK {reply.reason}; '
+                                 'vented')
             send_feedback(index, setpoint, 0.0)
             deadline = time.monotonic() + step_timeout
             while not abs(self._latest_gauge_pa - setpoint) <= tolerance:  # NaN: not reached
@@ -612,6 +646,19 @@ class PmaDriver(Node):
         send_feedback(plan.step_count - 1, plan.setpoints_pa[-1], 1.0)
         return 'succeed', f'{plan.step_count} steps done'
 
+    def _set_with_retry(self, gauge_pa: int):
+        """SET, once more if the reply got lost (SET is idempotent): (reply, error text)."""
+        error = ''
+        for _ in range(2):
+            link = self._link
+            if link is None:
+                return None, 'link closed'
+            try:
+                return link.send(Command.SET, gauge_pa), ''
+            except LinkError as failure:
+                error = str(failure)
+        return None, error
+
     def _start_recorder(self, bag: Path) -> subprocess.Popen:
         exe = recorder_executable()
         if not exe.exists():
@@ -626,12 +673,15 @@ class PmaDriver(Node):
             if self.count_publishers(self.resolve_topic_name(topic)) > 0))
         ready = threading.Event()       # the recorder has subscribed every published topic
         announced = threading.Event()   # it has started (maybe with 0 topics yet)
+        failed = threading.Event()      # it cannot write the bag (it says why and stays up)
         tail: list[str] = []
 
         def pump() -> None:
             for line in proc.stdout:
                 tail.append(line.rstrip())
                 del tail[:-20]
+                if line.startswith('recorder: ERROR'):
+                    failed.set()
                 match = RECORDER_READY_RE.search(line)
                 if match:
                     announced.set()
@@ -643,8 +693,10 @@ class PmaDriver(Node):
         start = time.monotonic()
         while not ready.wait(0.1):
             waited = time.monotonic() - start
-            if proc.poll() is not None or waited > 15.0:
+            if proc.poll() is not None or failed.is_set() or waited > 15.0:
                 self._stop_recorder(proc)
+                if failed.is_set():
+                    raise RuntimeError(' | '.join(t for t in tail if 'ERROR' in t))
                 raise RuntimeError(f'did not start (exit code {proc.returncode}): '
                                    + ' | '.join(tail[-5:]))
             if announced.is_set() and waited > 5.0:
@@ -694,9 +746,14 @@ class PmaDriver(Node):
                 'baud': str(link.baud),
                 'firmware': (f'{stats.hello.firmware} {stats.hello.fw_version}'
                              if stats.hello else '-'),
-                'device ceiling [Pa]': str(stats.hello.ceiling_pa) if stats.hello else '-',
+                'device ceiling at handshake [Pa]': (str(stats.hello.ceiling_pa) if stats.hello
+                                                     else '-'),
+                'device limit [Pa]': str(stats.hello.limit_pa) if stats.hello else '-',
                 'sample rate [Hz]': f'{self._rate_hz:.1f}',
                 'samples published': str(self._published),
+                'samples decoded': str(stats.samples),
+                'samples while inactive': str(self._unpublished),
+                'samples before handshake': str(stats.ignored_before_hello),
                 'frames': str(stats.frames),
                 'bad frames': str(stats.dropped_total),
                 **{f'bad frames ({reason})': str(n) for reason, n in

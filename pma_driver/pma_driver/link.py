@@ -14,6 +14,7 @@ import collections
 import enum
 import errno
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -360,6 +361,10 @@ class SerialLink:
                        f'v{protocol.PROTOCOL_VERSION}: update the firmware or the driver')
             self._set_state(LinkState.NO_HANDSHAKE, message)
             self._event(logging.ERROR, message, dedupe=True)
+            with self._lock:
+                self._last_error = message
+            # It answered, just in the wrong version: no "no HELLO" timeout may hide that.
+            self._handshake_deadline = math.inf
             return
         restarted = self._state in (LinkState.STREAMING, LinkState.STALLED)
         with self._lock:
@@ -433,7 +438,9 @@ class SerialLink:
                 self._set_state(LinkState.NO_HANDSHAKE, message)
                 self._event(logging.ERROR, message, dedupe=True)
         elif state in (LinkState.STREAMING, LinkState.STALLED):
-            if now >= self._next_heartbeat:
+            # No heartbeats while stalled: a host that cannot see the pressure must not keep
+            # the device from venting (it vents after its heartbeat timeout).
+            if state is LinkState.STREAMING and now >= self._next_heartbeat:
                 self._try_write(protocol.encode_command(Command.HEARTBEAT))
                 self._next_heartbeat = now + self.heartbeat_period_s
             silent = now - self._last_sample_at

@@ -2,8 +2,10 @@
 
 Plain Python, no ROS: the driver's action server runs the plan, tests check it here.
 One cycle goes 0 -> max in steps of `step_pa` and back to 0, holding `hold_s` at each
-step. Reversal pressures insert minor loops before the top: `[300e3, 150e3]` goes up to
-300 kPa, down to 150 kPa, then on up to max and back down. Steps lie on the grid of
+step. Reversal pressures are turning points visited in turn, for minor loops: `[300e3,
+150e3]` goes up to 300 kPa, down to 150 kPa, then on up to max and back down. Listing max
+itself puts the loops after it on the falling branch: `[500e3, 100e3, 250e3]` goes up to
+500 kPa, down to 100 kPa, up to 250 kPa, then down to 0. Steps lie on the grid of
 multiples of `step_pa`, plus the turning points themselves.
 """
 
@@ -89,22 +91,20 @@ def plan_sweep(max_gauge_pressure_pa: float, step_pa: float, hold_s: float, cycl
     reversals = [float(r) for r in reversal_pressures_pa]
     for i, value in enumerate(reversals):
         _check_finite(f'reversal_pressures_pa[{i}]', value)
-        if not 0 <= value < max_gauge_pressure_pa:
+        if not 0 <= value <= max_gauge_pressure_pa:
             raise SweepError(
                 f'reversal_pressures_pa[{i}] = {value:.0f} Pa must be within '
-                f'0..{max_gauge_pressure_pa:.0f} Pa (below max_gauge_pressure_pa)')
-    if len(reversals) % 2:
-        raise SweepError(
-            'reversal_pressures_pa come in (peak, trough) pairs, e.g. [300000, 150000]; '
-            f'got {len(reversals)} values')
-    turning = [0.0, *reversals, float(max_gauge_pressure_pa), 0.0]
+                f'0..{max_gauge_pressure_pa:.0f} Pa (max_gauge_pressure_pa)')
+    top = float(max_gauge_pressure_pa)
+    turning = [0.0, *reversals, *([] if top in reversals else [top]), 0.0]
     for i in range(1, len(turning) - 1):
         rising = turning[i] > turning[i - 1]
         falling_next = turning[i + 1] < turning[i]
         if rising != falling_next or turning[i] == turning[i - 1]:
             raise SweepError(
-                f'reversal pressures must alternate up and down from 0 and end below max '
-                f'(turning points {[round(t) for t in turning]} Pa do not)')
+                'reversal pressures must alternate up and down, starting up from 0 and ending '
+                f'with a fall to 0 (turning points {[round(t) for t in turning]} Pa do not); '
+                'e.g. [300000, 150000] before the top, or [500000, 100000, 250000] after it')
     one_cycle: list[float] = []
     for start, stop in itertools.pairwise(turning):
         one_cycle += staircase(start, stop, step_pa)

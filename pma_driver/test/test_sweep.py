@@ -39,6 +39,16 @@ def test_reversals_make_a_minor_loop():
         400e3, 300e3, 200e3, 100e3, 0.0]      # and back down
 
 
+def test_listing_max_puts_later_reversals_on_the_falling_branch():
+    plan = plan_sweep(500_000.0, 100_000.0, 1.0, 1, [500_000.0, 100_000.0, 250_000.0],
+                      ceiling_pa=CEILING)
+    assert list(plan.setpoints_pa) == [
+        0.0, 100e3, 200e3, 300e3, 400e3, 500e3,   # up to max
+        400e3, 300e3, 200e3, 100e3,                # down to the trough
+        200e3, 250e3,                              # a minor loop up
+        200e3, 100e3, 0.0]                         # and down to 0
+
+
 def test_progress_runs_from_zero_to_one():
     plan = plan_sweep(200_000.0, 100_000.0, 1.0, 1, ceiling_pa=CEILING)
     assert plan.progress(0) == 0.0
@@ -56,10 +66,12 @@ def test_progress_runs_from_zero_to_one():
     ({'hold_s': -1.0}, 'hold_s must be >= 0'),
     ({'hold_s': math.nan}, 'finite'),
     ({'cycles': 0}, 'cycles must be >= 1'),
-    ({'reversal_pressures_pa': [300_000.0]}, 'pairs'),
+    ({'reversal_pressures_pa': [300_000.0]}, 'alternate'),
+    ({'reversal_pressures_pa': [400_000.0, 100_000.0]}, 'alternate'),
     ({'reversal_pressures_pa': [150_000.0, 300_000.0]}, 'alternate'),
     ({'reversal_pressures_pa': [300_000.0, math.nan]}, 'finite'),
     ({'reversal_pressures_pa': [450_000.0, 100_000.0]}, 'within'),
+    ({'reversal_pressures_pa': [-1.0, 100_000.0]}, 'within'),
     ({'step_pa': 1.0}, 'too small'),
 ])
 def test_bad_goals_are_refused_with_the_reason(kwargs, words):
