@@ -250,7 +250,7 @@ def replayed(swept, module_procs, probe):
     # The graph shows the player before its writer has matched model_node's reader, and
     # nothing outside the two processes can see that match: give it the same grace as
     # helpers/subscriber.py. Samples lost anyway are at rest (the 0 kPa hold).
-    time.sleep(3.0)
+    time.sleep(1.0)
     future = client.call_async(Trigger.Request())
     wait_until(future.done, 10, 'resume')
     player.wait_for_line('replay: done', timeout=180)

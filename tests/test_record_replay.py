@@ -15,6 +15,7 @@ from rosbags.highlevel import AnyReader
 
 from pma_driver.bag import BagReader
 from pma_interfaces.msg import ModelParams, PmaState
+from support.procs import INSTALL
 
 pytestmark = pytest.mark.integration
 
@@ -104,9 +105,14 @@ def test_replay_preserves_messages_and_timing(procs, tmp_path, recorded):
     assert [value for _, value in got] == list(range(COUNT))
     # Arrival time minus recorded offset is constant when timing is kept; DDS may delay the
     # very first messages (matching), so compare each one to the median of that constant.
-    lags = [t / 1e9 - e for (t, _), e in zip(got, recorded_offsets_s(recorded), strict=True)]
+    offsets = recorded_offsets_s(recorded)
+    lags = [t / 1e9 - e for (t, _), e in zip(got, offsets, strict=True)]
     errors = sorted(abs(lag - statistics.median(lags)) for lag in lags)
-    assert errors[len(errors) // 2] < 0.005 and errors[int(0.95 * len(errors))] < 0.02, errors
+    # One scheduler hiccup of ~0.1 s on a loaded 2-core machine delays ~20 messages (5 %)
+    # at 200 Hz: the tail is judged at the 90th percentile, the whole run by its duration.
+    assert errors[len(errors) // 2] < 0.005 and errors[int(0.9 * len(errors))] < 0.02, errors
+    duration = (got[-1][0] - got[0][0]) / 1e9
+    assert duration == pytest.approx(offsets[-1], abs=0.05)
 
 
 def test_replay_rate_two_halves_the_duration(procs, tmp_path, recorded):
@@ -114,6 +120,36 @@ def test_replay_rate_two_halves_the_duration(procs, tmp_path, recorded):
     assert len(got) == COUNT
     duration = (got[-1][0] - got[0][0]) / 1e9
     assert duration == pytest.approx(recorded_offsets_s(recorded)[-1] / 2, rel=0.1)
+
+
+def test_replay_start_offset_skips_the_beginning(procs, tmp_path, recorded):
+    # The offset counts from the start of the bag (as in ros2 bag play), which is earlier
+    # than the first pma/state: the recorder's own /diagnostics come first.
+    with BagReader(recorded) as reader:
+        bag_start_ns, _ = reader.time_range_ns()
+        states_ns = [m.log_time_ns for m in reader.messages(['/pma/state'])]
+    offsets = [(t - bag_start_ns) / 1e9 for t in states_ns]
+    skip_s = (offsets[0] + offsets[-1]) / 2
+    got = replay_into(procs, tmp_path, recorded, '--start-offset', f'{skip_s:.6f}')['/pma/state']
+    first = next(i for i, offset in enumerate(offsets) if offset >= skip_s)
+    assert 0 < first < COUNT
+    assert [value for _, value in got] == list(range(first, COUNT))
+
+
+def test_replay_loop_plays_the_bag_again(procs, tmp_path, recorded):
+    out = tmp_path / 'looped.json'
+    sub = procs.python(HELPERS / 'subscriber.py', '--topic', '/pma/state', '--type', STATE,
+                       '--field', 'seq', '--out', str(out), '--count', str(2 * COUNT + 50),
+                       '--timeout', '40', '--resume-service', '/replay/resume')
+    sub.wait_for_line('subscriber: listening', timeout=20)
+    player = procs.ros2_run('pma_model', 'replay', recorded, '--start-paused', '--loop',
+                            '--rate', '4', '--topics', 'pma/state')
+    sub.wait_for_line('subscriber: got', timeout=60)
+    assert player.alive(), 'a looping player only stops when told to'
+    player.signal(signal.SIGINT)
+    assert player.popen.wait(10) == 0
+    got = [value for _, value in json.loads(out.read_text())]
+    assert got[:2 * COUNT] == list(range(COUNT)) * 2
 
 
 def test_replay_topics_remap_and_clock(procs, tmp_path, recorded):
@@ -157,14 +193,17 @@ def test_recorder_with_unwritable_path_reports_and_stays_up(procs, tmp_path):
     blocker.write_text('x')
     diagnostics = tmp_path / 'diag.json'
     sub = procs.python(HELPERS / 'subscriber.py', '--topic', '/diagnostics', '--type',
-                       'diagnostic_msgs/msg/DiagnosticArray', '--field', 'status.0.message',
-                       '--count', '2', '--timeout', '20', '--out', str(diagnostics))
+                       'diagnostic_msgs/msg/DiagnosticArray', '--field', 'status.0.hardware_id',
+                       '--field', 'status.0.level', '--field', 'status.0.message',
+                       '--timeout', '6', '--out', str(diagnostics))
     sub.wait_for_line('subscriber: listening', timeout=20)
     recorder = procs.ros2_run('pma_driver', 'recorder', '-o', blocker / 'bag')
     recorder.wait_for_line('recorder: ERROR', timeout=30)
     sub.wait_for_line('subscriber: got', timeout=30)
-    messages = [v for _, v in json.loads(diagnostics.read_text())]
-    assert messages and all('cannot create bag' in m for m in messages)
+    ours = [(level, message) for _, (hardware_id, level, message)
+            in json.loads(diagnostics.read_text()) if hardware_id == str(blocker / 'bag')]
+    assert len(ours) >= 2, 'an ERROR status every second'
+    assert all(level == 2 and 'cannot create bag' in message for level, message in ours)
     assert recorder.alive()
     recorder.signal(signal.SIGINT)
     assert recorder.popen.wait(10) == 0
@@ -182,6 +221,61 @@ def test_recover_command(procs, tmp_path, recorded):
         got = [deserialize_message(m.data, PmaState).seq
                for m in reader.messages(['/pma/state'])]
     assert got == list(range(COUNT))
+
+
+def write_rosbags_sweep(bag: Path) -> int:
+    """A staircase sweep written by rosbags, an independent rosbag2 writer; returns its count.
+
+    Our type is registered from the installed .msg file, the way a user of rosbags would.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from pma_model.params import default_params
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    msg_file = INSTALL / 'pma_interfaces' / 'share' / 'pma_interfaces' / 'msg' / 'PmaState.msg'
+    typestore.register(get_types_from_msg(msg_file.read_text(), STATE))
+    state_class = typestore.types[STATE]
+    header_class, time_class = (typestore.types['std_msgs/msg/Header'],
+                                typestore.types['builtin_interfaces/msg/Time'])
+    model = default_params().build_model()
+    levels = [*range(0, 500_001, 50_000), *range(450_000, -1, -50_000)]
+    start_ns = 1_700_000_000 * 10**9
+    seq = 0
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection('/pma/state', STATE, typestore=typestore)
+        for level in levels:
+            for _ in range(20):                       # 20 samples per hold at 50 Hz
+                stamp_ns = start_ns + seq * 20_000_000
+                length, _ = model.update(float(level))
+                message = state_class(
+                    header=header_class(stamp=time_class(sec=stamp_ns // 10**9,
+                                                         nanosec=stamp_ns % 10**9),
+                                        frame_id='pma_link'),
+                    seq=seq, device_time_s=seq * 0.02, gauge_pressure_pa=float(level),
+                    length_m=float(length), gauge_setpoint_pa=float(level), valve_state=0,
+                    status=0, pressure_adc=0, echo_us=0)
+                writer.write(connection, stamp_ns, typestore.serialize_cdr(message, STATE))
+                seq += 1
+    return seq
+
+
+def test_a_bag_written_by_rosbags_replays_and_refits(procs, tmp_path):
+    bag = tmp_path / 'foreign'
+    count = write_rosbags_sweep(bag)
+    assert not list(bag.glob('*_0.mcap')), 'rosbags names its file <bag>.mcap, unlike rosbag2'
+    got = replay_into(procs, tmp_path, bag, '--rate', '4', timeout=60)['/pma/state']
+    assert [value for _, value in got] == list(range(count))
+    refit = procs.ros2_run('pma_model', 'refit', bag, '--no-holdout',
+                           '--json', tmp_path / 'report.json')
+    assert refit.popen.wait(120) == 0, refit.output
+    report = json.loads((tmp_path / 'report.json').read_text())
+    assert (report['data']['n_increasing'], report['data']['n_decreasing']) == (11, 10)
+    sigmoid = report['branches']['increasing']['models']['sigmoid_fixed_c']
+    # Noiseless data made by the default model: the same form fits it to within a fraction
+    # of a millimetre (L0 is pinned at the 0 kPa length, not the sigmoid's L0 parameter).
+    assert sigmoid['metrics']['rmse_cm'] < 0.05 and sigmoid['metrics']['r2'] > 0.999
 
 
 def no_loss_at_1khz(procs, tmp_path, seconds: int) -> None:

@@ -4,6 +4,7 @@ import os
 import shutil
 import signal
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -188,3 +189,22 @@ def test_sigkill_keeps_all_but_the_last_second_and_recovers(procs, tmp_path):
     recovered = recover_bag(bag, tmp_path / 'recovered')
     assert_readable_by_all(recovered.output, kept)
     shutil.rmtree(bag)
+
+
+def test_a_file_cut_anywhere_opens_or_is_refused_with_a_bag_error(tmp_path):
+    bag = tmp_path / 'whole'
+    write_states(bag, 50, chunk_size=512)
+    data = (bag / 'whole_0.mcap').read_bytes()
+    for cut in [*range(1, 120), *range(120, len(data), 97)]:
+        piece = tmp_path / f'cut{cut}.mcap'
+        piece.write_bytes(data[:cut])
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore', TruncatedBagWarning)
+                with BagReader(piece) as reader:
+                    assert reader.truncated
+                    got = seqs(reader)
+        except BagError as error:
+            assert str(piece) in str(error)
+            continue
+        assert got == list(range(len(got))), 'a prefix, in order, nothing made up'

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 from dataclasses import dataclass, fields, replace
 from importlib import resources
 from pathlib import Path
@@ -167,10 +168,15 @@ class ModelParams:
 
     # --- YAML (ROS params-file format) ----------------------------------------------
 
-    def to_nested(self) -> dict:
-        """The ros__parameters mapping: nested dicts, SI values, floats as floats."""
+    def to_nested(self, only: tuple[str, ...] = ()) -> dict:
+        """The ros__parameters mapping: nested dicts, SI values, floats as floats.
+
+        `only`: keep just the names equal to, or under, these (e.g. 'increasing').
+        """
         nested: dict = {}
         for name, value in self.to_ros_parameters().items():
+            if only and not any(name == key or name.startswith(f'{key}.') for key in only):
+                continue
             node = nested
             *parents, leaf = name.split('.')
             for parent in parents:
@@ -178,13 +184,20 @@ class ModelParams:
             node[leaf] = value
         return nested
 
-    def to_yaml(self, node_name: str = '/**') -> str:
+    def to_yaml(self, node_name: str = '/**', only: tuple[str, ...] = ()) -> str:
         """Params-file text that `model_node --ros-args --params-file` loads as is."""
-        return yaml.safe_dump({node_name: {'ros__parameters': self.to_nested()}},
+        return yaml.safe_dump({node_name: {'ros__parameters': self.to_nested(only)}},
                               sort_keys=False, default_flow_style=False)
 
-    def save_yaml(self, path, node_name: str = '/**') -> None:
-        Path(path).write_text(self.to_yaml(node_name))
+    def save_yaml(self, path, node_name: str = '/**', only: tuple[str, ...] = (),
+                  header: str = '') -> None:
+        """Write atomically (temp file + rename): model_node may be polling this very file."""
+        path = Path(path)
+        text = ''.join(f'# {line}\n' if line else '#\n' for line in header.splitlines())
+        text += self.to_yaml(node_name, only)
+        temporary = path.with_name(f'.{path.name}.tmp')
+        temporary.write_text(text)
+        os.replace(temporary, path)
 
     @classmethod
     def from_nested(cls, nested: dict, base: ModelParams | None = None) -> ModelParams:

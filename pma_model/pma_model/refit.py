@@ -15,7 +15,7 @@ from pathlib import Path
 
 from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.report import BRANCH_MODEL_FORMS, MODEL_NAMES, build_report, format_table
-from pma_model.samples import SamplesError, load_branch_data
+from pma_model.samples import STATE_TOPIC, SamplesError, load_branch_data
 
 EXIT_BAD_INPUT = 2
 
@@ -40,6 +40,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         'data are mostly holds)')
     parser.add_argument('--deadband-pa', type=float, default=DEFAULT_DEADBAND_PA, metavar='X',
                         help=f'branch detector deadband [Pa] (default {DEFAULT_DEADBAND_PA:g})')
+    parser.add_argument('--topic', default=STATE_TOPIC,
+                        help='PmaState topic of a bag (default: pma/state in any namespace)')
     parser.add_argument('--no-holdout', action='store_true',
                         help='skip the interleaved hold-out refits')
     args = parser.parse_args(argv)
@@ -60,15 +62,28 @@ def choose_params_model(report: dict, requested: str | None) -> str:
     return min(scored)[1]
 
 
-def write_params(path: Path, fitted, name: str, deadband_pa: float) -> None:
+def write_params(path: Path, fitted, name: str, source: str) -> None:
+    """The branch form and the fitted branches, nothing else.
+
+    Memory, adaptation, deadband and the pressure limit are the node's own settings: a
+    hot reload of this file must not reset them. Both forms are written (the sigmoid from
+    the paper's fixed-c fit unless the free-c one was chosen), so switching `branch_form`
+    later also uses this refit.
+    """
     from pma_model.params import default_params
 
-    model = fitted[name]
-    base = default_params()
-    params = base.with_branches(model.branches['increasing'], model.branches['decreasing'])
-    params = replace(params, branch_form=BRANCH_MODEL_FORMS[name], deadband_pa=deadband_pa)
+    params = default_params()
+    other = {'sigmoid': 'sigmoid_fixed_c', 'hill': 'hill'}
+    for form, model_name in other.items():
+        chosen = name if BRANCH_MODEL_FORMS[name] == form else model_name
+        if chosen in fitted:
+            branches = fitted[chosen].branches
+            params = params.with_branches(branches['increasing'], branches['decreasing'])
+    params = replace(params, branch_form=BRANCH_MODEL_FORMS[name])
     path.parent.mkdir(parents=True, exist_ok=True)
-    params.save_yaml(path)
+    params.save_yaml(path, only=('branch_form', 'increasing', 'decreasing'), header=(
+        f'Written by refit from {source}: model {name} (branch_form {params.branch_form}).\n'
+        'Only the branch parameters: model_node keeps its other settings when it loads this.'))
 
 
 def check_data(data) -> None:
@@ -85,7 +100,7 @@ def check_data(data) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
     try:
-        data = load_branch_data(args.input, args.deadband_pa, args.steady_state)
+        data = load_branch_data(args.input, args.deadband_pa, args.steady_state, args.topic)
         check_data(data)
 
         def announce(name):
@@ -107,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f'wrote {args.json}')
         if args.params_out:
             name = choose_params_model(report, args.model)
-            write_params(args.params_out, fitted, name, args.deadband_pa)
+            write_params(args.params_out, fitted, name, str(args.input))
             print(f'wrote {args.params_out} ({name}, branch_form '
                   f'{BRANCH_MODEL_FORMS[name]})')
         if args.plots:

@@ -224,11 +224,13 @@ class Player(Node):
     def wait_until(self, log_time_ns: int) -> bool:
         """Sleep until the timeline reaches log_time_ns; False if playback is stopping."""
         while not self.stopping.is_set():
+            if self.paused:  # even a message due right now waits for the resume
+                time.sleep(0.01)
+                continue
             ahead_ns = log_time_ns - self.bag_now()
             if ahead_ns <= 0:
                 return True
-            wall_s = 0.05 if self.paused else ahead_ns / self.rate / NS_PER_S
-            time.sleep(min(wall_s, 0.05))
+            time.sleep(min(ahead_ns / self.rate / NS_PER_S, 0.05))
         return False
 
     def play(self) -> None:

@@ -105,6 +105,31 @@ def _progress_printer(total: int, label: str) -> Callable[[int], None]:
     return report
 
 
+def state_topic_in(topics: dict, topic: str = STATE_TOPIC) -> str:
+    """The bag topic to read: `topic` if absolute, else the one PmaState topic named like it.
+
+    A relative name matches in any namespace (a bag recorded with `__ns:=/left` holds
+    /left/pma/state); two matches (two muscles in one bag) need an explicit choice.
+    """
+    if topic.startswith('/'):
+        candidates = [name for name in topics if name == topic]
+    else:
+        candidates = [name for name in topics
+                      if name == f'/{topic}' or name.endswith(f'/{topic}')]
+        typed = [name for name in candidates if topics[name].type_name == STATE_TYPE]
+        candidates = typed or candidates
+    if not candidates:
+        raise SamplesError(f'the bag has no {topic} topic (topics: '
+                           f'{", ".join(sorted(topics)) or "none"})')
+    if len(candidates) > 1:
+        raise SamplesError(f'the bag has several {topic} topics ({", ".join(sorted(candidates))})'
+                           f'; choose one with --topic')
+    (name,) = candidates
+    if topics[name].type_name != STATE_TYPE:
+        raise SamplesError(f'{name} holds {topics[name].type_name}, not {STATE_TYPE}')
+    return name
+
+
 def read_bag(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
     """PmaState samples of a bag, by header.stamp; rows with NaN length are dropped."""
     from pma_driver.bag import BagError, BagReader
@@ -115,14 +140,10 @@ def read_bag(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
     except BagError as error:
         raise SamplesError(str(error)) from None
     with reader:
-        wanted = {name for name in reader.topics if name.lstrip('/') == topic.lstrip('/')}
-        if not wanted:
-            raise SamplesError(f'bag {path} has no {topic} topic (topics: '
-                               f'{", ".join(sorted(reader.topics)) or "none"})')
-        for name in wanted:
-            if reader.topics[name].type_name != STATE_TYPE:
-                raise SamplesError(f'{name} in {path} holds {reader.topics[name].type_name}, '
-                                   f'not {STATE_TYPE}')
+        try:
+            wanted = {state_topic_in(reader.topics, topic)}
+        except SamplesError as error:
+            raise SamplesError(f'bag {path}: {error}') from None
         total = sum(reader.topics[name].message_count for name in wanted)
         report = _progress_printer(total, 'reading bag') if progress else None
         payloads = []
@@ -321,14 +342,14 @@ def split_branches(samples: Samples, deadband_pa: float,
 
 
 def load_branch_data(path, deadband_pa: float = DEFAULT_DEADBAND_PA,
-                     steady_state: bool | None = None,
+                     steady_state: bool | None = None, topic: str = STATE_TOPIC,
                      progress: bool = True) -> BranchData:
     """Whatever the input is (bag, sample log, branch table), its fit data per branch."""
     path = Path(path)
     if not path.exists():
         raise SamplesError(f'{path}: no such file or directory')
     if path.is_dir() or path.suffix == '.mcap':
-        samples = read_bag(path, progress=progress)
+        samples = read_bag(path, topic, progress=progress)
     elif is_branch_table(path):
         return read_branch_table(path)
     else:

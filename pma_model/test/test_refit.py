@@ -5,6 +5,7 @@ from importlib import resources
 
 import numpy as np
 import pytest
+import yaml
 from test_samples import (
     TRUE_DECREASING,
     TRUE_INCREASING,
@@ -89,6 +90,12 @@ def test_table_output_params_file_and_plots(table_run):
     assert 'paper Table 2 sigmoid' in output and '0.15780' in output
     params = ModelParams.load_yaml(out / 'params.yaml')
     assert params.branch_form == 'hill'  # best loop AICc among the forms model_node runs
+    # Only the branches: a hot reload must not reset the node's memory, adaptation, limits.
+    written = yaml.safe_load((out / 'params.yaml').read_text())['/**']['ros__parameters']
+    assert set(written) == {'branch_form', 'increasing', 'decreasing'}
+    assert set(written['increasing']) == {'sigmoid', 'hill'}
+    paper = report['branches']['increasing']['models']['sigmoid_fixed_c']['params']
+    assert params.increasing.sigmoid.a == pytest.approx(paper['a'])
     fitted = report['branches']['increasing']['models']['hill']['params']
     assert params.increasing.hill.k_pa == pytest.approx(units.kpa_to_pa(fitted['k_kpa']))
     for name in ('loop.png', 'residuals.png', 'comparison.png'):

@@ -44,15 +44,17 @@ def staircase(rate_hz=20.0, hold_s=2.0, noise_m=2e-4, nan_every=0, seed=1):
     return t, pressure, setpoint, length
 
 
-def write_state_bag(path, t, pressure, setpoint, length, *, start_s=1_700_000_000.0):
-    """A rosbag2 MCAP bag of PmaState on /pma/state, stamped at start_s + t."""
+def write_state_bag(path, t, pressure, setpoint, length, *, start_s=1_700_000_000.0,
+                    topics=('/pma/state',)):
+    """A rosbag2 MCAP bag of PmaState on /pma/state (or these topics), stamped start_s + t."""
     from rclpy.serialization import serialize_message
 
     from pma_driver.bag import BagWriter
     from pma_interfaces.msg import PmaState
 
     with BagWriter(path) as writer:
-        writer.add_topic('/pma/state', 'pma_interfaces/msg/PmaState')
+        for topic in topics:
+            writer.add_topic(topic, 'pma_interfaces/msg/PmaState')
         message = PmaState()
         message.header.frame_id = 'pma'
         for i in range(t.size):
@@ -62,7 +64,8 @@ def write_state_bag(path, t, pressure, setpoint, length, *, start_s=1_700_000_00
             message.gauge_pressure_pa = float(pressure[i])
             message.gauge_setpoint_pa = float(setpoint[i])
             message.length_m = float(length[i])
-            writer.write('/pma/state', serialize_message(message), stamp_ns + 2_000_000)
+            for topic in topics:
+                writer.write(topic, serialize_message(message), stamp_ns + 2_000_000)
     return path
 
 
@@ -92,6 +95,20 @@ def test_bag_samples_by_header_stamp_with_nan_dropped(tmp_path):
     assert samples.setpoint_pa == pytest.approx(setpoint[keep])
     bare = read_bag(bag / 'sweep_0.mcap', progress=False)
     assert bare.pressure_pa.size == samples.pressure_pa.size
+
+
+def test_namespaced_bags_are_found_and_two_muscles_need_a_choice(tmp_path):
+    t, pressure, setpoint, length = staircase()
+    one = write_state_bag(tmp_path / 'one', t, pressure, setpoint, length,
+                          topics=('/rig1/pma/state',))
+    assert read_bag(one, progress=False).pressure_pa.size == t.size
+    two = write_state_bag(tmp_path / 'two', t, pressure, setpoint, length,
+                          topics=('/left/pma/state', '/right/pma/state'))
+    with pytest.raises(SamplesError, match=r'several pma/state topics.*--topic'):
+        read_bag(two, progress=False)
+    assert read_bag(two, '/right/pma/state', progress=False).pressure_pa.size == t.size
+    with pytest.raises(SamplesError, match='no /pma/state topic'):
+        read_bag(two, '/pma/state', progress=False)
 
 
 def test_steady_state_reduction_recovers_the_table(tmp_path):

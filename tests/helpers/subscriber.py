@@ -15,7 +15,7 @@ import time
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-RESUME_GRACE_S = 3.0
+RESUME_GRACE_S = 1.0
 
 
 def field_value(msg, path):
@@ -50,7 +50,8 @@ def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument('--topic', required=True)
     parser.add_argument('--type', required=True)
-    parser.add_argument('--field', default='')
+    parser.add_argument('--field', action='append', default=[],
+                        help='dotted field path to keep; repeat for a list per message')
     parser.add_argument('--count', type=int, default=0)
     parser.add_argument('--timeout', type=float, default=30.0)
     parser.add_argument('--best-effort', action='store_true')
@@ -65,10 +66,17 @@ def main() -> int:
     node = rclpy.create_node('test_subscriber')
     received = []
 
-    def on_message(msg):
-        value = field_value(msg, args.field) if args.field else None
+    def plain(value):
+        """A JSON-able value: Time as ns, a ROS `byte` (bytes of one) as int."""
         if hasattr(value, 'sec') and hasattr(value, 'nanosec'):
-            value = value.sec * 1_000_000_000 + value.nanosec
+            return value.sec * 1_000_000_000 + value.nanosec
+        if isinstance(value, bytes) and len(value) == 1:
+            return value[0]
+        return value
+
+    def on_message(msg):
+        values = [plain(field_value(msg, path)) for path in args.field]
+        value = values[0] if len(values) == 1 else (values or None)
         received.append([time.time_ns(), value])
 
     reliability = (ReliabilityPolicy.BEST_EFFORT if args.best_effort

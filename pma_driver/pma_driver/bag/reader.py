@@ -138,6 +138,16 @@ class _McapFile:
         self.time_range_ns: tuple[int, int] | None = None
         self.truncated = False
         self.damage = ''
+        try:
+            self._parse()
+        except (struct.error, IndexError) as exc:
+            # A record cut short where its own length fields promised more: a damaged file
+            # gets the same one-line answer as any other unreadable bag, not a traceback.
+            raise BagError(f'{path} is damaged ({exc}); if it was cut short by a crash, '
+                           'try: ros2 run pma_driver recorder --recover') from None
+
+    def _parse(self) -> None:
+        path = self.path
         pos = 8
         if len(self.buf) < pos + 9 or self.buf[pos] != OP_HEADER:
             raise BagError(f'{path} is not a complete MCAP file (no header record)')
