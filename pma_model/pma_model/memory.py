@@ -1,6 +1,6 @@
 """Hysteresis memory: how the two major branches combine into a length for any pressure path.
 
-Two rules (docs/model.md has the full story):
+Three rules (docs/model.md has the full story and their errors on minor loops):
 
 - 'switch' (the paper): the length is the major branch of the detected direction, so it
   jumps by the loop width at every reversal.
@@ -12,6 +12,13 @@ Two rules (docs/model.md has the full story):
   point the state is on the increasing major branch; a single turning point (a maximum)
   heads for the permanent anchor (0 Pa, decreasing branch at 0 Pa). This gives
   return-point memory, no jump at a reversal, and a closed-form inverse through B^-1.
+- 'play' (friction band): rising pressure can only shorten the muscle down to the
+  increasing branch, falling pressure only lengthen it up to the decreasing one:
+      rising: L = min(L, B_inc(P))        falling: L = max(L, B_dec(P))
+  so after a reversal the length holds until pressure has crossed the band between the
+  branches, then follows the other branch. The backlash (play) operator between the major
+  branches: Coulomb friction in the braid, no parameter beyond the branches, no jump,
+  quiet under noise narrower than the band, and a closed-form inverse.
 
 The Madelung stack follows every reversal of the pressure signal (loops smaller than the
 noise close on themselves and are wiped out); the deadband detector gives the reported
@@ -37,7 +44,7 @@ from pma_model.detector import (
     BranchDetector,
 )
 
-MEMORY_MODES = ('madelung', 'switch')
+MEMORY_MODES = ('madelung', 'switch', 'play')
 
 # Nested turning points need distinct pressures, so a 10-bit sensor cannot fill this; the
 # cap only bounds memory for pathological input. Overflow forgets the oldest loop.
@@ -156,6 +163,12 @@ class HysteresisModel:
         self._step_madelung(other.pressure_pa)
         if self.memory == 'switch':
             self._l = float(self._major(other.branch == BRANCH_INCREASING).length(self._p))
+        elif self.memory == 'play':
+            # The play state is the length itself: kept, inside the new band at this pressure.
+            self._stack = []
+            self._rising = other._rising
+            self._l = min(max(other.length_m, float(self.decreasing.length(self._p))),
+                          float(self.increasing.length(self._p)))
         self._detector.branch = other._detector.branch
         self._detector._extreme_pa = other._detector._extreme_pa
 
@@ -228,8 +241,20 @@ class HysteresisModel:
         if self.memory == 'switch':
             self._p, self._l = p_pa, float(self._major(branch == BRANCH_INCREASING).length(p_pa))
             return self._l, branch
+        if self.memory == 'play':
+            self._step_play(p_pa)
+            return self._l, branch
         self._step_madelung(p_pa)
         return self._l, branch
+
+    def _step_play(self, p_pa: float) -> None:
+        if p_pa > self._p:
+            self._l = min(self._l, float(self.increasing.length(p_pa)))
+            self._rising = True
+        elif p_pa < self._p:
+            self._l = max(self._l, float(self.decreasing.length(p_pa)))
+            self._rising = False
+        self._p = p_pa
 
     def _step_madelung(self, p_pa: float) -> None:
         if p_pa != self._p:
@@ -269,8 +294,36 @@ class HysteresisModel:
                                        self.decreasing.length(values))
             self._p, self._l = float(values[-1]), float(lengths[finite[-1]])
             return lengths, branches
+        if self.memory == 'play':
+            lengths[finite] = self._advance_play(values)
+            return lengths, branches
         lengths[finite] = self._advance_madelung(values)
         return lengths, branches
+
+    def _monotone_runs(self, values: np.ndarray):
+        """(start, end, rising) of each run of one direction; holds keep the direction."""
+        previous = np.concatenate(([self._p], values[:-1]))
+        steps = np.sign(values - previous)
+        last_move = np.maximum.accumulate(np.where(steps != 0, np.arange(values.size), -1))
+        direction = np.where(last_move >= 0, steps[np.maximum(last_move, 0)],
+                             1.0 if self._rising else -1.0)
+        run_starts = np.concatenate(([0], np.flatnonzero(direction[1:] != direction[:-1]) + 1))
+        run_ends = np.concatenate((run_starts[1:], [values.size]))
+        return [(int(start), int(end), bool(direction[start] > 0))
+                for start, end in zip(run_starts, run_ends, strict=True)]
+
+    def _advance_play(self, values: np.ndarray) -> np.ndarray:
+        """Play over finite pressures: within a monotone run the bound moves one way only."""
+        out = np.empty(values.size)
+        for start, end, rising in self._monotone_runs(values):
+            run = values[start:end]
+            if rising:
+                out[start:end] = np.minimum(self._l, self.increasing.length(run))
+            else:
+                out[start:end] = np.maximum(self._l, self.decreasing.length(run))
+            self._rising = rising
+            self._p, self._l = float(run[-1]), float(out[end - 1])
+        return out
 
     def predict(self, p_pa) -> np.ndarray:
         """Lengths [m] for a whole pressure path simulated from rest; this model is unchanged."""
@@ -281,21 +334,12 @@ class HysteresisModel:
     def _advance_madelung(self, values: np.ndarray) -> np.ndarray:
         """Madelung over finite pressures, one numpy evaluation per curve segment."""
         out = np.empty(values.size)
-        previous = np.concatenate(([self._p], values[:-1]))
-        steps = np.sign(values - previous)
-        # A hold (zero step) keeps the direction in force: forward-fill the last nonzero sign.
-        last_move = np.maximum.accumulate(np.where(steps != 0, np.arange(values.size), -1))
-        direction = np.where(last_move >= 0, steps[np.maximum(last_move, 0)],
-                             1.0 if self._rising else -1.0)
-        run_starts = np.concatenate(([0], np.flatnonzero(direction[1:] != direction[:-1]) + 1))
-        run_ends = np.concatenate((run_starts[1:], [values.size]))
-        for start, end in zip(run_starts, run_ends, strict=True):
+        for start, end, rising in self._monotone_runs(values):
             if end - start < _SHORT_RUN:  # numpy's per-call cost dominates: step instead
                 for index in range(start, end):
                     self._step_madelung(float(values[index]))
                     out[index] = self._l
                 continue
-            rising = bool(direction[start] > 0)
             if rising != self._rising:
                 self._push((self._p, self._l))
                 self._rising = rising
@@ -342,7 +386,7 @@ class HysteresisModel:
                                  math.nan, 0, math.nan, math.nan)
         if branch == BRANCH_AUTO:
             rising = self.auto_branch(length_m) == BRANCH_INCREASING
-            if self.memory == 'madelung':
+            if self.memory != 'switch':
                 return self.path_pressure_for_length(length_m, rising)
         else:
             rising = branch == BRANCH_INCREASING
@@ -364,7 +408,18 @@ class HysteresisModel:
                                  math.nan, 0, math.nan, math.nan)
         name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
         where = f'{name} path from the current state ({self._p:.6g} Pa, {self._l:.6g} m)'
-        return self._invert_along(self._future_segments(rising), rising, length_m, where)
+        segments = (self._play_segments(rising) if self.memory == 'play'
+                    else self._future_segments(rising))
+        return self._invert_along(segments, rising, length_m, where)
+
+    def _play_segments(self, rising: bool) -> list[tuple[_Curve, float, float]]:
+        """Play: the length holds until the major branch reaches it, then follows it."""
+        major = self._major(rising)
+        meets_pa = float(major.inverse_unchecked(self._l))
+        if math.isnan(meets_pa):
+            meets_pa = self._p
+        join_pa = max(self._p, meets_pa) if rising else min(self._p, meets_pa)
+        return [(_Curve(major), join_pa, self.max_gauge_pressure_pa if rising else 0.0)]
 
     def _invert_along(self, segments: list[tuple[_Curve, float, float]], rising: bool,
                       length_m: float, where: str) -> InverseResult:

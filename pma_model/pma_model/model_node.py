@@ -28,7 +28,8 @@ from pma_model.params import ModelParams, ParamsError, default_params
 _DESCRIPTIONS = {
     'branch_form': "branch shape: 'sigmoid' (the paper's L0 - a*L0/(1+exp(-b*P))^c) or "
                    "'hill' (L0 - dL*P^n/(P^n+K^n))",
-    'memory': "minor-loop memory: 'madelung' (turning-point stack) or 'switch' (the paper's "
+    'memory': "minor-loop memory: 'play' (friction band between the branches), 'madelung' "
+              "(turning-point stack) or 'switch' (the paper's "
               'jump between the major branches)',
     'deadband_pa': 'pressure must move this far against the current direction before a '
                    'reversal counts [Pa]',

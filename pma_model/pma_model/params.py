@@ -313,7 +313,7 @@ def default_params() -> ModelParams:
 # from_ros_parameters needs a complete base to merge into; this seed is only that scaffold
 # (every value is overwritten by the data file, and the file must name every field).
 _SEED = ModelParams(
-    branch_form='sigmoid', memory='madelung', deadband_pa=DEFAULT_DEADBAND_PA,
+    branch_form='sigmoid', memory='play', deadband_pa=DEFAULT_DEADBAND_PA,
     max_gauge_pressure_pa=500_000.0, adaptation=AdaptationSettings(),
     increasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)),
     decreasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)))
