@@ -24,6 +24,7 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 
+from pma_driver.calibration import PressureCalibration
 from pma_driver.driver_node import PARAMETERS
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
@@ -504,6 +505,31 @@ def test_lifecycle_by_a_manager(rig, probe):
     assert probe.transition(2)                                   # cleanup: port closed
     driver.wait_for_line('closed', 5)
     assert probe.lifecycle_state() == 'unconfigured'
+    assert driver.alive()
+
+
+def test_tare_at_rest_zeroes_device_and_host_alike(rig, probe):
+    from rcl_interfaces.srv import GetParameters
+    from std_srvs.srv import Trigger
+
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    answer = probe.call(Trigger, f'{DRIVER}/tare', Trigger.Request())
+    assert answer.success, answer.message
+    adc = int(answer.message.split('ADC ')[1].split()[0])
+    expected = PressureCalibration().adc_to_pa(adc)   # the count the device took as zero
+    got = probe.call(GetParameters, f'{DRIVER}/get_parameters', GetParameters.Request(
+        names=['calibration.tare_offset_pa'])).values[0].double_value
+    assert got == pytest.approx(expected) and abs(got) < 5_000.0
+    # From now on a sample with that count reads exactly 0 Pa.
+    wait_until(lambda: any(m.pressure_adc == adc and m.gauge_pressure_pa == 0.0
+                           for m in probe.wait_states(5)), 10, 'a tared zero')
+    # Pressurised: refused, nothing changed.
+    probe.publish_setpoint(150_000.0)
+    wait_until(lambda: probe.latest().gauge_setpoint_pa == 150_000.0, 10, 'setpoint applied')
+    refused = probe.call(Trigger, f'{DRIVER}/tare', Trigger.Request())
+    assert not refused.success and 'not vented' in refused.message
     assert driver.alive()
 
 

@@ -94,17 +94,25 @@ def run_sweep(node, label: str, goal, timeout: float):
     client = ActionClient(node, Sweep, 'pma/sweep')
     if not client.wait_for_server(timeout_sec=20):
         raise RuntimeError('the pma/sweep action server (driver_node) is not available')
-    last_print = [0.0]
+    last_print = [0.0, -1]
+    # On a terminal one line redrawn in place; in a log (CI, `| tee`) one line per step.
+    interactive = sys.stdout.isatty()
 
     def on_feedback(message):
         feedback = message.feedback
         now = time.monotonic()
-        if now - last_print[0] >= 1.0 or feedback.progress >= 1.0:
-            last_print[0] = now
-            print(f'\r[demo] {label}: [{progress_bar(feedback.progress)}] '
-                  f'{100 * feedback.progress:5.1f} %  step {feedback.step_index + 1}/'
-                  f'{feedback.step_count}  setpoint {feedback.gauge_setpoint_pa / 1e3:5.0f} kPa  '
-                  f'{feedback.sample_count} samples', end='', flush=True)
+        if interactive:
+            due = now - last_print[0] >= 1.0 or feedback.progress >= 1.0
+        else:
+            due = feedback.step_index != last_print[1]
+        if due:
+            last_print[:] = [now, feedback.step_index]
+            start = '\r' if interactive else ''
+            print(f'{start}[demo] {label}: '
+                  f'[{progress_bar(feedback.progress)}] {100 * feedback.progress:5.1f} %  '
+                  f'step {feedback.step_index + 1}/{feedback.step_count}  setpoint '
+                  f'{feedback.gauge_setpoint_pa / 1e3:5.0f} kPa  {feedback.sample_count} samples',
+                  end='' if interactive else '\n', flush=True)
 
     sent = client.send_goal_async(goal, feedback_callback=on_feedback)
     _wait(sent, 20, 'the sweep goal to be accepted')
@@ -113,7 +121,8 @@ def run_sweep(node, label: str, goal, timeout: float):
         raise RuntimeError(f'{label}: the driver rejected the sweep goal (see driver_node.log)')
     result_future = handle.get_result_async()
     _wait(result_future, timeout, f'{label} to finish')
-    print(flush=True)
+    if interactive:
+        print(flush=True)
     result = result_future.result().result
     if not result.success:
         raise RuntimeError(f'{label} failed: {result.message}')
@@ -138,7 +147,8 @@ def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
         raise RuntimeError('pressure_for_length (model_node) is not available')
     answers = []
     for branch in (PressureForLength.Request.BRANCH_INCREASING,
-                   PressureForLength.Request.BRANCH_DECREASING):
+                   PressureForLength.Request.BRANCH_DECREASING,
+                   PressureForLength.Request.BRANCH_AUTO):
         for length_m in lengths_m:
             future = client.call_async(PressureForLength.Request(length_m=length_m,
                                                                  branch=branch))
@@ -222,24 +232,26 @@ def main(argv: list[str] | None = None) -> int:
         say("3/7 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
         run_sweep(node, 'major loop', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1), 300)
-        say('4/7 minor loops: reversals at 300 and 150 kPa on the way up')
+        say('4/7 minor loops on both branches: 0 -> 300 -> 150 -> 500 -> 200 -> 350 -> 0 kPa')
         run_sweep(node, 'minor loops', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=100e3, hold_s=args.hold_s, cycles=1,
-            reversal_pressures_pa=[300e3, 150e3]), 300)
+            reversal_pressures_pa=[300e3, 150e3, 500e3, 200e3, 350e3]), 300)
 
         say('5/7 pressure_for_length (the inverse model)')
-        print('        length     branch       gauge pressure   reachable on that branch')
+        print('        length     branch             gauge pressure   reachable on that branch')
         for length_m, branch, answer in ask_pressures(node, [0.29, 0.27, 0.25]):
-            name = {1: 'increasing', 2: 'decreasing'}[branch]
+            names = {0: 'auto', 1: 'increasing', 2: 'decreasing'}
+            name = names[branch] if branch else f'auto: {names[answer.branch]}'
             if answer.success:
                 reach = f'{answer.min_length_m * 100:.2f}..{answer.max_length_m * 100:.2f} cm'
-                print(f'      {length_m * 100:6.2f} cm  {name:11s}'
+                print(f'      {length_m * 100:6.2f} cm  {name:17s}'
                       f'  {answer.gauge_pressure_pa / 1e3:8.1f} kPa       {reach}')
             else:
-                print(f'      {length_m * 100:6.2f} cm  {name:11s}  refused: {answer.message}')
+                print(f'      {length_m * 100:6.2f} cm  {name:17s}  refused: {answer.message}')
 
         say('6/7 stopping the recorder and refitting the model from the new bag')
         procs.stop('recorder')
+        loaded_before = len(model_params)  # model_node may reload while refit still plots
         refit = subprocess.run(
             [str(INSTALL / 'pma_model' / 'lib' / 'pma_model' / 'refit'), str(bag_dir),
              '--json', str(run_dir / 'refit.json'), '--params-out', str(params_out),
@@ -251,7 +263,6 @@ def main(argv: list[str] | None = None) -> int:
             raise RuntimeError(f'refit failed (exit {refit.returncode}): {refit.stderr.strip()}')
 
         say('7/7 model_node hot-loads the refit parameters')
-        loaded_before = len(model_params)
         deadline = time.monotonic() + 15
         while len(model_params) <= loaded_before and time.monotonic() < deadline:
             time.sleep(0.1)

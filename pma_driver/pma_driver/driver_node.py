@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import rclpy
@@ -38,6 +39,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
+from std_srvs.srv import Trigger
 
 from pma_driver import protocol
 from pma_driver.calibration import LengthCalibration, PressureCalibration
@@ -215,6 +217,9 @@ class PmaDriver(Node):
             self, Sweep, 'pma/sweep', execute_callback=self._execute_sweep,
             goal_callback=self._on_sweep_goal, cancel_callback=lambda _: CancelResponse.ACCEPT,
             callback_group=ReentrantCallbackGroup())
+        # Blocks on the device's reply, so it must not hold up the default group.
+        self._tare_service = self.create_service(Trigger, '~/tare', self._on_tare,
+                                                 callback_group=ReentrantCallbackGroup())
         self._autostart_timer = None
         if self.get_parameter('autostart').value:
             self._autostart_timer = self.create_timer(
@@ -399,6 +404,12 @@ class PmaDriver(Node):
     def _on_hello(self, hello: Hello) -> None:
         # The device clock restarted: the old offset means nothing now.
         self._clock_sync.reset()
+        if self._pressure_cal.tare_offset_pa != 0.0:
+            # The device forgets its tare when it restarts; our offset stays. They differ
+            # until the next ~/tare (at rest).
+            self.get_logger().warning(
+                'the device (re)started and has no tare, while calibration.tare_offset_pa is '
+                f'{self._pressure_cal.tare_offset_pa:.1f} Pa: call ~/tare again at rest')
 
     def _on_sample(self, sample: protocol.Sample, receive_ns: int) -> None:
         stamp_ns = self._clock_sync.stamp(sample.t_ms, receive_ns)
@@ -507,6 +518,50 @@ class PmaDriver(Node):
         if now - self._refusal_logged.get(kind, -math.inf) >= 1.0:
             self._refusal_logged[kind] = now
             self.get_logger().warning(f'refused setpoint: {reason}')
+
+    # -- tare ------------------------------------------------------------------------------
+
+    def _on_tare(self, _request, response):
+        """Zero the pressure at rest, on the device and here, from the same ADC count.
+
+        The device regulates on its own tared reading and the host converts the raw count
+        with `calibration.tare_offset_pa`: TARE's ACK carries the count the device took as
+        zero, and the host's offset is computed from exactly that count, so both agree.
+        """
+        response.success, response.message = self._tare()
+        log = self.get_logger()
+        if response.success:
+            log.info(response.message)
+        else:
+            log.warning(f'tare refused: {response.message}')
+        return response
+
+    def _tare(self) -> tuple[bool, str]:
+        with self._command_lock:
+            link = self._link
+            if not self._active or link is None or link.state is not LinkState.STREAMING:
+                return False, (f'driver {self._state_label()}, link '
+                               f'{link.state.value if link else "closed"}: nothing to tare')
+            if self._sweep_running:
+                return False, 'a sweep is running'
+            latest = self._latest
+            if latest is None or latest.setpoint_pa != 0:
+                return False, ('the muscle is not vented: send setpoint 0.0 first and let the '
+                               'pressure settle')
+            try:
+                reply = link.send(Command.TARE)
+            except LinkError as error:
+                return False, str(error)
+        if not isinstance(reply, Ack) or reply.value is None:
+            return False, (f'device refused TARE: {getattr(reply, "reason", reply)} (the reading '
+                           'is not within 25 kPa of zero or outside the sensor span)')
+        untared = replace(self._pressure_cal, tare_offset_pa=0.0)
+        offset_pa = float(untared.adc_to_pa(reply.value))
+        result = self.set_parameters([Parameter('calibration.tare_offset_pa', value=offset_pa)])[0]
+        if not result.successful:
+            return False, f'device tared, but calibration.tare_offset_pa refused: {result.reason}'
+        return True, (f'tared: ADC {reply.value} is 0 Pa on the device and here '
+                      f'(calibration.tare_offset_pa = {offset_pa:.1f} Pa)')
 
     # -- sweep action ----------------------------------------------------------------------
 

@@ -35,6 +35,8 @@ _DESCRIPTIONS = {
                    'reversal counts [Pa]',
     'max_gauge_pressure_pa': 'highest gauge pressure the inverse may answer with [Pa]',
 }
+STATE_QUEUE_DEPTH = 200   # 0.2 s of samples at 1 kHz
+
 _RANGES = {
     'deadband_pa': (0.0, 250_000.0),
     'max_gauge_pressure_pa': (10_000.0, 1_000_000.0),
@@ -95,7 +97,13 @@ class ModelNode(Node):
         self._params_pub = self.create_publisher(ModelParamsMsg, 'pma/model_params', latched)
         self._prediction_pub = self.create_publisher(PmaPrediction, 'pma/prediction', 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
-        self.create_subscription(PmaState, 'pma/state', self._on_state, qos_profile_sensor_data)
+        # Sensor-data QoS (best effort, REP-2003), but a deeper queue than its 5: at 1 kHz a
+        # Python pause of 5 ms would otherwise overwrite samples before they are predicted.
+        state_qos = QoSProfile(depth=STATE_QUEUE_DEPTH,
+                               reliability=qos_profile_sensor_data.reliability,
+                               durability=qos_profile_sensor_data.durability,
+                               history=qos_profile_sensor_data.history)
+        self.create_subscription(PmaState, 'pma/state', self._on_state, state_qos)
         self.create_service(PressureForLength, 'pressure_for_length', self._on_pressure_for_length)
         self.create_timer(1.0, self._publish_diagnostics)
 

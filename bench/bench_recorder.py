@@ -1,0 +1,207 @@
+"""recorder CPU at 1 kHz against a plain rclpy subscriber, and messages written vs published.
+
+    . tools/env.sh && python bench/bench_recorder.py [--seconds 10]
+
+tests/helpers/bag_state_publisher.py publishes PmaState on /pma/state at 1 kHz (reliable,
+depth 1000) to two subscribers at once: the recorder (`recorder -o BAG`, its default topic
+list) and the baseline, a minimal rclpy node with a raw=True subscription (reliable,
+KEEP_ALL, like the recorder's) whose callback only counts. CPU (utime + stime from /proc,
+all threads) of both over the steady window, % of one core, and the ratio recorder /
+baseline. Then the bag is read back with BagReader: /pma/state messages written vs
+published (target: all).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import re
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from pma_driver.bag import BagReader
+from pma_interfaces.msg import PmaState
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDER = ROOT / 'ros2_ws' / 'install' / 'pma_driver' / 'lib' / 'pma_driver' / 'recorder'
+PUBLISHER = ROOT / 'tests' / 'helpers' / 'bag_state_publisher.py'
+TOPIC = '/pma/state'
+RATE_HZ = 1000.0
+CLK_TCK = os.sysconf('SC_CLK_TCK')
+SETTLE_S = 1.0        # publishing before the CPU window opens
+TAIL_S = 1.0          # publishing after it closes
+
+
+def counter_main() -> None:
+    """Baseline subscriber: raw PmaState on TOPIC, counted; prints the count (and the
+    monotonic times of the first and last message) on SIGINT."""
+    rclpy.init()
+    node = rclpy.create_node('bench_recorder_baseline')
+    count = first_ns = last_ns = 0
+
+    def on_message(_data: bytes) -> None:
+        nonlocal count, first_ns, last_ns
+        last_ns = time.monotonic_ns()
+        count += 1
+        if count == 1:
+            first_ns = last_ns
+            print('first', flush=True)
+
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1000,
+                     reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(PmaState, TOPIC, on_message, qos, raw=True)
+    print('subscribed', flush=True)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    print(f'received {count} {first_ns} {last_ns}', flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def read_line(proc: subprocess.Popen, timeout: float, what: str) -> str:
+    ready, _, _ = select.select([proc.stdout], [], [], timeout)
+    line = proc.stdout.readline().strip() if ready else ''
+    if not line:
+        raise TimeoutError(f'{what}: nothing within {timeout:.0f} s (exit {proc.poll()})')
+    return line
+
+
+def check(ok: bool, target: str) -> str:
+    return target if ok else f'MISSED ({target})'
+
+
+def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
+    bag = work / 'bag'
+    count = round(RATE_HZ * (SETTLE_S + seconds + TAIL_S))
+    procs: list[subprocess.Popen] = []
+    logs = []
+
+    def start(argv: list[str], name: str) -> subprocess.Popen:
+        log = open(work / f'{name}.log', 'w')  # closed in the finally below
+        logs.append(log)
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, text=True,
+                                start_new_session=True)
+        procs.append(proc)
+        return proc
+
+    try:
+        recorder = start([str(RECORDER), '-o', str(bag)], 'recorder')
+        baseline = start([sys.executable, __file__, '--count'], 'baseline')
+        read_line(baseline, 30, 'baseline subscriber start')
+        publisher = start([sys.executable, str(PUBLISHER), '--topic', TOPIC,
+                           '--rate', f'{RATE_HZ:g}', '--count', str(count),
+                           '--wait-subscribers', '2', '--linger', '0.5'], 'publisher')
+        read_line(publisher, 30, 'publisher start')
+        if read_line(baseline, 60, 'first message at the baseline') != 'first':
+            raise RuntimeError('baseline subscriber: unexpected output')
+        time.sleep(SETTLE_S)
+        pids = {'recorder': recorder.pid, 'baseline': baseline.pid, 'publisher': publisher.pid}
+        cpu0 = {name: cpu_seconds(pid) for name, pid in pids.items()}
+        window_start = time.monotonic()
+        time.sleep(seconds)
+        cpu1 = {name: cpu_seconds(pid) for name, pid in pids.items()}
+        elapsed = time.monotonic() - window_start
+        cpu = {name: (cpu1[name] - cpu0[name]) / elapsed * 100.0 for name in pids}
+        done = read_line(publisher, seconds + 60, 'publisher end')
+        match = re.fullmatch(r'publisher: done (\d+) in ([\d.]+) s', done)
+        if not match:
+            raise RuntimeError(f'publisher: {done}')
+        published, publish_s = int(match[1]), float(match[2])
+        publisher.wait(10)
+        time.sleep(0.5)
+        stop(baseline)
+        received = baseline.stdout.read().split()
+        stop(recorder)
+        recorder_out = recorder.stdout.read()
+    finally:
+        for proc in reversed(procs):
+            stop(proc)
+        for log in logs:
+            log.close()
+    if received[:1] != ['received']:
+        raise RuntimeError(f'baseline subscriber: {received}')
+    first_ns, last_ns = int(received[2]), int(received[3])
+    rate = (int(received[1]) - 1) / ((last_ns - first_ns) / 1e9) if last_ns > first_ns else 0.0
+    wrote = re.search(r'recorder: wrote (\d+) messages', recorder_out)
+    topics = re.findall(r'recording (\d+) topics', recorder_out)
+    if not wrote:
+        raise RuntimeError(f'recorder did not close its bag: {recorder_out[-2000:]}')
+    with BagReader(bag) as reader:
+        info = reader.topics.get(TOPIC)
+        written = info.message_count if info is not None else 0
+        bag_topics = sorted(reader.topics)
+
+    rows = [
+        ('recorder CPU at 1 kHz [% core]', f'{cpu["recorder"]:.1f}',
+         f'(recording {topics[-1] if topics else "?"} topics: {", ".join(bag_topics)})'),
+        ('  baseline raw rclpy subscriber CPU [% core]', f'{cpu["baseline"]:.1f}',
+         '(same topic, same messages)'),
+        ('  ratio recorder / baseline', f'{cpu["recorder"] / cpu["baseline"]:.2f}', ''),
+        ('  publisher CPU [% core]', f'{cpu["publisher"]:.1f}',
+         f'({published} in {publish_s:.2f} s incl. waiting for acks)'),
+        ('  rate at the baseline [msg/s]', f'{rate:.0f}', f'({RATE_HZ:g} published)'),
+        (f'{TOPIC} published', f'{published}', ''),
+        (f'{TOPIC} written to the bag (BagReader)', f'{written}',
+         check(written == published, f'{published}')),
+        ('  recorder says it wrote (all topics)', f'{wrote[1]}', ''),
+        ('  received by the baseline', f'{received[1]}', ''),
+    ]
+    load = os.getloadavg()[0]
+    rows.append(('machine load average (1 min, all cores)', f'{load:.1f}',
+                 f'({os.cpu_count()} cores)'))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--seconds', type=float, default=10.0, help='CPU window [s]')
+    parser.add_argument('--count', action='store_true', help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.count:
+        counter_main()
+        return
+    os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(120, 200)))
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    if not RECORDER.exists():
+        sys.exit(f'{RECORDER} not found: run `make setup`')
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))   # clean up on SIGTERM too
+    work = Path(tempfile.mkdtemp(prefix='bench_recorder_'))
+    rows = run(args.seconds, work)
+    shutil.rmtree(work, ignore_errors=True)        # kept (logs, bag) when the run failed
+    width = max(len(r[0]) for r in rows)
+    print(f'{"measure":<{width}}  {"value":>8}  target')
+    for name, value, target in rows:
+        print(f'{name:<{width}}  {value:>8}  {target}')
+
+
+if __name__ == '__main__':
+    main()
