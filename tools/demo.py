@@ -184,7 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
 
-    bag_dir = run_dir / 'bag'
+    bag_dir = run_dir / 'bag'                    # the recorder: everything, start to end
+    major_bag = run_dir / 'major_loop'            # the Sweep action's own bags, one per run
+    minor_bag = run_dir / 'minor_loops'
     params_out = run_dir / 'refit_params.yaml'
     node = executor = spinner = None
     try:
@@ -231,11 +233,13 @@ def main(argv: list[str] | None = None) -> int:
 
         say("3/7 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
         run_sweep(node, 'major loop', Sweep.Goal(
-            max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1), 300)
+            max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1,
+            record=True, bag_path=str(major_bag)), 300)
         say('4/7 minor loops on both branches: 0 -> 300 -> 150 -> 500 -> 200 -> 350 -> 0 kPa')
         run_sweep(node, 'minor loops', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=100e3, hold_s=args.hold_s, cycles=1,
-            reversal_pressures_pa=[300e3, 150e3, 500e3, 200e3, 350e3]), 300)
+            reversal_pressures_pa=[300e3, 150e3, 500e3, 200e3, 350e3],
+            record=True, bag_path=str(minor_bag)), 300)
 
         say('5/7 pressure_for_length (the inverse model)')
         print('        length     branch             gauge pressure   reachable on that branch')
@@ -249,11 +253,13 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 print(f'      {length_m * 100:6.2f} cm  {name:17s}  refused: {answer.message}')
 
-        say('6/7 stopping the recorder and refitting the model from the new bag')
+        say("6/7 stopping the recorder; refitting the model from the major loop's bag and "
+            "scoring the memory rules along the minor loops' bag")
         procs.stop('recorder')
         loaded_before = len(model_params)  # model_node may reload while refit still plots
         refit = subprocess.run(
-            [str(INSTALL / 'pma_model' / 'lib' / 'pma_model' / 'refit'), str(bag_dir),
+            [str(INSTALL / 'pma_model' / 'lib' / 'pma_model' / 'refit'), str(major_bag),
+             '--memory-check', str(minor_bag),
              '--json', str(run_dir / 'refit.json'), '--params-out', str(params_out),
              '--plots', str(run_dir / 'plots')],
             capture_output=True, text=True, check=False)
@@ -275,7 +281,9 @@ def main(argv: list[str] | None = None) -> int:
 
         elapsed = time.monotonic() - started
         say(f'done in {elapsed:.0f} s. Outputs:')
-        for label, path in (('bag (rosbag2 MCAP)', bag_dir),
+        for label, path in (('bag of the whole run (rosbag2 MCAP)', bag_dir),
+                            ("the Sweep action's bags: major loop", major_bag),
+                            ('                         minor loops', minor_bag),
                             ('refit report (JSON)', run_dir / 'refit.json'),
                             ('refit parameters (model_node params file)', params_out),
                             ('plots (PNG)', run_dir / 'plots'), ('process logs', logs)):

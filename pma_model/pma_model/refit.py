@@ -14,8 +14,14 @@ from dataclasses import replace
 from pathlib import Path
 
 from pma_model.detector import DEFAULT_DEADBAND_PA
-from pma_model.report import BRANCH_MODEL_FORMS, MODEL_NAMES, build_report, format_table
-from pma_model.samples import STATE_TOPIC, SamplesError, load_branch_data
+from pma_model.report import (
+    BRANCH_MODEL_FORMS,
+    MODEL_NAMES,
+    build_report,
+    format_table,
+    memory_check,
+)
+from pma_model.samples import STATE_TOPIC, SamplesError, load_branch_data, load_samples
 
 EXIT_BAD_INPUT = 2
 
@@ -40,6 +46,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         'data are mostly holds)')
     parser.add_argument('--deadband-pa', type=float, default=DEFAULT_DEADBAND_PA, metavar='X',
                         help=f'branch detector deadband [Pa] (default {DEFAULT_DEADBAND_PA:g})')
+    parser.add_argument('--memory-check', type=Path, metavar='BAG_OR_CSV',
+                        help='also run each memory rule (switch, madelung, play) with the '
+                        'fitted branches along this recorded path (minor loops, e.g. a Sweep '
+                        'with reversal_pressures_pa) and score it; --params-out then also '
+                        'sets memory to the best')
     parser.add_argument('--topic', default=STATE_TOPIC,
                         help='PmaState topic of a bag (default: pma/state in any namespace)')
     parser.add_argument('--no-holdout', action='store_true',
@@ -62,13 +73,13 @@ def choose_params_model(report: dict, requested: str | None) -> str:
     return min(scored)[1]
 
 
-def write_params(path: Path, fitted, name: str, source: str) -> None:
-    """The branch form and the fitted branches, nothing else.
+def write_params(path: Path, fitted, name: str, source: str, memory: str | None = None) -> None:
+    """The branch form and the fitted branches (and the memory rule, if one was measured).
 
-    Memory, adaptation, deadband and the pressure limit are the node's own settings: a
-    hot reload of this file must not reset them. Both forms are written (the sigmoid from
-    the paper's fixed-c fit unless the free-c one was chosen), so switching `branch_form`
-    later also uses this refit.
+    Adaptation, deadband and the pressure limit are the node's own settings: a hot reload
+    of this file must not reset them. Both forms are written (the sigmoid from the paper's
+    fixed-c fit unless the free-c one was chosen), so switching `branch_form` later also
+    uses this refit.
     """
     from pma_model.params import default_params
 
@@ -80,10 +91,16 @@ def write_params(path: Path, fitted, name: str, source: str) -> None:
             branches = fitted[chosen].branches
             params = params.with_branches(branches['increasing'], branches['decreasing'])
     params = replace(params, branch_form=BRANCH_MODEL_FORMS[name])
+    only = ('branch_form', 'increasing', 'decreasing')
+    note = f'model {name} (branch_form {params.branch_form})'
+    if memory:
+        params = replace(params, memory=memory)
+        only += ('memory',)
+        note += f', memory {memory} (the best along the --memory-check path)'
     path.parent.mkdir(parents=True, exist_ok=True)
-    params.save_yaml(path, only=('branch_form', 'increasing', 'decreasing'), header=(
-        f'Written by refit from {source}: model {name} (branch_form {params.branch_form}).\n'
-        'Only the branch parameters: model_node keeps its other settings when it loads this.'))
+    params.save_yaml(path, only=only, header=(
+        f'Written by refit from {source}: {note}.\n'
+        'Only these parameters: model_node keeps its other settings when it loads this.'))
 
 
 def check_data(data) -> None:
@@ -108,6 +125,10 @@ def main(argv: list[str] | None = None) -> int:
 
         report, fitted = build_report(data, MODEL_NAMES, holdout=not args.no_holdout,
                                       on_model=announce)
+        if args.memory_check:
+            announce(f'the memory rules along {args.memory_check}')
+            report['memory_check'] = memory_check(
+                load_samples(args.memory_check, args.topic), fitted, args.deadband_pa)
     except SamplesError as error:
         print(f'refit: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -122,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f'wrote {args.json}')
         if args.params_out:
             name = choose_params_model(report, args.model)
-            write_params(args.params_out, fitted, name, str(args.input))
+            memory = report.get('memory_check', {}).get('best_memory', {}).get(name)
+            write_params(args.params_out, fitted, name, str(args.input), memory)
             print(f'wrote {args.params_out} ({name}, branch_form '
                   f'{BRANCH_MODEL_FORMS[name]})')
         if args.plots:

@@ -25,9 +25,11 @@ import numpy as np
 from pma_model import units
 from pma_model.boucwen import BoucWenFit, fit_bouc_wen, minor_loop_drift
 from pma_model.branches import Branch, HillBranch, SigmoidBranch
+from pma_model.detector import DEFAULT_DEADBAND_PA, detect_branches
 from pma_model.fitting import BranchFit, LeastSquaresFit, fit_branch_multistart
+from pma_model.memory import MEMORY_MODES, HysteresisModel
 from pma_model.metrics import fit_metrics
-from pma_model.samples import BranchData
+from pma_model.samples import STEADY_FRACTION, BranchData, Samples, hold_runs
 
 PAPER_C = 6.214
 MODEL_NAMES = ('sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear')
@@ -194,13 +196,24 @@ def _identification_warnings(model: str, scope: str, fit: LeastSquaresFit) -> li
 # --- hold-out -------------------------------------------------------------------------------
 
 def level_index(p_pa: np.ndarray) -> np.ndarray:
-    """Rank of each sample's pressure level (few levels) or of its pressure bin (many)."""
-    rounded = np.round(np.asarray(p_pa, float) / 100.0)
-    levels, index = np.unique(rounded, return_inverse=True)
-    if levels.size <= MANY_LEVELS:
+    """Rank of each sample's pressure level (few levels) or of its pressure bin (many).
+
+    A level is a cluster of pressures with no gap over LEVEL_GAP_PA: measured hold means
+    scatter around their setpoint by the regulation band, so the same level reached on the
+    way up and on the way down must still count as one.
+    """
+    p_pa = np.asarray(p_pa, float)
+    order = np.argsort(p_pa, kind='stable')
+    starts = np.concatenate(([0], np.diff(p_pa[order]) > LEVEL_GAP_PA)).cumsum()
+    index = np.empty(p_pa.size, dtype=int)
+    index[order] = starts
+    if starts[-1] + 1 <= MANY_LEVELS:
         return index
     edges = np.linspace(p_pa.min(), p_pa.max(), HOLDOUT_BINS + 1)
     return np.clip(np.searchsorted(edges, p_pa, side='right') - 1, 0, HOLDOUT_BINS - 1)
+
+
+LEVEL_GAP_PA = 12_000.0   # hold means stay within the +/-5 kPa regulation band of a setpoint
 
 
 def holdout_split(data: BranchData) -> tuple[BranchData, BranchData]:
@@ -274,6 +287,50 @@ def build_report(data: BranchData, models: tuple[str, ...] = MODEL_NAMES,
     if holdout:
         report['holdout'] = holdout_report(data, fitted, stroke_cm)
     return _clean(report), fitted
+
+
+def memory_check(samples: Samples, fitted: dict[str, FittedModel],
+                 deadband_pa: float = DEFAULT_DEADBAND_PA) -> dict:
+    """Each memory rule, with each fitted branch pair, run along a recorded pressure path.
+
+    The major loop cannot tell the rules apart (they differ only inside it); a path with
+    reversals inside the loop - the Sweep action's `reversal_pressures_pa` - can. Scored
+    against the measured length, from rest, so the path must start at rest (a sweep does).
+    A staircase is scored on its hold means (the settled half of each hold, as the refit
+    reduces holds), so the ultrasonic noise does not swamp the differences; the models
+    still run along every sample, since the memory depends on the whole path.
+    """
+    stroke_cm = float(units.m_to_cm(np.ptp(samples.length_m)))
+    drive = samples.setpoint_pa if samples.setpoint_pa is not None else samples.pressure_pa
+    runs = hold_runs(drive)
+    holds = [(start + int((end - start) * (1 - STEADY_FRACTION)), end) for start, end in runs]
+    on_holds = sum(end - start for start, end in runs) >= 0.5 * drive.size
+
+    def scored(values: np.ndarray) -> np.ndarray:
+        return np.array([values[a:b].mean() for a, b in holds]) if on_holds else values
+
+    measured = scored(samples.length_m)
+    models: dict = {}
+    best: dict[str, str] = {}
+    for name, model in fitted.items():
+        if name not in BRANCH_MODEL_FORMS:
+            continue
+        scores = {}
+        for memory in MEMORY_MODES:
+            hysteresis = HysteresisModel(model.branches['increasing'],
+                                         model.branches['decreasing'], memory=memory,
+                                         deadband_pa=deadband_pa)
+            predicted = scored(hysteresis.predict(samples.pressure_pa))
+            entry = metrics_cm(measured, predicted, 0, stroke_cm)
+            models[f'{name}/{memory}'] = {key: entry[key] for key in (
+                'rmse_cm', 'max_cm', 'rmse_pct_stroke', 'max_pct_stroke', 'n')}
+            scores[memory] = entry['rmse_cm']
+        best[name] = min(scores, key=scores.get)
+    return {'source': samples.source, 'samples': int(samples.pressure_pa.size),
+            'scored_on': f'{len(holds)} hold means' if on_holds else 'every sample',
+            'reversals': int(np.count_nonzero(np.diff(
+                detect_branches(samples.pressure_pa, deadband_pa).astype(int)))),
+            'models': models, 'best_memory': best}
 
 
 def holdout_report(data: BranchData, fitted: dict[str, FittedModel], stroke_cm: float) -> dict:
@@ -361,6 +418,16 @@ def format_table(report: dict) -> str:
                              f"({entry['rmse_pct_stroke']:.1f} %)")
             else:
                 lines.append(f"  {name:<22}failed: {entry['error']}")
+    if 'memory_check' in report:
+        check = report['memory_check']
+        lines += ['', f"memory rules along {check['source']} ({check['samples']} samples, from "
+                  f"rest, scored on {check['scored_on']}): RMSE / max error vs the measured "
+                  'length, cm (% of stroke)']
+        for name, entry in check['models'].items():
+            lines.append(f"  {name:<28}{entry['rmse_cm']:.4f} / {entry['max_cm']:.3f} "
+                         f"({entry['rmse_pct_stroke']:.1f} / {entry['max_pct_stroke']:.1f} %)")
+        lines.append('  best: ' + ', '.join(f'{name} -> {memory}'
+                                             for name, memory in check['best_memory'].items()))
     if report['warnings']:
         lines += ['', 'warnings:'] + [f'  - {text}' for text in report['warnings']]
     lines += ['', 'notes:'] + [f'  - {text}' for text in report['notes']]

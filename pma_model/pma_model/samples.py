@@ -346,12 +346,18 @@ def load_branch_data(path, deadband_pa: float = DEFAULT_DEADBAND_PA,
                      progress: bool = True) -> BranchData:
     """Whatever the input is (bag, sample log, branch table), its fit data per branch."""
     path = Path(path)
+    if path.exists() and path.is_file() and is_branch_table(path):
+        return read_branch_table(path)
+    return split_branches(load_samples(path, topic, progress), deadband_pa, steady_state)
+
+
+def load_samples(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
+    """The sample path of a bag or a sample-log CSV, in time order (no branch split)."""
+    path = Path(path)
     if not path.exists():
         raise SamplesError(f'{path}: no such file or directory')
     if path.is_dir() or path.suffix == '.mcap':
-        samples = read_bag(path, topic, progress=progress)
-    elif is_branch_table(path):
-        return read_branch_table(path)
-    else:
-        samples = read_sample_log(path)
-    return split_branches(samples, deadband_pa, steady_state)
+        return read_bag(path, topic, progress=progress)
+    if is_branch_table(path):
+        raise SamplesError(f'{path} is a branch table: it has no pressure path to follow')
+    return read_sample_log(path)

@@ -1,5 +1,6 @@
 """`ros2 run pma_model refit` as a real process: the paper's table, a sweep bag, bad input."""
 
+import itertools
 import json
 from importlib import resources
 
@@ -153,3 +154,52 @@ def test_fit_that_cannot_run(procs, tmp_path):
     table.write_text('pressure_kpa,length_increasing_cm,length_decreasing_cm\n'
                      '0,30,30\n100,29,28.5\n200,27,26.5\n')
     assert_clean_error(*run_refit(procs, table), 'needs at least 5')
+
+
+@pytest.mark.parametrize('truth', ['play', 'madelung'])
+def test_memory_check_finds_the_rule_behind_a_path_with_minor_loops(procs, tmp_path, truth):
+    # A path with reversals inside the loop, made by the default (Table 1) branches with one
+    # memory rule, plus sensor-sized noise: the check must name that rule, and the params
+    # file must carry it.
+    from dataclasses import replace
+
+    from pma_model.params import default_params
+
+    turns_kpa = [0, 350, 150, 300, 200, 500, 100, 250, 0]
+    pressure = np.concatenate([np.linspace(a, b, 300, endpoint=False)
+                               for a, b in itertools.pairwise(turns_kpa)])
+    pressure = np.append(pressure, 0.0) * 1e3
+    model = replace(default_params(), memory=truth).build_model()
+    length = model.predict(pressure) + np.random.default_rng(4).normal(0, 2e-4, pressure.size)
+    path = write_sample_log(tmp_path / 'minor.csv', np.arange(pressure.size) * 0.02, pressure,
+                            length)
+    code, output = run_refit(procs, PAPER_TABLE, '--no-holdout', '--memory-check', path,
+                             '--json', tmp_path / 'r.json', '--params-out', tmp_path / 'p.yaml',
+                             '--model', 'sigmoid_fixed_c')
+    assert code == 0, output
+    check = json.loads((tmp_path / 'r.json').read_text())['memory_check']
+    assert check['best_memory']['sigmoid_fixed_c'] == truth
+    assert check['reversals'] >= 7
+    scores = {name.split('/')[1]: entry['rmse_cm'] for name, entry in check['models'].items()
+              if name.startswith('sigmoid_fixed_c/')}
+    assert scores[truth] < 0.05  # the noise, 0.02 cm, plus the refit's branch error
+    assert f'sigmoid_fixed_c -> {truth}' in output
+    written = yaml.safe_load((tmp_path / 'p.yaml').read_text())['/**']['ros__parameters']
+    assert written['memory'] == truth and written['branch_form'] == 'sigmoid'
+
+
+def test_holdout_levels_survive_the_scatter_of_measured_holds():
+    from pma_model.report import holdout_split
+    from pma_model.samples import BranchData
+
+    rng = np.random.default_rng(1)
+    levels = np.arange(0.0, 500_001.0, 50_000.0)
+    up = levels + rng.uniform(-5e3, 5e3, levels.size)        # hold means: +/-5 kPa band
+    down = levels[::-1][1:] + rng.uniform(-5e3, 5e3, levels.size - 1)
+    data = BranchData(up, 0.3 - up * 1e-7, down, 0.3 - down * 1.1e-7)
+    train, test = holdout_split(data)
+    # 0, 100, ... kPa train and 50, 150, ... test, on both branches alike
+    assert (train.inc_pressure_pa.size, test.inc_pressure_pa.size) == (6, 5)
+    assert (train.dec_pressure_pa.size, test.dec_pressure_pa.size) == (5, 5)
+    assert np.all(np.abs(np.round(train.dec_pressure_pa / 100e3) * 100e3
+                         - train.dec_pressure_pa) < 6e3)
