@@ -249,7 +249,8 @@ def replayed(swept, module_procs, probe):
     assert client.wait_for_service(timeout_sec=20)
     # The graph shows the player before its writer has matched model_node's reader, and
     # nothing outside the two processes can see that match: give it the same grace as
-    # helpers/subscriber.py. Samples lost anyway are at rest (the 0 kPa hold).
+    # helpers/subscriber.py. What is lost anyway is the start of the bag; the test checks
+    # that it is only that, and at rest.
     time.sleep(1.0)
     future = client.call_async(Trigger.Request())
     wait_until(future.done, 10, 'resume')
@@ -257,13 +258,17 @@ def replayed(swept, module_procs, probe):
     assert player.popen.wait(10) == 0, player.output
     with BagReader(swept['bag']) as reader:
         expected = reader.topics['/pma/state'].message_count
-    try:
-        wait_until(lambda: stream.count('predictions') >= expected * 0.95, 10,
-                   'predictions of the replayed samples')
-    except TimeoutError as error:
-        raise AssertionError(f'{stream.count("predictions")} predictions for {expected} '
-                             f'replayed samples') from error
-    probe.node.destroy_client(client)
+    settled = [-1, time.monotonic()]
+
+    def all_in_or_quiet() -> bool:
+        # This process also follows the live streams, so it may be behind: wait for every
+        # prediction, or for 3 s without a new one.
+        count = stream.count('predictions')
+        if count != settled[0]:
+            settled[:] = [count, time.monotonic()]
+        return count >= expected or time.monotonic() - settled[1] > 3.0
+
+    wait_until(all_in_or_quiet, 60, 'the last predictions of the replay')
     return {'model': model, 'stream': stream}
 
 
@@ -271,18 +276,22 @@ def test_replay_into_model_node_reproduces_the_live_predictions(swept, replayed)
     with BagReader(swept['bag']) as reader:
         recorded = {stamp_ns(p): p for p in (deserialize_message(m.data, PmaPrediction)
                                              for m in reader.messages(['/pma/prediction']))}
-        state_count = reader.topics['/pma/state'].message_count
+        replayed_states = [deserialize_message(m.data, PmaState)
+                           for m in reader.messages(['/pma/state'])]
+        state_count = len(replayed_states)
     stream = replayed['stream']
     with stream.lock:
         again = list(stream.predictions)
     # The sweep waits for the recorder to subscribe model_node's topic too.
     assert len(recorded) >= 0.99 * state_count, (len(recorded), state_count)
     matched = [(recorded[stamp_ns(p)], p) for p in again if stamp_ns(p) in recorded]
-    order = sorted(recorded)
     got = {stamp_ns(p) for p in again}
-    missing = [i for i, stamp in enumerate(order) if stamp not in got]
-    print(f'\nmissing replayed predictions at bag positions {missing[:5]}..{missing[-5:]}')
-    assert len(matched) >= 0.95 * state_count, (len(matched), state_count)
+    missing = [i for i, state in enumerate(replayed_states) if stamp_ns(state) not in got]
+    # Only the first samples may be missing (the player's writer matching model_node's
+    # best-effort reader), and only while the muscle was still at rest.
+    assert missing == list(range(len(missing))), f'lost later: {missing[-20:]}'
+    assert all(replayed_states[i].gauge_pressure_pa < 20e3 for i in missing)
+    assert len(matched) >= 0.8 * state_count, (len(matched), state_count)
     differences = np.array([abs(a.predicted_length_m - b.predicted_length_m)
                             for a, b in matched])
     branches_agree = np.mean([a.branch == b.branch for a, b in matched])
@@ -326,15 +335,13 @@ def test_refit_of_the_bag_writes_params_that_model_node_loads(swept, replayed, m
     written = yaml.safe_load((out / 'params.yaml').read_text())['/**']['ros__parameters']
     stream = replayed['stream']
     before = stream.count('params')
+    # Clients stay until the probe closes: destroying one under the spinning executor races.
     client = probe.node.create_client(SetParameters, '/replayed/model_node/set_parameters')
-    try:
-        assert client.wait_for_service(timeout_sec=20)
-        future = client.call_async(SetParameters.Request(parameters=[
-            Parameter('params_file', value=str(out / 'params.yaml')).to_parameter_msg()]))
-        wait_until(future.done, 10, 'set_parameters answer')
-        assert all(r.successful for r in future.result().results), future.result()
-    finally:
-        probe.node.destroy_client(client)
+    assert client.wait_for_service(timeout_sec=20)
+    future = client.call_async(SetParameters.Request(parameters=[
+        Parameter('params_file', value=str(out / 'params.yaml')).to_parameter_msg()]))
+    wait_until(future.done, 10, 'set_parameters answer')
+    assert all(r.successful for r in future.result().results), future.result()
     wait_until(lambda: stream.count('params') > before, 15, 'model_node reloading the refit')
     replayed['model'].wait_for_line('loaded model parameters from', 10)
     with stream.lock:

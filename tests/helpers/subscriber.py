@@ -13,6 +13,7 @@ import sys
 import time
 
 import rclpy
+from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 RESUME_GRACE_S = 1.0
@@ -90,8 +91,8 @@ def main() -> int:
     try:
         while time.monotonic() < deadline and not (args.count and len(received) >= args.count):
             rclpy.spin_once(node, timeout_sec=0.05)
-    except KeyboardInterrupt:
-        pass
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass  # SIGINT: stop here and write what arrived
     with open(args.out, 'w', encoding='utf-8') as out:
         json.dump(received, out)
     print(f'subscriber: got {len(received)}', flush=True)
