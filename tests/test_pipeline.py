@@ -282,8 +282,12 @@ def test_replay_into_model_node_reproduces_the_live_predictions(swept, replayed)
     stream = replayed['stream']
     with stream.lock:
         again = list(stream.predictions)
-    # The sweep waits for the recorder to subscribe model_node's topic too.
-    assert len(recorded) >= 0.99 * state_count, (len(recorded), state_count)
+    # The sweep waits for the recorder to subscribe model_node's topic too; while the two
+    # match, a few predictions of the first (0 kPa) hold may still miss the bag, none later.
+    unrecorded = [i for i, state in enumerate(replayed_states)
+                  if stamp_ns(state) not in recorded]
+    assert all(replayed_states[i].gauge_pressure_pa < 20e3 for i in unrecorded), unrecorded
+    assert len(recorded) >= 0.95 * state_count, (len(recorded), state_count)
     matched = [(recorded[stamp_ns(p)], p) for p in again if stamp_ns(p) in recorded]
     got = {stamp_ns(p) for p in again}
     missing = [i for i, state in enumerate(replayed_states) if stamp_ns(state) not in got]
