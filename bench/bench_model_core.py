@@ -44,7 +44,8 @@ def main() -> None:
     params = default_params()
     models = {form: replace(params, branch_form=form).build_model()
               for form in ('sigmoid', 'hill')}
-    switch = replace(params, memory='switch').build_model()
+    memories = {memory: replace(params, memory=memory).build_model()
+                for memory in ('play', 'madelung', 'switch')}
     sigmoid = models['sigmoid']
 
     rows = []
@@ -54,13 +55,14 @@ def main() -> None:
         rows.append((f'{form} branch length()', n,
                      best_time(lambda m=model: m.increasing.length(smooth), repeats)))
     rows.append(('detector.detect, smooth', n,
-                 best_time(lambda: BranchDetector(20e3).detect(smooth), repeats)))
-    rows.append(('madelung predict, smooth', n,
-                 best_time(lambda: sigmoid.predict(smooth), repeats)))
-    rows.append(('switch predict, smooth', n, best_time(lambda: switch.predict(smooth), repeats)))
+                 best_time(lambda: BranchDetector().detect(smooth), repeats)))
+    for memory, model in memories.items():
+        rows.append((f'{memory} predict, smooth', n,
+                     best_time(lambda m=model: m.predict(smooth), repeats)))
     noisy_n = min(n, 100_000)
-    rows.append(('madelung predict, noisy', noisy_n,
-                 best_time(lambda: sigmoid.predict(noisy[:noisy_n]), 1)))
+    for memory in ('play', 'madelung'):
+        rows.append((f'{memory} predict, noisy (+/-10 kPa)', noisy_n,
+                     best_time(lambda m=memories[memory]: m.predict(noisy[:noisy_n]), 1)))
 
     print(f'{"vectorised":34s} {"samples":>9s} {"Msamples/s":>11s} {"x baseline time":>16s}')
     for name, count, seconds in rows:
@@ -69,7 +71,6 @@ def main() -> None:
 
     calls = 2_000
     scalar = 0.27
-    online_model = params.build_model()
     online_path = smooth[:calls]
     per_call = {
         'baseline: np.polyval on a float': best_time(
@@ -80,9 +81,10 @@ def main() -> None:
             lambda: [models['hill'].increasing.pressure(scalar) for _ in range(calls)], repeats),
         'model.pressure_for_length (auto)': best_time(
             lambda: [sigmoid.pressure_for_length(scalar) for _ in range(calls)], repeats),
-        'model.update (online, madelung)': best_time(
-            lambda: [online_model.update(p) for p in online_path], repeats),
     }
+    for memory, model in memories.items():
+        per_call[f'model.update (online, {memory})'] = best_time(
+            lambda m=model: [m.update(p) for p in online_path], repeats)
     call_baseline = per_call['baseline: np.polyval on a float'] / calls
     print(f'\n{"per call":34s} {"us/call":>9s} {"x baseline":>11s}')
     for name, seconds in per_call.items():
