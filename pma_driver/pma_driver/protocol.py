@@ -310,9 +310,12 @@ class FrameDecoder:
             line = bytes(self._buffer[:newline])
             del self._buffer[:newline + 1]
             if self._discarding:
-                # The rest of an overlong line, or the partial line at port open.
+                # The rest of an overlong line, or the partial line at port open - unless
+                # it starts a frame: after a reset the first line is often whole (an
+                # Arduino's boot HELLO), and only a valid checksum lets it through anyway.
                 self._discarding = False
-                continue
+                if not line.startswith(b'$'):
+                    continue
             if not line.strip():
                 continue
             try:

@@ -173,6 +173,15 @@ def test_first_partial_line_is_dropped_after_reset():
     assert decoder.dropped_total == 0
 
 
+def test_a_whole_first_line_after_reset_is_kept():
+    # An Arduino reset by the port opening starts with its HELLO: no need to lose it.
+    decoder = FrameDecoder()
+    hello = protocol.encode_hello(Hello(1, 'pma_firmware', '0.1.0', 20, 50, 500_000, 500_000,
+                                        1000))
+    decoder.reset(drop_first_partial=True)
+    assert decoder.feed(hello) == [protocol.parse_device_line(hello[:-1])]
+
+
 # ---- fuzzing ----------------------------------------------------------------------------
 # A stream is a list of pieces, each either a valid frame (expected out exactly once) or a
 # bad line (expected to be counted once). Bad lines carry their own newline, never contain
