@@ -245,14 +245,23 @@ def replayed(swept, module_procs, probe):
     wait_until(lambda: probe.node.count_publishers('/replayed/pma/state') >= 1, 20,
                'the player on /replayed/pma/state')
     from std_srvs.srv import Trigger
-    client = probe.node.create_client(Trigger, '/replay/resume')
-    assert client.wait_for_service(timeout_sec=20)
-    # The graph shows the player before its writer has matched model_node's reader, and
-    # nothing outside the two processes can see that match: give it the same grace as
-    # helpers/subscriber.py. What is lost anyway is the start of the bag; the test checks
-    # that it is only that, and at rest.
-    time.sleep(1.0)
-    future = client.call_async(Trigger.Request())
+    step = probe.node.create_client(Trigger, '/replay/play_next')
+    resume = probe.node.create_client(Trigger, '/replay/resume')
+    assert step.wait_for_service(timeout_sec=20) and resume.wait_for_service(timeout_sec=20)
+    # The graph shows the player before its writer has matched model_node's best-effort
+    # reader, and nothing outside the two processes can see that match: step the bag one
+    # message at a time until a prediction comes back, then play on. Only those first
+    # messages (the bag starts with a 0 kPa hold) can be lost; the test checks that.
+    for _ in range(40):
+        future = step.call_async(Trigger.Request())
+        wait_until(future.done, 10, 'play_next')
+        assert future.result().success, future.result().message
+        try:
+            wait_until(lambda: stream.count('predictions') > 0, 0.5, 'a first prediction')
+            break
+        except TimeoutError:
+            continue
+    future = resume.call_async(Trigger.Request())
     wait_until(future.done, 10, 'resume')
     player.wait_for_line('replay: done', timeout=180)
     assert player.popen.wait(10) == 0, player.output

@@ -9,7 +9,8 @@ publisher profiles agree (else reliable/volatile, depth 1000). `--clock` publish
 on /clock (rosgraph_msgs/Clock, best effort like rosbag2) for `use_sim_time` consumers.
 Put BAG before a bare `--clock`, otherwise the bag name is taken as the rate in Hz.
 
-Services (std_srvs/srv/Trigger): ~/pause, ~/resume, ~/toggle_paused.
+Services (std_srvs/srv/Trigger): ~/pause, ~/resume, ~/toggle_paused, and ~/play_next
+(while paused: publish the next message now, as rosbag2's play_next).
 A missing, empty, truncated or foreign bag ends with one line on stderr and exit code 2.
 """
 
@@ -156,6 +157,9 @@ class Player(Node):
         self.create_service(Trigger, '~/pause', self.on_pause)
         self.create_service(Trigger, '~/resume', self.on_resume)
         self.create_service(Trigger, '~/toggle_paused', self.on_toggle)
+        self.create_service(Trigger, '~/play_next', self.on_play_next)
+        self._step_wanted = threading.Event()   # play_next asked for one message
+        self._stepped = threading.Event()       # ... and the playback thread published it
         if args.clock is not None:
             if args.clock <= 0:
                 raise BagError('--clock rate must be > 0 Hz')
@@ -208,6 +212,20 @@ class Player(Node):
         response.message = 'resumed' if self.set_paused(False) else 'already playing'
         return response
 
+    def on_play_next(self, _request, response):
+        """While paused, publish the next message at once; the timeline moves to it."""
+        if not self.paused:
+            response.success, response.message = False, 'not paused (pause first)'
+            return response
+        self._stepped.clear()
+        self._step_wanted.set()
+        if self._stepped.wait(2.0):
+            response.success, response.message = True, 'published the next message'
+        else:
+            self._step_wanted.clear()
+            response.success, response.message = False, 'no message left to play'
+        return response
+
     def on_toggle(self, _request, response):
         self.set_paused(not self.paused)
         response.success = True
@@ -224,7 +242,12 @@ class Player(Node):
     def wait_until(self, log_time_ns: int) -> bool:
         """Sleep until the timeline reaches log_time_ns; False if playback is stopping."""
         while not self.stopping.is_set():
-            if self.paused:  # even a message due right now waits for the resume
+            if self.paused:  # even a message due right now waits for the resume ...
+                if self._step_wanted.is_set():  # ... unless play_next asks for it
+                    self._step_wanted.clear()
+                    with self._lock:
+                        self._paused_at = max(self._paused_at, log_time_ns)
+                    return True
                 time.sleep(0.01)
                 continue
             ahead_ns = log_time_ns - self.bag_now()
@@ -243,6 +266,7 @@ class Player(Node):
                     if not self.wait_until(message.log_time_ns):
                         return
                     self.publishers_by_topic[message.topic].publish(message.data)
+                    self._stepped.set()
                 if not self.loop:
                     break
             if message is not None:
