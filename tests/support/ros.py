@@ -11,7 +11,8 @@ import time
 from collections.abc import Callable
 
 import rclpy
-from rclpy.executors import MultiThreadedExecutor
+from rclpy._rclpy_pybind11 import InvalidHandle
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 
@@ -22,13 +23,30 @@ class SpinningNode:
         self.node = Node(name)
         self.executor = MultiThreadedExecutor(num_threads=2)
         self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
+    def _spin(self) -> None:
+        """Spin until closed, surviving entities destroyed under the executor.
+
+        A test that destroys a subscription or client while the executor is waiting on it
+        makes rclpy raise InvalidHandle in this thread; plain `executor.spin()` would die of
+        it and every later test in the module would time out waiting for messages.
+        """
+        while not self._stopping.is_set() and rclpy.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except InvalidHandle:
+                continue
+            except ExternalShutdownException:
+                return
+
     def close(self) -> None:
+        self._stopping.set()
+        self._thread.join(2)
         self.executor.shutdown(timeout_sec=2)
         self.node.destroy_node()
-        self._thread.join(2)
 
 
 def wait_until(predicate: Callable[[], bool], timeout: float, what: str,
