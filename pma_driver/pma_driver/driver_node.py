@@ -795,6 +795,7 @@ class PmaDriver(Node):
             status.message = self._configure_error or f'not configured ({self._state_label()})'
         else:
             stats = link.stats()
+            pubs = self._pubs
             status.level, status.message = self._link_level(stats)
             values.update({
                 'link state': stats.state.value,
@@ -806,6 +807,8 @@ class PmaDriver(Node):
                 'device limit [Pa]': str(stats.hello.limit_pa) if stats.hello else '-',
                 'sample rate [Hz]': f'{self._rate_hz:.1f}',
                 'samples published': str(self._published),
+                # matched readers, as this writer sees them: "is anyone listening?"
+                'state subscribers': str(pubs[0].get_subscription_count() if pubs else 0),
                 'samples decoded': str(stats.samples),
                 'samples while inactive': str(self._unpublished),
                 'samples before handshake': str(stats.ignored_before_hello),
