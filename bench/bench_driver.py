@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import random
 import select
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import rclpy
 import serial
+from benchlib import cpu_seconds, isolate_ros_graph, load_row, print_table, stop
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile
@@ -37,7 +37,6 @@ from pma_interfaces.msg import PmaState
 
 ROOT = Path(__file__).resolve().parents[1]
 DRIVER = ROOT / 'ros2_ws' / 'install' / 'pma_driver' / 'lib' / 'pma_driver' / 'driver_node'
-CLK_TCK = os.sysconf('SC_CLK_TCK')
 FLAT_OUT_LINES = 200_000
 
 
@@ -168,20 +167,6 @@ def start_driver(port: str, rate_hz: float) -> subprocess.Popen:
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
 
 
-def stop(proc: subprocess.Popen) -> None:
-    proc.send_signal(2)
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
-
-
 def wait_for(predicate, timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while not predicate():
@@ -278,8 +263,7 @@ def main() -> None:
     if args.bare:
         bare_main(args.bare[0], float(args.bare[1]))
         return
-    os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(120, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    isolate_ros_graph()
     if not DRIVER.exists():
         sys.exit(f'{DRIVER} not found: run `make setup`')
     work = Path(tempfile.mkdtemp(prefix='bench_driver_'))
@@ -307,13 +291,8 @@ def main() -> None:
         run = run_driver(rate_hz, args.seconds, work)
         rows.append((f'driver CPU at {rate_hz:g} Hz [% core]', f'{run.cpu_percent:.1f}',
                      f'({run.published_rate():.0f} samples/s published)'))
-    load = os.getloadavg()[0]
-    rows.append(('machine load average (1 min, all cores)', f'{load:.1f}',
-                 f'({os.cpu_count()} cores)'))
-    width = max(len(r[0]) for r in rows)
-    print(f'{"measure":<{width}}  {"value":>8}  target')
-    for name, value, target in rows:
-        print(f'{name:<{width}}  {value:>8}  {target}')
+    rows.append(load_row())
+    print_table(rows)
 
 
 if __name__ == '__main__':

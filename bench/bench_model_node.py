@@ -19,9 +19,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import random
-import select
 import shutil
 import signal
 import subprocess
@@ -34,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from benchlib import check, cpu_seconds, isolate_ros_graph, load_row, print_table, read_line, stop
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -45,7 +43,6 @@ from pma_interfaces.srv import PressureForLength
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL_NODE = ROOT / 'ros2_ws' / 'install' / 'pma_model' / 'lib' / 'pma_model' / 'model_node'
-CLK_TCK = os.sysconf('SC_CLK_TCK')
 TRIGGER_SERVICE = 'bench_trigger'
 WARMUP_CALLS = 50
 SETTLE_S = 1.0        # publishing before the CPU / latency window opens
@@ -115,32 +112,6 @@ def publisher_main(rate_hz: float, seconds: float, out: str) -> None:
     print(f'done {count} {elapsed:.3f}', flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
-
-
-# --- process handling -----------------------------------------------------------------------
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is not None:
-        return
-    proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
-
-
-def read_line(proc: subprocess.Popen, timeout: float, what: str) -> str:
-    ready, _, _ = select.select([proc.stdout], [], [], timeout)
-    line = proc.stdout.readline().strip() if ready else ''
-    if not line:
-        raise TimeoutError(f'{what}: nothing within {timeout:.0f} s (exit {proc.poll()})')
-    return line
 
 
 def percentiles(values_ms: np.ndarray) -> tuple[float, float]:
@@ -348,10 +319,6 @@ class StreamRun:
     longest_gap: int            # most consecutive states without a prediction
 
 
-def check(ok: bool, target: str) -> str:
-    return target if ok else f'MISSED ({target})'
-
-
 def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
     rows: list[tuple[str, str, str]] = []
     bench = Bench(work)
@@ -411,9 +378,7 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
     finally:
         bench.close()
         rclpy.try_shutdown()
-    load = os.getloadavg()[0]
-    rows.append(('machine load average (1 min, all cores)', f'{load:.1f}',
-                 f'({os.cpu_count()} cores)'))
+    rows.append(load_row())
     return rows
 
 
@@ -431,18 +396,14 @@ def main() -> None:
     if args.publish:
         publisher_main(float(args.publish[0]), float(args.publish[1]), args.publish[2])
         return
-    os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(120, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    isolate_ros_graph()
     if not MODEL_NODE.exists():
         sys.exit(f'{MODEL_NODE} not found: run `make setup`')
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))   # clean up on SIGTERM too
     work = Path(tempfile.mkdtemp(prefix='bench_model_node_'))
     rows = run(args, work)
     shutil.rmtree(work, ignore_errors=True)        # kept (logs) when the run failed
-    width = max(len(r[0]) for r in rows)
-    print(f'{"measure":<{width}}  {"value":>8}  target')
-    for name, value, target in rows:
-        print(f'{name:<{width}}  {value:>8}  {target}')
+    print_table(rows)
 
 
 if __name__ == '__main__':

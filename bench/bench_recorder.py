@@ -14,10 +14,7 @@ published (target: all).
 from __future__ import annotations
 
 import argparse
-import os
-import random
 import re
-import select
 import shutil
 import signal
 import subprocess
@@ -27,6 +24,7 @@ import time
 from pathlib import Path
 
 import rclpy
+from benchlib import check, cpu_seconds, isolate_ros_graph, load_row, print_table, read_line, stop
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -38,7 +36,6 @@ RECORDER = ROOT / 'ros2_ws' / 'install' / 'pma_driver' / 'lib' / 'pma_driver' / 
 PUBLISHER = ROOT / 'tests' / 'helpers' / 'bag_state_publisher.py'
 TOPIC = '/pma/state'
 RATE_HZ = 1000.0
-CLK_TCK = os.sysconf('SC_CLK_TCK')
 SETTLE_S = 1.0        # publishing before the CPU window opens
 TAIL_S = 1.0          # publishing after it closes
 
@@ -69,34 +66,6 @@ def counter_main() -> None:
     print(f'received {count} {first_ns} {last_ns}', flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is not None:
-        return
-    proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
-
-
-def read_line(proc: subprocess.Popen, timeout: float, what: str) -> str:
-    ready, _, _ = select.select([proc.stdout], [], [], timeout)
-    line = proc.stdout.readline().strip() if ready else ''
-    if not line:
-        raise TimeoutError(f'{what}: nothing within {timeout:.0f} s (exit {proc.poll()})')
-    return line
-
-
-def check(ok: bool, target: str) -> str:
-    return target if ok else f'MISSED ({target})'
 
 
 def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
@@ -175,9 +144,7 @@ def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
         ('  recorder says it wrote (all topics)', f'{wrote[1]}', ''),
         ('  received by the baseline', f'{received[1]}', ''),
     ]
-    load = os.getloadavg()[0]
-    rows.append(('machine load average (1 min, all cores)', f'{load:.1f}',
-                 f'({os.cpu_count()} cores)'))
+    rows.append(load_row())
     return rows
 
 
@@ -189,18 +156,14 @@ def main() -> None:
     if args.count:
         counter_main()
         return
-    os.environ.setdefault('ROS_DOMAIN_ID', str(random.SystemRandom().randint(120, 200)))
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    isolate_ros_graph()
     if not RECORDER.exists():
         sys.exit(f'{RECORDER} not found: run `make setup`')
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))   # clean up on SIGTERM too
     work = Path(tempfile.mkdtemp(prefix='bench_recorder_'))
     rows = run(args.seconds, work)
     shutil.rmtree(work, ignore_errors=True)        # kept (logs, bag) when the run failed
-    width = max(len(r[0]) for r in rows)
-    print(f'{"measure":<{width}}  {"value":>8}  target')
-    for name, value, target in rows:
-        print(f'{name:<{width}}  {value:>8}  {target}')
+    print_table(rows)
 
 
 if __name__ == '__main__':
