@@ -487,6 +487,15 @@ class PmaDriver(Node):
         if self._link is not None and self._link.connected and self._send(Command.VENT):
             self.get_logger().info(f'vented ({why})')
 
+    def _link_streaming(self) -> bool:
+        """Commands need a streaming link: a stalled one too means nobody can watch them."""
+        link = self._link
+        return link is not None and link.state is LinkState.STREAMING
+
+    def _link_text(self) -> str:
+        link = self._link
+        return f'link {link.state.value}' if link is not None else 'link closed'
+
     def setpoint_refusal(self, gauge_pa: float) -> tuple[str, str]:
         """(kind, reason) why this setpoint must not reach the device; ('', '') when it may."""
         limit = self._device_max_pa()
@@ -499,10 +508,8 @@ class PmaDriver(Node):
                                 f'{limit} Pa')
         if not self._active:
             return 'inactive', f'driver is {self._state_label()}, not active'
-        link = self._link
-        if link is None or link.state is not LinkState.STREAMING:
-            # Stalled too: no pressure is commanded that nobody can watch.
-            return 'link', f'link {link.state.value if link else "closed"}'
+        if not self._link_streaming():
+            return 'link', self._link_text()
         return '', ''
 
     def _on_setpoint(self, msg: Float64) -> None:
@@ -538,10 +545,9 @@ class PmaDriver(Node):
 
     def _tare(self) -> tuple[bool, str]:
         with self._command_lock:
-            link = self._link
-            if not self._active or link is None or link.state is not LinkState.STREAMING:
-                return False, (f'driver {self._state_label()}, link '
-                               f'{link.state.value if link else "closed"}: nothing to tare')
+            if not self._active or not self._link_streaming():
+                return False, (f'driver {self._state_label()}, {self._link_text()}: '
+                               'nothing to tare')
             if self._sweep_running:
                 return False, 'a sweep is running'
             latest = self._latest
@@ -549,7 +555,7 @@ class PmaDriver(Node):
                 return False, ('the muscle is not vented: send setpoint 0.0 first and let the '
                                'pressure settle')
             try:
-                reply = link.send(Command.TARE)
+                reply = self._link.send(Command.TARE)   # held: cleanup takes the lock too
             except LinkError as error:
                 return False, str(error)
         if not isinstance(reply, Ack) or reply.value is None:
@@ -576,8 +582,8 @@ class PmaDriver(Node):
             self.get_logger().error(f'sweep goal rejected: {error}')
             return GoalResponse.REJECT
         if not self._active or self._link is None or not self._link.connected:
-            self.get_logger().error(f'sweep goal rejected: driver {self._state_label()}, link '
-                                    f'{self._link.state.value if self._link else "closed"}')
+            self.get_logger().error(f'sweep goal rejected: driver {self._state_label()}, '
+                                    f'{self._link_text()}')
             return GoalResponse.REJECT
         with self._sweep_lock:
             if self._sweep_running:
@@ -655,10 +661,9 @@ class PmaDriver(Node):
                 return 'cancel', 'canceled; vented to 0 Pa'
             if not self._active:
                 return 'abort', 'driver deactivated; vented'
-            link = self._link
-            if link is None or link.state is not LinkState.STREAMING:
-                return 'abort', (f'link {link.state.value if link else "closed"} during the '
-                                 'sweep; vented (the device also vents on heartbeat loss)')
+            if not self._link_streaming():
+                return 'abort', (f'{self._link_text()} during the sweep; vented (the device '
+                                 'also vents on heartbeat loss)')
             return None
 
         for index, setpoint in enumerate(plan.setpoints_pa):
