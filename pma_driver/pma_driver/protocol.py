@@ -132,8 +132,12 @@ def checksum(body: bytes) -> int:
 
 def frame(*fields: object) -> bytes:
     """Encode one line: `$f1,f2,...*HH\\n`."""
-    body = ','.join(str(f) for f in fields).encode('ascii')
-    return b'$' + body + b'*' + f'{checksum(body):02X}'.encode('ascii') + b'\n'
+    return frame_body(','.join(str(f) for f in fields).encode('ascii'))
+
+
+def frame_body(body: bytes) -> bytes:
+    """Wrap a ready body as one line, `$body*HH\\n` (for bodies echoed byte for byte)."""
+    return b'$' + body + b'*' + b'%02X' % checksum(body) + b'\n'
 
 
 def encode_command(command: Command | str, *args: int) -> bytes:
@@ -159,7 +163,7 @@ def encode_nak(command: str, reason: NakReason | str) -> bytes:
     return frame('NAK', command, reason.value if isinstance(reason, NakReason) else reason)
 
 
-_HEX_PAIR = re.compile(rb'[0-9A-Fa-f]{2}')
+HEX_PAIR = re.compile(rb'[0-9A-Fa-f]{2}')   # the checksum digits, exactly
 
 
 def split_frame(line: bytes) -> list[str]:
@@ -179,7 +183,7 @@ def split_frame(line: bytes) -> list[str]:
         raise FrameError('framing', 'no "*HH" checksum at the end')
     body = line[1:star]
     # Exactly two hex digits: int(..., 16) alone would also take ' A', '+A' or '-A'.
-    if not _HEX_PAIR.fullmatch(line, star + 1):
+    if not HEX_PAIR.fullmatch(line, star + 1):
         raise FrameError('framing', 'checksum is not two hex digits')
     expected = int(line[star + 1:], 16)
     if checksum(body) != expected:
@@ -246,7 +250,7 @@ def parse_device_line(line: bytes) -> Sample | Hello | Ack | Nak:
     raise FrameError('unknown_type', f'message type {kind!r}')
 
 
-_COMMAND_ARITY = {
+COMMAND_ARITY = {
     Command.HELLO.value: 0, Command.HEARTBEAT.value: 0, Command.SET.value: 1,
     Command.VENT.value: 0, Command.RATE.value: 1, Command.TARE.value: 0,
     Command.HEARTBEAT_TIMEOUT.value: 1, Command.MAX.value: 1,
@@ -263,9 +267,9 @@ def parse_host_line(line: bytes) -> HostCommand:
     """
     fields = split_frame(line)
     name = fields[0]
-    if name not in _COMMAND_ARITY:
+    if name not in COMMAND_ARITY:
         raise FrameError('unknown_type', f'command {name!r}')
-    _expect(fields, _COMMAND_ARITY[name] + 1)
+    _expect(fields, COMMAND_ARITY[name] + 1)
     args = tuple(_int(f, 'argument', -(2**31), U32 - 1) for f in fields[1:])
     return HostCommand(name, args)
 

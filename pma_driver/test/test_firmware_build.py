@@ -208,7 +208,7 @@ def test_protocol_constants_match_protocol_py():
     assert named('COMMAND_', strings) == {m.name: m.value for m in protocol.Command}
     assert named('NAK_', strings) == {m.name: m.value for m in protocol.NakReason}
     assert named('VALVE_', integers) == {m.name: m.value for m in protocol.Valve}
-    assert firmware_command_table() == protocol._COMMAND_ARITY
+    assert firmware_command_table() == protocol.COMMAND_ARITY
 
     # Any other constant both files define must agree too (defaults, when protocol.py has them).
     shared = {name for name in vars(protocol) if name.isupper()} & set(integers)

@@ -48,8 +48,7 @@ HBTO_RANGE_MS = (MIN_HEARTBEAT_TIMEOUT_MS, MAX_HEARTBEAT_TIMEOUT_MS)
 UNTRUSTED_COMMAND = b'?'        # the name of a NAK for a line whose name cannot be trusted
 
 _NOISE_BYTES = bytes(b for b in range(256) if b != 0x0A)
-_HEX_DIGITS = b'0123456789ABCDEFabcdef'
-_COMMAND_ARITY = {name.encode('ascii'): count for name, count in protocol._COMMAND_ARITY.items()}
+_COMMAND_ARITY = {name.encode('ascii'): count for name, count in protocol.COMMAND_ARITY.items()}
 
 
 @dataclass(frozen=True)
@@ -166,7 +165,7 @@ def parse_firmware_line(line: bytes) -> protocol.HostCommand | Rejected:
         raise protocol.FrameError('framing', 'no "$" at the start of the line')
     if len(line) < 4 or line[-3:-2] != b'*':
         return Rejected(UNTRUSTED_COMMAND, NakReason.SYNTAX)
-    if any(digit not in _HEX_DIGITS for digit in line[-2:]):
+    if not protocol.HEX_PAIR.fullmatch(line, len(line) - 2):
         return Rejected(UNTRUSTED_COMMAND, NakReason.SYNTAX)
     if protocol.checksum(line[1:-3]) != int(line[-2:], 16):
         return Rejected(UNTRUSTED_COMMAND, NakReason.CHECKSUM)
@@ -184,8 +183,7 @@ def parse_firmware_line(line: bytes) -> protocol.HostCommand | Rejected:
 
 def encode_nak(command: bytes, reason: NakReason) -> bytes:
     """A NAK echoing the command's name byte for byte, as the firmware does."""
-    body = b'NAK,' + command + b',' + reason.value.encode('ascii')
-    return b'$' + body + b'*' + b'%02X' % protocol.checksum(body) + b'\n'
+    return protocol.frame_body(b'NAK,' + command + b',' + reason.value.encode('ascii'))
 
 
 class SimDevice:
