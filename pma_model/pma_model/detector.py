@@ -46,6 +46,11 @@ class BranchDetector:
         self.branch = self._initial_branch
         self._extreme_pa = math.nan  # highest (increasing) or lowest (decreasing) since reversal
 
+    def resume_from(self, other: BranchDetector) -> None:
+        """Continue where `other` is (branch and extreme), keeping this deadband."""
+        self.branch = other.branch
+        self._extreme_pa = other._extreme_pa
+
     def _reverses(self, p_pa: float) -> bool:
         moved = (self._extreme_pa - p_pa) if self.branch == BRANCH_INCREASING \
             else (p_pa - self._extreme_pa)

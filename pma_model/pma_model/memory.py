@@ -169,8 +169,7 @@ class HysteresisModel:
             self._rising = other._rising
             self._l = min(max(other.length_m, float(self.decreasing.length(self._p))),
                           float(self.increasing.length(self._p)))
-        self._detector.branch = other._detector.branch
-        self._detector._extreme_pa = other._detector._extreme_pa
+        self._detector.resume_from(other._detector)
 
     @property
     def deadband_pa(self) -> float:

@@ -58,6 +58,8 @@ class ModelNode(Node):
         super().__init__('model_node', **kwargs)
         self._lock = threading.Lock()
         defaults = default_params()
+        # The model's own parameter names (others, e.g. use_sim_time, are not the model's).
+        self._model_parameter_names = tuple(defaults.to_ros_parameters())
         for name, value in defaults.to_ros_parameters().items():
             descriptor = ParameterDescriptor(description=_describe(name))
             if name in _RANGES:
@@ -119,15 +121,13 @@ class ModelNode(Node):
     # --- parameters -----------------------------------------------------------------
 
     def _model_parameter_values(self, changes: dict | None = None) -> dict:
-        names = default_params().to_ros_parameters()
-        values = {name: self.get_parameter(name).value for name in names}
+        values = {name: self.get_parameter(name).value for name in self._model_parameter_names}
         values.update(changes or {})
         return values
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         """Validate the new set as a whole; no side effects here (rclpy's contract)."""
-        model_names = default_params().to_ros_parameters()
-        changes = {p.name: p.value for p in parameters if p.name in model_names}
+        changes = {p.name: p.value for p in parameters if p.name in self._model_parameter_names}
         if not changes:
             return SetParametersResult(successful=True)
         try:
@@ -142,8 +142,7 @@ class ModelNode(Node):
         if any(p.name == 'params_file' for p in parameters):
             self._params_file_mtime = None
             self._check_params_file()
-        model_names = default_params().to_ros_parameters()
-        if not any(p.name in model_names for p in parameters):
+        if not any(p.name in self._model_parameter_names for p in parameters):
             return
         params = ModelParams.from_ros_parameters(self._model_parameter_values())
         with self._lock:
