@@ -29,7 +29,7 @@ from pma_model.detector import DEFAULT_DEADBAND_PA, detect_branches
 from pma_model.fitting import BranchFit, LeastSquaresFit, fit_branch_multistart
 from pma_model.memory import MEMORY_MODES, HysteresisModel
 from pma_model.metrics import fit_metrics
-from pma_model.samples import STEADY_FRACTION, BranchData, Samples, hold_runs
+from pma_model.samples import BranchData, Samples, settled_holds
 
 PAPER_C = 6.214
 MODEL_NAMES = ('sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear')
@@ -301,10 +301,7 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
     still run along every sample, since the memory depends on the whole path.
     """
     stroke_cm = float(units.m_to_cm(np.ptp(samples.length_m)))
-    drive = samples.setpoint_pa if samples.setpoint_pa is not None else samples.pressure_pa
-    runs = hold_runs(drive)
-    holds = [(start + int((end - start) * (1 - STEADY_FRACTION)), end) for start, end in runs]
-    on_holds = sum(end - start for start, end in runs) >= 0.5 * drive.size
+    holds, on_holds = settled_holds(samples)
 
     def scored(values: np.ndarray) -> np.ndarray:
         return np.array([values[a:b].mean() for a, b in holds]) if on_holds else values

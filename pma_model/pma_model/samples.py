@@ -314,6 +314,20 @@ def hold_runs(values: np.ndarray, tolerance: float = HOLD_TOLERANCE_PA,
     return runs
 
 
+def settled_holds(samples: Samples) -> tuple[list[tuple[int, int]], bool]:
+    """The settled part of each hold, and whether holds make up most of the path.
+
+    Holds are found on the setpoint when it was recorded (the pressure otherwise); the
+    settled part is the last STEADY_FRACTION of each. "Mostly holds" means a staircase,
+    whose holds are best reduced to their means.
+    """
+    drive = samples.setpoint_pa if samples.setpoint_pa is not None else samples.pressure_pa
+    runs = hold_runs(drive)
+    mostly_holds = sum(end - start for start, end in runs) >= 0.5 * drive.size
+    settled = [(start + int((end - start) * (1 - STEADY_FRACTION)), end) for start, end in runs]
+    return settled, mostly_holds
+
+
 def split_branches(samples: Samples, deadband_pa: float,
                    steady_state: bool | None = None) -> BranchData:
     """Label samples with the detector; reduce holds to their means (None: if mostly holds)."""
@@ -322,16 +336,14 @@ def split_branches(samples: Samples, deadband_pa: float,
                            'topic is empty)')
     labels = detect_branches(samples.pressure_pa, deadband_pa)
     pressure, length = samples.pressure_pa, samples.length_m
-    drive = samples.setpoint_pa if samples.setpoint_pa is not None else samples.pressure_pa
-    runs = hold_runs(drive) if steady_state is not False else []
+    steady, mostly_holds = settled_holds(samples) if steady_state is not False else ([], False)
     if steady_state is None:  # auto: reduce only data that are mostly holds (a staircase)
-        steady_state = sum(end - start for start, end in runs) >= 0.5 * drive.size
+        steady_state = mostly_holds
     if steady_state:
-        if not runs:
+        if not steady:
             raise SamplesError(f'{samples.source}: no holds found for --steady-state (no run of '
                                f'{MIN_HOLD_SAMPLES}+ samples within {HOLD_TOLERANCE_PA:.0f} Pa); '
                                'use --no-steady-state')
-        steady = [(start + int((end - start) * (1 - STEADY_FRACTION)), end) for start, end in runs]
         pressure = np.array([pressure[a:b].mean() for a, b in steady])
         length = np.array([length[a:b].mean() for a, b in steady])
         labels = np.array([labels[b - 1] for _, b in steady])
