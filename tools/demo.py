@@ -214,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
 
         from pma_interfaces.action import Sweep
         from pma_interfaces.msg import ModelParams, PmaState
+        from pma_model.detector import BRANCH_NAMES
 
         states: list = []
         node.create_subscription(PmaState, 'pma/state', states.append, qos_profile_sensor_data)
@@ -244,8 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         say('5/7 pressure_for_length (the inverse model)')
         print('        length     branch             gauge pressure   reachable on that branch')
         for length_m, branch, answer in ask_pressures(node, [0.29, 0.27, 0.25]):
-            names = {0: 'auto', 1: 'increasing', 2: 'decreasing'}
-            name = names[branch] if branch else f'auto: {names[answer.branch]}'
+            name = BRANCH_NAMES[branch] if branch else f'auto: {BRANCH_NAMES[answer.branch]}'
             if answer.success:
                 reach = f'{answer.min_length_m * 100:.2f}..{answer.max_length_m * 100:.2f} cm'
                 print(f'      {length_m * 100:6.2f} cm  {name:17s}'
