@@ -51,8 +51,7 @@ def test_adaptation_brings_the_drifted_error_back_to_the_models_floor(drifting_r
     adapter = DriftAdapter(params.build_model().rest_length_m, settings)
     adapted = np.empty(path.size)
     for i, (model_length, measurement) in enumerate(zip(frozen, measured, strict=True)):
-        adapted[i] = adapter.correct(model_length)   # predict first, then learn
-        adapter.update(model_length, measurement)
+        adapted[i] = adapter.correct_then_learn(model_length, measurement)
     settled = slice(path.size // 2, None)
     floor = rms_mm(frozen[settled] - steady[settled])
     drifting = rms_mm(frozen[settled] - drifted[settled])

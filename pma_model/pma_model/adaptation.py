@@ -90,6 +90,15 @@ class DriftAdapter:
         return self.reference_length_m + (np.asarray(adapted_length_m, dtype=float)
                                           - self.reference_length_m - self.shift_m) / self.gain
 
+    def correct_then_learn(self, model_length_m: float, measured_length_m: float) -> float:
+        """This sample's adapted prediction, made before learning from its measurement.
+
+        The online order: the published prediction (and its residual) stays out-of-sample.
+        """
+        predicted = float(self.correct(model_length_m))
+        self.update(model_length_m, measured_length_m)
+        return predicted
+
     def update(self, model_length_m: float, measured_length_m: float) -> bool:
         """Learn from one sample; False (and no change) for NaN/inf or an outlier."""
         model_length_m, measured_length_m = float(model_length_m), float(measured_length_m)

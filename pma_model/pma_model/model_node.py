@@ -218,10 +218,7 @@ class ModelNode(Node):
                 self._latest_state = state
                 base_length, branch = self._model.update(pressure)
                 if self._params.adaptation.enabled:
-                    # Predict first, then learn from this measurement: the published
-                    # prediction and residual stay out-of-sample.
-                    predicted = float(self._adapter.correct(base_length))
-                    self._adapter.update(base_length, measured)
+                    predicted = self._adapter.correct_then_learn(base_length, measured)
                     offset, gain = self._adapter.offset_m, self._adapter.gain
                 else:
                     predicted, offset, gain = base_length, 0.0, 1.0

@@ -37,8 +37,7 @@ def test_drifting_rig_is_brought_back_to_the_noise_floor():
     adapter = DriftAdapter(reference, AdaptationSettings(enabled=True, forgetting=0.99))
     adapted = np.empty(base.size)
     for i, (model_length, measurement) in enumerate(zip(base, measured, strict=True)):
-        adapted[i] = adapter.correct(model_length)  # predict first, then learn
-        adapter.update(model_length, measurement)
+        adapted[i] = adapter.correct_then_learn(model_length, measurement)
 
     settled = slice(base.size // 2, None)
     before = rms(base[settled] - truth[settled])
