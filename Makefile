@@ -34,7 +34,7 @@ integration: setup
 	@$(ENV) python -m pytest -m integration $(PYTEST_ARGS)
 
 demo: setup
-	@$(ENV) python tools/demo.py
+	@$(ENV) ros2_ws/install/pma_bringup/lib/pma_bringup/demo
 
 bench: setup
 	@$(ENV) python bench/run_all.py

@@ -18,7 +18,7 @@ from mcap.writer import CompressionType, Writer
 from rclpy.serialization import serialize_message
 from rosbags.highlevel import AnyReader
 
-from pma_driver.bag import BagReader, BagWriter
+from pma_bag import BagReader, BagWriter
 from pma_interfaces.msg import PmaState
 
 STATE = 'pma_interfaces/msg/PmaState'

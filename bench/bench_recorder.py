@@ -28,11 +28,11 @@ from benchlib import check, cpu_seconds, isolate_ros_graph, load_row, print_tabl
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from pma_driver.bag import BagReader
+from pma_bag import BagReader
 from pma_interfaces.msg import PmaState
 
 ROOT = Path(__file__).resolve().parents[1]
-RECORDER = ROOT / 'ros2_ws' / 'install' / 'pma_driver' / 'lib' / 'pma_driver' / 'recorder'
+RECORDER = ROOT / 'ros2_ws' / 'install' / 'pma_bag' / 'lib' / 'pma_bag' / 'record'
 PUBLISHER = ROOT / 'tests' / 'helpers' / 'bag_state_publisher.py'
 TOPIC = '/pma/state'
 RATE_HZ = 1000.0

@@ -33,7 +33,7 @@ TARGET_S = 15.0
 def write_bag(path: Path) -> int:
     from rclpy.serialization import serialize_message
 
-    from pma_driver.bag import BagWriter
+    from pma_bag import BagWriter
     from pma_interfaces.msg import PmaState
     from pma_model.params import default_params
 
@@ -83,7 +83,7 @@ def time_it(function):
 
 
 def main() -> int:
-    from pma_driver.bag import BagReader
+    from pma_bag import BagReader
     from pma_model import refit
     from pma_model.samples import read_bag
 

@@ -19,13 +19,13 @@ setup(
     zip_safe=True,
     maintainer='PMA testbed team',
     maintainer_email='pma-testbed@example.org',
-    description='Serial driver, firmware, simulated rig and recorder for the PMA testbed.',
+    description='Serial driver, firmware and simulated rig for the PMA testbed.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'driver_node = pma_driver.driver_node:main',
-            'fake_arduino = pma_driver.fake_arduino:main',
-            'recorder = pma_driver.recorder_node:main',
+            'driver_node = pma_driver.entry_points:driver_node',
+            'fake_arduino = pma_driver.entry_points:fake_arduino',
+            'recorder = pma_driver.entry_points:recorder',
         ],
     },
 )

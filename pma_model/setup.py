@@ -24,9 +24,9 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'model_node = pma_model.model_node:main',
-            'replay = pma_model.replay:main',
+            'model_node = pma_model.entry_points:model_node',
             'refit = pma_model.refit:main',
+            'replay = pma_model.entry_points:replay',
         ],
     },
 )

@@ -25,9 +25,9 @@ from support.procs import INSTALL, ROOT
 DOCKER = ROOT / 'docker'
 KNOWN_INSTRUCTIONS = {'FROM', 'SHELL', 'ENV', 'WORKDIR', 'COPY', 'RUN', 'ENTRYPOINT', 'CMD',
                       'ARG', 'LABEL', 'USER', 'EXPOSE', 'VOLUME', 'HEALTHCHECK', 'STOPSIGNAL'}
-PACKAGES = ('pma_interfaces', 'pma_driver', 'pma_model')
+PACKAGES = tuple(sorted(p.name for p in (ROOT / 'ros2_ws' / 'src').iterdir()))
 # rosdep keys the Dockerfile skips, and the PyPI distribution that must replace each.
-PIP_FOR_SKIPPED_KEY = {'python3-mcap': 'mcap'}
+PIP_FOR_SKIPPED_KEY: dict[str, str] = {}
 
 
 def dockerfile_instructions(path: Path) -> list[tuple[str, str]]:
@@ -114,6 +114,12 @@ def test_dockerfile_installs_dependencies_the_ros_way(instructions):
     assert re.search(r'rosdep install --from-paths src --ignore-src -y', commands)
     assert 'colcon build' in commands
     assert 'ros-${ROS_DISTRO}-rosbag2-storage-mcap' in commands
+    # pip keys (mcap-ros2-support) need pip, and leave to install on Ubuntu 24.04's Python.
+    assert commands.index('python3-pip') < commands.index('rosdep install')
+    assert ('ENV', 'PIP_BREAK_SYSTEM_PACKAGES=1') in instructions
+    pinned = [line for line in (ROOT / 'requirements' / 'python.txt').read_text().splitlines()
+              if line.startswith(('mcap==', 'mcap-ros2-support=='))]
+    assert len(pinned) == 2 and all(pin in commands for pin in pinned)
     skipped = re.findall(r'--skip-keys\s+(\S+)', commands)
     pins = {line.split('==')[0]: line for line in
             (ROOT / 'requirements' / 'python.txt').read_text().splitlines() if '==' in line}

@@ -33,8 +33,8 @@ from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
-DRIVER = '/pma_driver'
-DIAG_NAME = 'pma_driver: serial link'
+DRIVER = '/driver_node'
+DIAG_NAME = '/driver_node: serial link'
 
 
 @pytest.fixture(scope='module')

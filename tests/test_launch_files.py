@@ -31,13 +31,13 @@ from support.ros import SpinningNode, shutdown, wait_until
 
 LAUNCH_FILES = {
     'driver': ROOT / 'pma_driver' / 'launch' / 'driver.launch.py',
-    'bringup': ROOT / 'pma_driver' / 'launch' / 'pma_bringup.launch.py',
+    'bringup': ROOT / 'pma_bringup' / 'launch' / 'bringup.launch.py',
     'model': ROOT / 'pma_model' / 'launch' / 'model.launch.py',
 }
 # (package, executable) -> the name the node gives itself in code.
-NODE_NAMES = {('pma_driver', 'driver_node'): 'pma_driver',
+NODE_NAMES = {('pma_driver', 'driver_node'): 'driver_node',
               ('pma_model', 'model_node'): 'model_node',
-              ('pma_driver', 'recorder'): 'recorder'}
+              ('pma_bag', 'record'): 'recorder'}
 
 # ---------------------------------------------------------------------------------------
 # Stand-ins for launch / launch_ros (Jazzy signatures, keyword names only).
@@ -358,7 +358,7 @@ def declared(module_procs, tmp_path_factory) -> dict[tuple[str, str], dict[str, 
     module_procs.ros2_run('pma_driver', 'driver_node',
                           ros_args=['-p', 'port:=/nonexistent/pma_launch_test'])
     module_procs.ros2_run('pma_model', 'model_node')
-    module_procs.ros2_run('pma_driver', 'recorder', '-o', str(bag))
+    module_procs.ros2_run('pma_bag', 'record', '-o', str(bag))
     probe = SpinningNode('launch_file_probe')
     try:
         result = {}
@@ -389,7 +389,7 @@ def check_nodes_against_code(launched: Launched, declared: dict) -> None:
             assert parameter_type(value) == declared[key][name], (
                 f'{key[1]}: {name}={value!r} has another type than the node declares')
         if key[1] == 'recorder':
-            from pma_driver.recorder_node import parse_args
+            from pma_bag.record import parse_args
             assert parse_args(node['arguments']).output is not None
 
 
@@ -463,23 +463,23 @@ def test_bringup_on_hardware_starts_driver_and_model_only(stand_ins, declared):
 @pytest.mark.integration
 def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_ins, declared,
                                                                          tmp_path):
+    from pma_bag.record import parse_args as recorder_args
     from pma_driver.fake_arduino import parse_args as fake_arduino_args
-    from pma_driver.recorder_node import parse_args as recorder_args
 
     seen = {}
     for side in ('left', 'right'):
         launched = launch('bringup', namespace=side, use_fake_arduino='true', record='true')
         check_nodes_against_code(launched, declared)
         nodes = {n['executable']: n for n in launched.nodes}
-        assert sorted(nodes) == ['driver_node', 'model_node', 'recorder']
+        assert sorted(nodes) == ['driver_node', 'model_node', 'record']
         assert {n['namespace'] for n in nodes.values()} == {side}
         [fake] = launched.processes
         assert fake[0] == str(INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'fake_arduino')
         fake_args = fake_arduino_args(fake[1:])        # fake_arduino's own parser accepts them
         port = parameters_given(nodes['driver_node'])['port']
         assert str(fake_args.link) == port and port.startswith('/tmp/')
-        bag = recorder_args(nodes['recorder']['arguments']).output
-        topics = parameters_given(nodes['recorder'])['topics']
+        bag = recorder_args(nodes['record']['arguments']).output
+        topics = parameters_given(nodes['record'])['topics']
         assert 'pma/state' in topics and '/diagnostics' in topics
         seen[side] = (port, bag.name)
     assert seen['left'][0] != seen['right'][0]
@@ -489,7 +489,7 @@ def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_
                       port=str(tmp_path / 'dev'), bag_dir=str(tmp_path / 'bag'))
     nodes = {n['executable']: n for n in explicit.nodes}
     assert fake_arduino_args(explicit.processes[0][1:]).link == tmp_path / 'dev'
-    assert recorder_args(nodes['recorder']['arguments']).output == tmp_path / 'bag'
+    assert recorder_args(nodes['record']['arguments']).output == tmp_path / 'bag'
 
 
 def test_launch_arguments_refuse_values_outside_their_choices(stand_ins):
@@ -529,7 +529,7 @@ def test_setup_py_installs_launch_and_config_files():
         for launch_file in (ROOT / package / 'launch').glob('*.launch.py'):
             installed = INSTALL / package / 'share' / package / 'launch' / launch_file.name
             assert installed.is_file(), f'{installed} missing: run make setup'
-    assert (INSTALL / 'pma_driver' / 'share' / 'pma_driver' / 'config' / 'recorder.yaml'
+    assert (INSTALL / 'pma_bag' / 'share' / 'pma_bag' / 'config' / 'record.yaml'
             ).is_file()
 
 

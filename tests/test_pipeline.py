@@ -26,7 +26,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from pma_driver.bag import BagReader
+from pma_bag import BagReader
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import ModelParams, PmaPrediction, PmaState
 from support.ros import SpinningNode, shutdown, wait_until
@@ -238,15 +238,15 @@ def replayed(swept, module_procs, probe):
     model.wait_for_line('model_node ready', 30)
     stream = Stream(probe.node, '/replayed')
     wait_until(lambda: stream.count('params') >= 1, 20, 'replayed model parameters')
-    player = module_procs.ros2_run('pma_model', 'replay', swept['bag'], '--start-paused',
+    player = module_procs.ros2_run('pma_bag', 'play', swept['bag'], '--start-paused',
                                    '--topics', 'pma/state',
                                    '--remap', '/pma/state:=/replayed/pma/state')
-    player.wait_for_line('replay: playing', 30)
+    player.wait_for_line('play: playing', 30)
     wait_until(lambda: probe.node.count_publishers('/replayed/pma/state') >= 1, 20,
                'the player on /replayed/pma/state')
     from std_srvs.srv import Trigger
-    step = probe.node.create_client(Trigger, '/replay/play_next')
-    resume = probe.node.create_client(Trigger, '/replay/resume')
+    step = probe.node.create_client(Trigger, '/player/play_next')
+    resume = probe.node.create_client(Trigger, '/player/resume')
     assert step.wait_for_service(timeout_sec=20) and resume.wait_for_service(timeout_sec=20)
     # The graph shows the player before its writer has matched model_node's best-effort
     # reader, and nothing outside the two processes can see that match: step the bag one
@@ -263,7 +263,7 @@ def replayed(swept, module_procs, probe):
             continue
     future = resume.call_async(Trigger.Request())
     wait_until(future.done, 10, 'resume')
-    player.wait_for_line('replay: done', timeout=180)
+    player.wait_for_line('play: done', timeout=180)
     assert player.popen.wait(10) == 0, player.output
     with BagReader(swept['bag']) as reader:
         expected = reader.topics['/pma/state'].message_count

@@ -13,7 +13,7 @@ from mcap_ros2.decoder import DecoderFactory
 from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
-from pma_driver.bag import BagReader
+from pma_bag import BagReader
 from pma_interfaces.msg import ModelParams, PmaState
 from support.procs import INSTALL
 
@@ -29,7 +29,7 @@ def record(procs, bag: Path, *, count: int, rate: float, namespace: str = '',
            stop_signal=signal.SIGINT, latched: bool = False) -> str:
     """Run recorder + publisher until the publisher is done; return the recorder output."""
     ros_args = ['-r', f'__ns:={namespace}'] if namespace else None
-    recorder = procs.ros2_run('pma_driver', 'recorder', '-o', bag, ros_args=ros_args)
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, ros_args=ros_args)
     recorder.wait_for_line('recorder: recording', timeout=30)
     extra = ['--latched-params', f'{namespace}/pma/model_params'] if latched else []
     publisher = procs.python(HELPERS / 'bag_state_publisher.py',
@@ -83,14 +83,14 @@ def replay_into(procs, tmp_path, bag, *replay_args, listen=(('/pma/state', STATE
         out = tmp_path / f'got{index}.json'
         extra = ['--best-effort'] if topic == '/clock' else []
         if index == 0:
-            extra += ['--resume-service', '/replay/resume']
+            extra += ['--resume-service', '/player/resume']
         sub = procs.python(HELPERS / 'subscriber.py', '--topic', topic, '--type', type_name,
                            '--field', field, '--out', str(out), '--timeout', str(timeout),
                            *extra)
         sub.wait_for_line('subscriber: listening', timeout=20)
         outputs[topic] = (sub, out)
-    player = procs.ros2_run('pma_model', 'replay', bag, '--start-paused', *replay_args)
-    player.wait_for_line('replay: done', timeout=timeout)
+    player = procs.ros2_run('pma_bag', 'play', bag, '--start-paused', *replay_args)
+    player.wait_for_line('play: done', timeout=timeout)
     assert player.popen.wait(10) == 0, player.output
     results = {}
     for topic, (sub, out) in outputs.items():
@@ -140,9 +140,9 @@ def test_replay_loop_plays_the_bag_again(procs, tmp_path, recorded):
     out = tmp_path / 'looped.json'
     sub = procs.python(HELPERS / 'subscriber.py', '--topic', '/pma/state', '--type', STATE,
                        '--field', 'seq', '--out', str(out), '--count', str(2 * COUNT + 50),
-                       '--timeout', '40', '--resume-service', '/replay/resume')
+                       '--timeout', '40', '--resume-service', '/player/resume')
     sub.wait_for_line('subscriber: listening', timeout=20)
-    player = procs.ros2_run('pma_model', 'replay', recorded, '--start-paused', '--loop',
+    player = procs.ros2_run('pma_bag', 'play', recorded, '--start-paused', '--loop',
                             '--rate', '4', '--topics', 'pma/state')
     sub.wait_for_line('subscriber: got', timeout=60)
     assert player.alive(), 'a looping player only stops when told to'
@@ -182,7 +182,7 @@ def test_replay_refuses_foreign_and_truncated_bags(procs, tmp_path, recorded):
     truncated.write_bytes((recorded / 'run_0.mcap').read_bytes()[:-200])
     for bag, reason in ((foreign, 'profile'), (truncated, 'recover'),
                         (tmp_path / 'missing', 'does not exist')):
-        player = procs.ros2_run('pma_model', 'replay', bag)
+        player = procs.ros2_run('pma_bag', 'play', bag)
         assert player.popen.wait(30) == 2
         lines = player.output.strip().splitlines()
         assert len(lines) == 1 and reason in lines[0] and 'Traceback' not in player.output
@@ -197,7 +197,7 @@ def test_recorder_with_unwritable_path_reports_and_stays_up(procs, tmp_path):
                        '--field', 'status.0.level', '--field', 'status.0.message',
                        '--timeout', '6', '--out', str(diagnostics))
     sub.wait_for_line('subscriber: listening', timeout=20)
-    recorder = procs.ros2_run('pma_driver', 'recorder', '-o', blocker / 'bag')
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', blocker / 'bag')
     recorder.wait_for_line('recorder: ERROR', timeout=30)
     sub.wait_for_line('subscriber: got', timeout=30)
     ours = [(level, message) for _, (hardware_id, level, message)
@@ -214,7 +214,7 @@ def test_recover_command(procs, tmp_path, recorded):
     broken.mkdir()
     (broken / 'broken_0.mcap').write_bytes((recorded / 'run_0.mcap').read_bytes()[:-300])
     out = tmp_path / 'fixed'
-    proc = procs.ros2_run('pma_driver', 'recorder', 'recover', broken, '-o', out)
+    proc = procs.ros2_run('pma_bag', 'record', 'recover', broken, '-o', out)
     assert proc.popen.wait(30) == 0, proc.output
     assert 'recovered' in proc.output
     with BagReader(out) as reader:

@@ -91,9 +91,19 @@ if [ "${changed}" = 1 ]; then
     say "colcon build in ${WS}"
     command -v colcon >/dev/null || die "colcon not found. With a system ROS 2: sudo apt-get install python3-colcon-common-extensions"
     cd "${WS}"
-    if ! colcon build --symlink-install --cmake-args "-DPython3_EXECUTABLE=$(command -v python3)" -DBUILD_TESTING=OFF > "${WS}/log/pma-last-build.txt" 2>&1; then
-        tail -n 40 "${WS}/log/pma-last-build.txt" >&2 || true
-        die "colcon build failed; full output in ros2_ws/log/pma-last-build.txt"
+    build() {
+        colcon build --symlink-install --cmake-args "-DPython3_EXECUTABLE=$(command -v python3)" \
+            -DBUILD_TESTING=OFF > "${WS}/log/pma-last-build.txt" 2>&1
+    }
+    if ! build; then
+        # A file moved or deleted since the last build leaves a dangling symlink in build/
+        # that setuptools refuses to copy: start from a clean workspace once.
+        say "colcon build failed; retrying from a clean build/ and install/"
+        rm -rf "${WS}/build" "${WS}/install"
+        if ! build; then
+            tail -n 40 "${WS}/log/pma-last-build.txt" >&2 || true
+            die "colcon build failed; full output in ros2_ws/log/pma-last-build.txt"
+        fi
     fi
     touch "${build_stamp}"
     say "workspace built"

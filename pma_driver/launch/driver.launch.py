@@ -34,7 +34,7 @@ def generate_launch_description():
     autostart = LaunchConfiguration('autostart')
 
     driver = LifecycleNode(
-        package='pma_driver', executable='driver_node', name='pma_driver', namespace=namespace,
+        package='pma_driver', executable='driver_node', name='driver_node', namespace=namespace,
         # The launch argument `port` overrides the params file's `port` (last one wins).
         # ParameterValue(str) keeps a value such as '' or '1' from turning into YAML null/int.
         parameters=[params_file, {'port': ParameterValue(port, value_type=str),

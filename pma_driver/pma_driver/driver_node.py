@@ -33,7 +33,7 @@ from rcl_interfaces.msg import (
 )
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import Node, State, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -41,12 +41,13 @@ from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
+from pma_bag.record import DEFAULT_TOPICS
+from pma_common.node import ros_context, spin_until_stopped
 from pma_driver import protocol
 from pma_driver.calibration import LengthCalibration, PressureCalibration
 from pma_driver.clock_sync import ClockSync
 from pma_driver.link import LinkError, LinkState, PortOpenError, SerialLink
 from pma_driver.protocol import Ack, Command, Hello
-from pma_driver.recorder_node import DEFAULT_TOPICS
 from pma_driver.sweep import SweepError, SweepPlan, plan_sweep
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
@@ -168,19 +169,19 @@ def to_time_msg(ns: int) -> Time:
 
 
 def recorder_executable() -> Path:
-    """The recorder installed next to this node (install/pma_driver/lib/pma_driver/recorder)."""
+    """pma_bag's record executable (install/pma_bag/lib/pma_bag/record)."""
     try:
         from ament_index_python.packages import get_package_prefix
-        return Path(get_package_prefix('pma_driver')) / 'lib' / 'pma_driver' / 'recorder'
+        return Path(get_package_prefix('pma_bag')) / 'lib' / 'pma_bag' / 'record'
     except (ImportError, LookupError, ValueError):
-        return Path(sys.argv[0]).resolve().parent / 'recorder'
+        return Path(sys.argv[0]).resolve().parents[2] / 'pma_bag' / 'lib' / 'pma_bag' / 'record'
 
 
 class PmaDriver(Node):
     """Lifecycle node: configure opens the port, activate publishes, cleanup closes it."""
 
     def __init__(self, **kwargs):
-        super().__init__('pma_driver', **kwargs)
+        super().__init__('driver_node', **kwargs)
         for name, (default, description, extra) in PARAMETERS.items():
             self.declare_parameter(name, default, ParameterDescriptor(
                 description=description, **extra))
@@ -791,7 +792,7 @@ class PmaDriver(Node):
 
     def diagnostic_status(self) -> DiagnosticStatus:
         status = DiagnosticStatus()
-        status.name = f'{self.get_name()}: serial link'
+        status.name = f'{self.get_fully_qualified_name()}: serial link'
         status.hardware_id = self.get_parameter('port').value
         values: dict[str, str] = {'lifecycle state': self._state_label()}
         link = self._link
@@ -854,24 +855,22 @@ class PmaDriver(Node):
         return DiagnosticStatus.ERROR, stats.state_detail or state.value
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PmaDriver()
+def main(args=None) -> int:
+    with ros_context(args) as stop:
+        try:
+            node = PmaDriver()
+        except rclpy.exceptions.InvalidParameterValueException as error:
+            print(f'driver_node: bad parameter: {error}', file=sys.stderr)
+            return 2
         executor = MultiThreadedExecutor(num_threads=4)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except rclpy.exceptions.InvalidParameterValueException as error:
-        print(f'driver_node: bad parameter: {error}', file=sys.stderr)
-    finally:
-        if node is not None:
-            node.shutdown_hardware()
+        try:
+            spin_until_stopped(executor, node, stop)
+        finally:
+            node.shutdown_hardware()        # vent and close the port, whatever comes in
+            executor.shutdown()
             node.destroy_node()
-        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

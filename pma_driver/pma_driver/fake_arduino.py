@@ -20,13 +20,13 @@ import errno
 import logging
 import os
 import select
-import signal
 import sys
 import termios
 import time
 import tty
 from pathlib import Path
 
+from pma_common.stop import StopRequest, stop_request
 from pma_driver import protocol
 from pma_driver.protocol import Valve
 from pma_driver.sim.device import (
@@ -51,7 +51,6 @@ ATTACH_SETTLE_S = 0.05
 
 
 MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
-_stop_requested: list[str] = []   # set by the signal handler, checked by the main loop
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -288,11 +287,6 @@ class Writer:
         return False
 
 
-def _on_signal(signum, _frame):
-    # Only a flag: raising here could land inside logging or a write and be swallowed.
-    _stop_requested.append(signal.Signals(signum).name)
-
-
 def configs_from_args(args: argparse.Namespace) -> tuple[DeviceConfig, LinkFaultConfig]:
     """Raises ValueError with a readable message for out-of-range options."""
     device = DeviceConfig(
@@ -305,7 +299,7 @@ def configs_from_args(args: argparse.Namespace) -> tuple[DeviceConfig, LinkFault
     return device, link
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, stop: StopRequest) -> int:
     config, fault_config = configs_from_args(args)
     faults = LinkFaults(fault_config, seed=args.seed)
     link = Link(args.link)
@@ -333,7 +327,7 @@ def run(args: argparse.Namespace) -> int:
     boot = time.monotonic()
     stalled = False
     try:
-        while not _stop_requested:
+        while not stop.is_set():
             now = time.monotonic()
             if unplug_at is not None and now >= unplug_at:
                 log.warning('simulated unplug: closing %s', port.path)
@@ -389,7 +383,7 @@ def run(args: argparse.Namespace) -> int:
                 if data:
                     device.advance_to(int((time.monotonic() - boot) * 1000))
                     device.receive(data)
-        log.info('%s: shutting down', _stop_requested[0])
+        log.info('%s: shutting down', stop.reason)
     finally:
         link.remove()
         if port is not None:
@@ -411,9 +405,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as error:
         print(f'fake_arduino: {error}', file=sys.stderr)
         return 2
-    signal.signal(signal.SIGINT, _on_signal)
-    signal.signal(signal.SIGTERM, _on_signal)
-    return run(args)
+    return run(args, stop_request())
 
 
 if __name__ == '__main__':

@@ -9,16 +9,17 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import threading
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
+from pma_common.node import ros_context, spin_until_stopped
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
@@ -316,19 +317,15 @@ class ModelNode(Node):
         self._diagnostics_pub.publish(array)
 
 
-def main(args=None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
+def main(args=None) -> int:
+    with ros_context(args) as stop:
         node = ModelNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
+        try:
+            spin_until_stopped(SingleThreadedExecutor(), node, stop)
+        finally:
             node.destroy_node()
-        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -117,6 +117,14 @@ def check_data(data) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
     try:
+        return run(args)
+    except KeyboardInterrupt:
+        print('refit: interrupted; files it had not finished are not written', file=sys.stderr)
+        return 130
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
         data = load_branch_data(args.input, args.deadband_pa, args.steady_state, args.topic)
         check_data(data)
 

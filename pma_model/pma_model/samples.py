@@ -132,7 +132,7 @@ def state_topic_in(topics: dict, topic: str = STATE_TOPIC) -> str:
 
 def read_bag(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
     """PmaState samples of a bag, by header.stamp; rows with NaN length are dropped."""
-    from pma_driver.bag import BagError, BagReader
+    from pma_bag import BagError, BagReader
     from pma_interfaces.msg import PmaState
 
     try:

@@ -49,7 +49,7 @@ def write_state_bag(path, t, pressure, setpoint, length, *, start_s=1_700_000_00
     """A rosbag2 MCAP bag of PmaState on /pma/state (or these topics), stamped start_s + t."""
     from rclpy.serialization import serialize_message
 
-    from pma_driver.bag import BagWriter
+    from pma_bag import BagWriter
     from pma_interfaces.msg import PmaState
 
     with BagWriter(path) as writer:

@@ -12,7 +12,7 @@ import time
 
 from rclpy.serialization import serialize_message
 
-from pma_driver.bag import BagWriter
+from pma_bag import BagWriter
 from pma_interfaces.msg import PmaState
 
 

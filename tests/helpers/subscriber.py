@@ -59,7 +59,7 @@ def main() -> int:
     parser.add_argument('--out', required=True)
     parser.add_argument('--resume-service', metavar='SRV',
                         help='once a publisher matched, call this std_srvs/Trigger service '
-                             '(e.g. /replay/resume of a player started with --start-paused)')
+                             '(e.g. /player/resume of a player started with --start-paused)')
     args = parser.parse_args()
     package, _, name = args.type.split('/')
     msg_type = getattr(importlib.import_module(f'{package}.msg'), name)

@@ -1,6 +1,6 @@
-"""replay: play a recorded bag back onto the ROS graph with its original timing.
+"""play: play a recorded bag back onto the ROS graph with its original timing.
 
-    ros2 run pma_model replay BAG [--rate R] [--loop] [--start-offset S] [--topics T ...]
+    ros2 run pma_bag play BAG [--rate R] [--loop] [--start-offset S] [--topics T ...]
                                [--remap /old:=/new ...] [--clock [HZ]] [--start-paused] [--delay S]
 
 The recorded CDR bytes are published as they are (no decode/re-encode), spaced by their
@@ -24,10 +24,9 @@ import time
 import warnings
 from pathlib import Path
 
-import rclpy
 from builtin_interfaces.msg import Time
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -40,8 +39,9 @@ from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
-from pma_driver.bag import BagError, BagReader, TopicInfo
-from pma_driver.bag.reader import TruncatedBagWarning
+from pma_bag import BagError, BagReader, TopicInfo
+from pma_bag.reader import TruncatedBagWarning
+from pma_common.node import ros_context, spin_until_stopped
 
 NS_PER_S = 1_000_000_000
 DEFAULT_QOS_DEPTH = 1000
@@ -123,7 +123,7 @@ class Player(Node):
     """Publishes a bag's messages from a playback thread; the executor serves the services."""
 
     def __init__(self, reader: BagReader, args: argparse.Namespace):
-        super().__init__('replay')
+        super().__init__('player')
         self.reader = reader
         self.rate = args.rate
         self.loop = args.loop
@@ -279,7 +279,7 @@ class Player(Node):
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog='replay', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='play', description=__doc__.split('\n')[0])
     parser.add_argument('bag', type=Path, help='bag directory or .mcap file')
     parser.add_argument('-r', '--rate', type=float, default=1.0, help='speed factor (> 0)')
     parser.add_argument('-l', '--loop', action='store_true', help='play again from the start')
@@ -310,7 +310,7 @@ def open_bag(path: Path) -> BagReader:
     if reader.truncated:
         reader.close()
         raise BagError(f'bag {path} is truncated (not closed by its recorder); recover it '
-                       f'first: ros2 run pma_driver recorder --recover {path}')
+                       f'first: ros2 run pma_bag recover {path}')
     return reader
 
 
@@ -340,34 +340,37 @@ def main(argv: list[str] | None = None) -> int:
     try:
         reader = open_bag(args.bag)
     except BagError as exc:
-        print(f'replay: {exc}', file=sys.stderr)
+        print(f'play: {exc}', file=sys.stderr)
         return 2
-    rclpy.init(args=argv)
-    try:
-        player = Player(reader, args)
-    except BagError as exc:
-        print(f'replay: {exc}', file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    executor = SingleThreadedExecutor()
-    executor.add_node(player)
-    print(f'replay: playing {player.message_total} messages on '
-          f'{len(player.publishers_by_topic)} topics from {args.bag} at rate {args.rate}'
-          + (' (paused)' if args.start_paused else ''), flush=True)
-    player.thread.start()
-    try:
-        while not player.finished.is_set():
-            executor.spin_once(timeout_sec=0.05)
-        print('replay: done', flush=True)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        player.stopping.set()
-        player.thread.join(2)
-        player.destroy_node()
-        reader.close()
-        rclpy.try_shutdown()
+    with ros_context(argv) as stop:
+        try:
+            player = Player(reader, args)
+        except BagError as exc:
+            print(f'play: {exc}', file=sys.stderr)
+            reader.close()
+            return 2
+        print(f'play: playing {player.message_total} messages on '
+              f'{len(player.publishers_by_topic)} topics from {args.bag} at rate {args.rate}'
+              + (' (paused)' if args.start_paused else ''), flush=True)
+        player.thread.start()
+        try:
+            spin_until_stopped(SingleThreadedExecutor(), player, stop,
+                               until=player.finished.is_set)
+            if player.finished.is_set():
+                print('play: done', flush=True)
+        finally:
+            player.stopping.set()
+            player.thread.join(2)
+            player.destroy_node()
+            reader.close()
     return 0
+
+
+def legacy_main() -> int:
+    """`ros2 run pma_model replay`: the old name, kept for one release."""
+    print('replay: `ros2 run pma_model replay` is now `ros2 run pma_bag play`; the old name '
+          'goes in the next release', file=sys.stderr)
+    return main()
 
 
 if __name__ == '__main__':

@@ -12,9 +12,9 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from pma_driver.bag.errors import BagError
-from pma_driver.bag.reader import BagReader, TruncatedBagWarning
-from pma_driver.bag.writer import BagWriter
+from pma_bag.errors import BagError
+from pma_bag.reader import BagReader, TruncatedBagWarning
+from pma_bag.writer import BagWriter
 
 
 @dataclass(frozen=True)
@@ -57,3 +57,28 @@ def recover_bag(bag: str | os.PathLike, output: str | os.PathLike | None = None)
                 writer.write(message.topic, message.data, message.log_time_ns,
                              message.publish_time_ns)
         return RecoveryReport(target, writer.message_count, writer.topics, reader.truncated)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`ros2 run pma_bag recover BAG [-o OUT]`: no ROS needed, so none is started."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(
+        prog='recover', description='Rewrite a bag cut short by a crash (SIGKILL, power cut) '
+        'into a clean indexed bag with metadata.yaml; the input is left as it is.')
+    parser.add_argument('bag', type=Path, help='bag directory or .mcap file')
+    parser.add_argument('-o', '--output', type=Path,
+                        help='where to write (default: <bag>_recovered next to it)')
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        report = recover_bag(args.bag, args.output)
+    except BagError as exc:
+        print(f'recover: cannot recover {args.bag}: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f'recover: interrupted; the output is incomplete, {args.bag} is unchanged',
+              file=sys.stderr)
+        return 130
+    print(f'recover: {report.summary()}')
+    return 0

@@ -22,8 +22,8 @@ from typing import Any, NamedTuple
 
 import yaml
 
-from pma_driver.bag.errors import BagError
-from pma_driver.bag.schemas import MessageSchema
+from pma_bag.errors import BagError
+from pma_bag.schemas import MessageSchema
 
 MAGIC = b'\x89MCAP0\r\n'
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL = 0x01, 0x02, 0x03, 0x04

@@ -1,10 +1,10 @@
 """One PMA muscle: driver + model (+ simulated Arduino, + recorder), all in one namespace.
 
-    ros2 launch pma_driver pma_bringup.launch.py port:=/dev/pma0
-    ros2 launch pma_driver pma_bringup.launch.py use_fake_arduino:=true record:=true
+    ros2 launch pma_bringup bringup.launch.py port:=/dev/pma0
+    ros2 launch pma_bringup bringup.launch.py use_fake_arduino:=true record:=true
     # two muscles side by side (two terminals, or include this file twice):
-    ros2 launch pma_driver pma_bringup.launch.py namespace:=left port:=/dev/pma0
-    ros2 launch pma_driver pma_bringup.launch.py namespace:=right port:=/dev/pma1
+    ros2 launch pma_bringup bringup.launch.py namespace:=left port:=/dev/pma0
+    ros2 launch pma_bringup bringup.launch.py namespace:=right port:=/dev/pma1
 
 The driver comes from driver.launch.py (a LifecycleNode that autostarts; that file says why)
 and the model from pma_model's model.launch.py, each included in its own scope so their
@@ -84,7 +84,7 @@ def _bringup(context):
 
     if _flag(arg('record')):
         actions.append(Node(
-            package='pma_driver', executable='recorder', name='recorder', namespace=namespace,
+            package='pma_bag', executable='record', name='recorder', namespace=namespace,
             arguments=['-o', arg('bag_dir') or default_bag_dir(namespace)],
             parameters=[arg('recorder_params_file')], output='screen', emulate_tty=True))
     return actions
@@ -130,7 +130,8 @@ def generate_launch_description():
             description='refit --params-out YAML that model_node hot-reloads; empty = none'),
         DeclareLaunchArgument(
             'recorder_params_file',
-            default_value=PathJoinSubstitution([driver_config, 'recorder.yaml']),
+            default_value=PathJoinSubstitution([FindPackageShare('pma_bag'), 'config',
+                                                'record.yaml']),
             description='recorder parameters (the topic list)'),
         OpaqueFunction(function=_bringup),
     ])

@@ -18,8 +18,8 @@ from mcap_ros2.decoder import DecoderFactory
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.highlevel import AnyReader
 
-from pma_driver.bag import BagReader, BagWriter
-from pma_driver.bag.schemas import (
+from pma_bag import BagReader, BagWriter
+from pma_bag.schemas import (
     SCHEMA_DELIMITER,
     TYPE_HASH_PATTERN,
     interface_file,

@@ -1,7 +1,7 @@
-"""recorder: record PMA topics into a rosbag2-compatible MCAP bag (docs/bags.md).
+"""record: record PMA topics into a rosbag2-compatible MCAP bag (docs/bags.md).
 
-    ros2 run pma_driver recorder [-o BAG_DIR] [--topics T ...] [--ros-args -r __ns:=/rig1]
-    ros2 run pma_driver recorder --recover BAG [-o OUT]      (or: recorder recover BAG)
+    ros2 run pma_bag record [-o BAG_DIR] [--topics T ...] [--ros-args -r __ns:=/rig1]
+    ros2 run pma_bag recover BAG [-o OUT]           (a bag cut short by a crash)
 
 Messages are subscribed raw and stored as received, without decode/re-encode. Each topic is
 subscribed once a publisher shows up (a periodic graph check), with the reliability and
@@ -20,11 +20,13 @@ from pathlib import Path
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from pma_driver.bag import BagError, BagWriteError, BagWriter, recover_bag
+from pma_bag import BagError, BagWriteError, BagWriter
+from pma_bag.recover import main as recover_main
+from pma_common.node import ros_context, spin_until_stopped
 
 FLUSH_AGE_S = 0.75
 FLUSH_CHECK_S = 0.25
@@ -171,9 +173,7 @@ def default_bag_name() -> Path:
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    if argv[:1] == ['recover']:
-        argv = ['--recover', *argv[1:]]
-    parser = argparse.ArgumentParser(prog='recorder', description=__doc__.split('\n')[0])
+    parser = argparse.ArgumentParser(prog='record', description=__doc__.split('\n')[0])
     parser.add_argument('-o', '--output', type=Path,
                         help='bag directory to create (default pma_bag_<date-time>)')
     parser.add_argument('--topics', nargs='+', metavar='TOPIC',
@@ -185,37 +185,35 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         help='fsync after every flush, so a power cut also loses at most ~1 s '
                              '(costs disk bandwidth on slow media)')
     parser.add_argument('--recover', type=Path, metavar='BAG',
-                        help='rewrite a truncated bag into a clean indexed one, then exit')
+                        help='same as `ros2 run pma_bag recover BAG`')
     return parser.parse_args(argv)
-
-
-def run_recover(bag: Path, output: Path | None) -> int:
-    try:
-        report = recover_bag(bag, output)
-    except BagError as exc:
-        print(f'recorder: cannot recover {bag}: {exc}', file=sys.stderr)
-        return 2
-    print(f'recorder: {report.summary()}')
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
-    args = parse_args(rclpy.utilities.remove_ros_args(argv)[1:])
+    user_args = rclpy.utilities.remove_ros_args(argv)[1:]
+    if user_args[:1] == ['recover']:
+        return recover_main(user_args[1:])
+    args = parse_args(user_args)
     if args.recover is not None:
-        return run_recover(args.recover, args.output)
-    rclpy.init(args=argv)
-    node = Recorder(args.output or default_bag_name(), args.topics or DEFAULT_TOPICS,
-                    queue_depth=args.queue_depth, fsync=args.fsync)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.close_bag()
-        node.destroy_node()
-        rclpy.try_shutdown()
+        return recover_main([str(args.recover)]
+                            + (['-o', str(args.output)] if args.output else []))
+    with ros_context(argv) as stop:
+        node = Recorder(args.output or default_bag_name(), args.topics or DEFAULT_TOPICS,
+                        queue_depth=args.queue_depth, fsync=args.fsync)
+        try:
+            spin_until_stopped(SingleThreadedExecutor(), node, stop)
+        finally:
+            node.close_bag()
+            node.destroy_node()
     return 0
+
+
+def legacy_main() -> int:
+    """`ros2 run pma_driver recorder`: the old name, kept for one release."""
+    print('recorder: `ros2 run pma_driver recorder` is now `ros2 run pma_bag record` '
+          '(and `... recover`); the old name goes in the next release', file=sys.stderr)
+    return main()
 
 
 if __name__ == '__main__':

@@ -5,10 +5,10 @@ The layout follows what Jazzy's `ros2 bag record -s mcap` writes (docs/bags.md),
 here: nodes (recorder, replay) and offline tools share this code.
 """
 
-from pma_driver.bag.errors import BagError, BagWriteError, SchemaError
-from pma_driver.bag.reader import BagMessage, BagReader, TopicInfo
-from pma_driver.bag.recover import recover_bag
-from pma_driver.bag.writer import BagWriter, qos_profile_dict
+from pma_bag.errors import BagError, BagWriteError, SchemaError
+from pma_bag.reader import BagMessage, BagReader, TopicInfo
+from pma_bag.recover import recover_bag
+from pma_bag.writer import BagWriter, qos_profile_dict
 
 __all__ = [
     'BagError',

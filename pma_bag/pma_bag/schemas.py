@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
-from pma_driver.bag.errors import SchemaError
+from pma_bag.errors import SchemaError
 
 SCHEMA_DELIMITER = '=' * 80
 PRIMITIVE_TYPES = frozenset({

@@ -22,12 +22,12 @@ from typing import Any
 import yaml
 from mcap.writer import CompressionType, IndexType, Writer
 
-from pma_driver.bag.errors import BagWriteError
-from pma_driver.bag.schemas import MessageSchema, message_schema
+from pma_bag.errors import BagWriteError
+from pma_bag.schemas import MessageSchema, message_schema
 
 METADATA_VERSION = 9
 DEFAULT_CHUNK_SIZE = 768 * 1024  # rosbag2's mcap default
-LIBRARY = 'pma_driver.bag (python mcap)'
+LIBRARY = 'pma_bag (python mcap)'
 # rmw's RMW_DURATION_INFINITE as rosbag2 writes it.
 INFINITE_DURATION = {'sec': 9223372036, 'nsec': 854775807}
 _NS_PER_S = 1_000_000_000

@@ -16,8 +16,8 @@ from mcap_ros2.decoder import DecoderFactory
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.highlevel import AnyReader
 
-from pma_driver.bag import BagError, BagReader, BagWriteError, BagWriter, recover_bag
-from pma_driver.bag.reader import TruncatedBagWarning
+from pma_bag import BagError, BagReader, BagWriteError, BagWriter, recover_bag
+from pma_bag.reader import TruncatedBagWarning
 from pma_interfaces.msg import PmaState
 
 STATE = 'pma_interfaces/msg/PmaState'

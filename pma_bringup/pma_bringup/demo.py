@@ -1,4 +1,4 @@
-"""`make demo`: the whole pipeline on the simulated Arduino, one run under runs/<timestamp>/.
+"""demo (`make demo`): the whole pipeline on the simulated rig, one run under runs/<timestamp>/.
 
 fake_arduino, driver_node, model_node and the recorder run as separate processes, exactly
 as `ros2 run` starts them; this script is the operator: it runs the paper's experiment and a
@@ -19,8 +19,11 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-INSTALL = ROOT / 'ros2_ws' / 'install'
+
+def executable(package: str, exe: str) -> Path:
+    """Where `ros2 run package exe` finds it."""
+    from ament_index_python.packages import get_package_prefix
+    return Path(get_package_prefix(package)) / 'lib' / package / exe
 
 
 def say(text: str) -> None:
@@ -36,7 +39,7 @@ class Processes:
 
     def start(self, name: str, package: str, exe: str, *args: str,
               ros_args: list[str] | None = None) -> subprocess.Popen:
-        argv = [str(INSTALL / package / 'lib' / package / exe), *args]
+        argv = [str(executable(package, exe)), *args]
         if ros_args:
             argv += ['--ros-args', *ros_args]
         log = open(self.log_dir / f'{name}.log', 'w')
@@ -163,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--hold-s', type=float, default=1.0,
                         help='hold time at each pressure step [s] (default 1.0)')
     parser.add_argument('--rate-hz', type=float, default=50.0, help='sample rate (default 50)')
-    parser.add_argument('--runs-dir', type=Path, default=ROOT / 'runs')
+    parser.add_argument('--runs-dir', type=Path, default=Path('runs'),
+                        help='where the run directory goes (default ./runs)')
     args = parser.parse_args(argv)
 
     run_dir = (args.runs_dir / datetime.datetime.now().strftime('%Y%m%d-%H%M%S')).resolve()
@@ -201,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
             '-p', f'port:={port}', '-p', f'sample_rate_hz:={args.rate_hz}'])
         procs.start('model_node', 'pma_model', 'model_node', ros_args=[
             '-p', f'params_file:={params_out}'])
-        procs.start('recorder', 'pma_driver', 'recorder', '-o', str(bag_dir))
+        procs.start('recorder', 'pma_bag', 'record', '-o', str(bag_dir))
 
         rclpy.init()
         node = Node('pma_demo')
@@ -258,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
         procs.stop('recorder')
         loaded_before = len(model_params)  # model_node may reload while refit still plots
         refit = subprocess.run(
-            [str(INSTALL / 'pma_model' / 'lib' / 'pma_model' / 'refit'), str(major_bag),
+            [str(executable('pma_model', 'refit')), str(major_bag),
              '--memory-check', str(minor_bag),
              '--json', str(run_dir / 'refit.json'), '--params-out', str(params_out),
              '--plots', str(run_dir / 'plots')],
@@ -297,6 +301,9 @@ def main(argv: list[str] | None = None) -> int:
         say(f'logs: {logs}')
         return 1
     finally:
+        # The cleanup runs whole: a second Ctrl-C (launch and terminal both send one) waits.
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_IGN)
         if executor is not None:
             executor.shutdown(timeout_sec=2)
         if node is not None:

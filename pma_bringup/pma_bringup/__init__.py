@@ -1,0 +1,1 @@
+"""Bring-up of the PMA testbed: launch files and the end-to-end demo."""

@@ -1,0 +1,91 @@
+"""Signals that end a process become a request to stop, never an exception mid-cleanup.
+
+rclpy's handlers (and Python's default) turn SIGINT into KeyboardInterrupt wherever the main
+thread happens to be. A Ctrl-C under `ros2 launch` delivers two SIGINTs (the terminal's to the
+whole process group, then launch's own to each child), and the second one used to land in
+`finally:` and cut the driver's vent or the recorder's bag close short. Here SIGINT, SIGTERM
+and SIGHUP only set an event: the main loop sees it and runs its whole shutdown, and signals
+that arrive while it does so are noted and otherwise ignored.
+
+No ROS here: fake_arduino uses it as is, nodes through pma_common.node.
+"""
+
+from __future__ import annotations
+
+import importlib
+import signal
+import threading
+from collections.abc import Callable
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class StopRequest:
+    """Set once by the first stop signal (or by the program itself); later ones are counted."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self.reason = ''
+        self.extra_signals = 0
+
+    def install(self) -> StopRequest:
+        """Route the stop signals here (main thread only; idempotent)."""
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, self._on_signal)
+        return self
+
+    def _on_signal(self, signum: int, _frame) -> None:
+        if self._event.is_set():
+            self.extra_signals += 1
+            return
+        self.request(signal.Signals(signum).name)
+
+    def request(self, reason: str) -> None:
+        """Ask the main loop to stop (the first reason is kept)."""
+        if not self._event.is_set():
+            self.reason = reason
+            self._event.set()
+
+    def ignore_further(self) -> None:
+        """Ignore stop signals from now on: the shutdown is done and the interpreter exits.
+
+        Python resets its own handlers to the default at exit, and a late SIGINT or SIGHUP
+        would then kill a process that already finished cleanly; ignored ones stay ignored.
+        """
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, signal.SIG_IGN)
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self._event.wait(timeout)
+
+
+# Signals belong to the process, so there is one request per process.
+_REQUEST = StopRequest()
+
+
+def stop_request() -> StopRequest:
+    """The process's stop request, with its signal handlers installed."""
+    return _REQUEST.install()
+
+
+def entry_point(target: str) -> Callable[[], int]:
+    """A console_scripts entry that installs the stop handlers before importing its main.
+
+    Importing rclpy, numpy or scipy takes up to a second; a Ctrl-C in that time would otherwise
+    end the process with a KeyboardInterrupt traceback. `target` is 'package.module:function'.
+    """
+    module_name, _, function_name = target.partition(':')
+
+    def run() -> int:
+        stop = stop_request()
+        try:
+            main = getattr(importlib.import_module(module_name), function_name)
+            return main()
+        finally:
+            stop.ignore_further()
+
+    run.__doc__ = f'Run {target} with stop signals turned into a clean-stop request.'
+    return run

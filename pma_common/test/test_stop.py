@@ -1,0 +1,59 @@
+"""Stop signals set a request and never raise, however many arrive."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from pma_common.stop import STOP_SIGNALS, StopRequest
+
+
+@pytest.fixture
+def request_installed():
+    saved = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    yield StopRequest().install()
+    for sig, handler in saved.items():
+        signal.signal(sig, handler)
+
+
+@pytest.mark.parametrize('first', STOP_SIGNALS, ids=lambda s: signal.Signals(s).name)
+def test_the_first_signal_names_the_request_and_later_ones_are_counted(request_installed,
+                                                                      first):
+    stop = request_installed
+    os.kill(os.getpid(), first)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGINT):
+        os.kill(os.getpid(), sig)
+    assert stop.wait(1.0)
+    assert stop.reason == signal.Signals(first).name
+    assert stop.extra_signals == 3
+
+
+def test_a_request_from_the_program_is_kept_over_later_signals(request_installed):
+    stop = request_installed
+    stop.request('finished')
+    os.kill(os.getpid(), signal.SIGINT)
+    assert stop.reason == 'finished' and stop.extra_signals == 1
+
+
+def test_an_entry_point_is_protected_while_its_module_imports(tmp_path):
+    """A SIGINT during the (slow) import of the target ends it quietly, not in a traceback."""
+    (tmp_path / 'slow_target.py').write_text(textwrap.dedent('''
+        import os, signal, time
+        os.kill(os.getpid(), signal.SIGINT)     # Ctrl-C while "importing rclpy"
+        time.sleep(0.2)
+
+        def main():
+            from pma_common.stop import stop_request
+            return 0 if stop_request().reason == 'SIGINT' else 1
+        '''))
+    code = 'import sys; from pma_common.stop import entry_point; ' \
+        "sys.exit(entry_point('slow_target:main')())"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), *sys.path]))
+    done = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
+                          text=True, timeout=30, check=False)
+    assert (done.returncode, done.stderr) == (0, '')

@@ -1,0 +1,140 @@
+"""Each package.xml says exactly what its package needs, in keys rosdep can resolve.
+
+Every dependency must be a package of this workspace, a ROS 2 Jazzy package or a rosdep key
+recorded (with where it was looked up) in support/dependency_keys.yaml; every module the
+package's code, launch files and tests import must be covered by one of its dependencies; and
+every run dependency must be used. So `rosdep install --from-paths src` installs what the
+code imports, and nothing the code stopped using.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+import yaml
+
+from support.procs import ROOT
+
+SOURCES = ROOT / 'ros2_ws' / 'src'
+PACKAGES = {link.name: link.resolve() for link in sorted(SOURCES.iterdir())}
+KEYS = yaml.safe_load((ROOT / 'tests' / 'support' / 'dependency_keys.yaml').read_text())
+RUN_TAGS = ('depend', 'exec_depend', 'build_export_depend')
+ALL_TAGS = (*RUN_TAGS, 'build_depend', 'buildtool_depend', 'test_depend')
+ENTRY_POINT = re.compile(r'^([a-z_][a-z0-9_]*)\.[\w.]+:\w+$')
+
+
+def dependencies(package: str, tags=ALL_TAGS) -> set[str]:
+    root = ET.parse(PACKAGES[package] / 'package.xml').getroot()
+    return {element.text.strip() for tag in tags for element in root.iter(tag)}
+
+
+def is_python(package: str) -> bool:
+    return (PACKAGES[package] / 'setup.py').is_file()
+
+
+def imported_modules(files: list[Path]) -> set[str]:
+    """Top-level modules imported, plus packages named in 'pkg.module:function' entry strings."""
+    modules = set()
+    for path in files:
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                modules.update(alias.name.split('.')[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                modules.add(node.module.split('.')[0])
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                match = ENTRY_POINT.match(node.value)
+                if match:
+                    modules.add(match.group(1))
+    return modules
+
+
+def package_strings(files: list[Path]) -> set[str]:
+    """Quoted names in launch files: package='pma_driver', FindPackageShare('pma_model')."""
+    names = set()
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                names.add(node.value)
+    return names
+
+
+def code_files(package: str) -> list[Path]:
+    root = PACKAGES[package]
+    return sorted((root / package).rglob('*.py')) + sorted((root / 'launch').glob('*.py'))
+
+
+def files_of_tests(package: str) -> list[Path]:
+    return sorted((PACKAGES[package] / 'test').rglob('*.py'))
+
+
+def provider(module: str) -> str | None:
+    """The dependency that provides `module`; None for the standard library."""
+    if module in sys.stdlib_module_names or module == '__future__':
+        return None
+    if module in PACKAGES or module in KEYS['jazzy_packages']:
+        return module
+    if module in KEYS['modules']:
+        return KEYS['modules'][module]
+    raise AssertionError(f'import {module}: which rosdep key provides it? Add it to '
+                         'tests/support/dependency_keys.yaml (look the key up in rosdistro)')
+
+
+@pytest.mark.parametrize('package', sorted(PACKAGES))
+def test_every_dependency_is_resolvable(package):
+    known = set(PACKAGES) | set(KEYS['jazzy_packages']) | set(KEYS['rosdep_keys'])
+    unknown = dependencies(package) - known
+    assert not unknown, (f'{package}/package.xml names {sorted(unknown)}: neither a package '
+                         'of this workspace, a Jazzy package nor a recorded rosdep key')
+
+
+@pytest.mark.parametrize('package', sorted(p for p in PACKAGES if is_python(p)))
+def test_every_import_is_covered_and_every_run_dependency_used(package):
+    run_deps = dependencies(package, RUN_TAGS)
+    test_deps = dependencies(package, ('test_depend',)) | run_deps
+    used = set()
+    for module in imported_modules(code_files(package)) - {package}:
+        needed = provider(module)
+        if needed is not None:
+            assert needed in run_deps, (f'{package} imports {module}, but its package.xml '
+                                        f'has no exec_depend on {needed}')
+            used.add(needed)
+    local = {path.stem for path in files_of_tests(package)}     # one test importing another
+    for module in imported_modules(files_of_tests(package)) - {package, 'conftest'} - local:
+        needed = provider(module)
+        if needed is not None:
+            assert needed in test_deps, (f"{package}'s tests import {module}, but its "
+                                         f'package.xml has no test_depend on {needed}')
+    launched = package_strings(sorted((PACKAGES[package] / 'launch').glob('*.py')))
+    unused = run_deps - used - launched - set(KEYS['used_without_import'].get(package, {}))
+    assert not unused, f'{package}/package.xml depends on {sorted(unused)} but never uses it'
+
+
+def test_the_interface_package_builds_with_what_it_declares():
+    declared = dependencies('pma_interfaces')
+    cmake = (PACKAGES['pma_interfaces'] / 'CMakeLists.txt').read_text()
+    for found in re.findall(r'find_package\((\w+) REQUIRED\)', cmake):
+        assert found in declared, f'CMakeLists.txt finds {found}, package.xml lacks it'
+    for field_type in {line.split()[0].split('/')[0]
+                       for path in PACKAGES['pma_interfaces'].rglob('*.*')
+                       if path.suffix in ('.msg', '.srv', '.action')
+                       for line in path.read_text().splitlines()
+                       if '/' in line.split('#')[0].split(' ')[0]}:
+        assert field_type in declared, f'an interface uses {field_type}, package.xml lacks it'
+
+
+def test_no_package_reads_another_packages_share_against_the_dependencies():
+    """A launch file may find only packages its own package.xml depends on."""
+    for package in PACKAGES:
+        if not is_python(package):
+            continue
+        found = set()
+        for path in (PACKAGES[package] / 'launch').glob('*.py'):
+            found |= set(re.findall(r"FindPackage(?:Share|Prefix)\('(\w+)'\)", path.read_text()))
+        missing = found - {package} - dependencies(package, RUN_TAGS)
+        assert not missing, f'{package} launch files use {sorted(missing)} without depending'

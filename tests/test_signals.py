@@ -1,0 +1,207 @@
+"""Every executable finishes its shutdown whatever stop signals arrive, exits 0, says so quietly.
+
+A Ctrl-C under `ros2 launch` sends SIGINT to the process group and launch then sends each
+child its own SIGINT, and SIGTERM after a timeout; `docker stop` sends SIGTERM, a closed
+terminal SIGHUP. The trials here send such bursts at random moments (before, during and
+after start-up) to processes started as `ros2 launch` starts them: their own process group,
+default signal dispositions. The seed of each trial is in its name, so a failure repeats.
+
+The trials start 0.25 s after the process: before that Python is still importing what its
+console-script wrapper needs (importlib.metadata), none of our code has run and nothing is
+open, and a SIGINT there gets Python's default (KeyboardInterrupt). From the entry point on
+(pma_common.stop.entry_point, before rclpy is imported) every signal is a clean stop.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+import serial
+from rclpy.serialization import serialize_message
+from rosbags.highlevel import AnyReader
+from std_msgs.msg import Float64
+
+from pma_bag import BagWriter
+from pma_driver import protocol
+from pma_interfaces.msg import PmaState
+from support.procs import Proc, ProcessGroup
+from support.ros import SpinningNode, shutdown, wait_until
+
+pytestmark = pytest.mark.integration
+
+ALARMING = ('Traceback', 'KeyboardInterrupt', 'failed to shutdown', 'rcl_shutdown')
+TRIALS = 4
+FIRST_MOMENT_S = 0.25   # see the module docstring
+
+
+def burst(rng: random.Random) -> list[tuple[float, int, bool]]:
+    """(delay before it [s], signal, to the whole group?) - a Ctrl-C under launch and more."""
+    plan = [(0.0, signal.SIGINT, True),                        # the terminal's, to the group
+            (rng.uniform(0.0, 0.05), signal.SIGINT, False)]    # launch's own
+    for _ in range(rng.randint(0, 3)):
+        plan.append((rng.uniform(0.0, 0.3), rng.choice((signal.SIGINT, signal.SIGTERM,
+                                                        signal.SIGHUP)), False))
+    return plan
+
+
+def send(proc: Proc, plan: list[tuple[float, int, bool]]) -> None:
+    for delay, sig, group in plan:
+        time.sleep(delay)
+        try:
+            os.killpg(proc.popen.pid, sig) if group else proc.popen.send_signal(sig)
+        except ProcessLookupError:
+            return
+
+
+def finish(proc: Proc, timeout: float = 20.0) -> str:
+    """Wait for the exit; it must be 0 and the output free of alarms."""
+    code = proc.popen.wait(timeout)
+    proc._reader.join(5)
+    output = proc.output
+    assert code == 0, f'{proc.name} exited {code}:\n{output[-3000:]}'
+    for word in ALARMING:
+        assert word not in output, f'{proc.name} said {word!r}:\n{output[-3000:]}'
+    return output
+
+
+def trials(seed: int) -> list[random.Random]:
+    return [random.Random(seed * 100 + k) for k in range(TRIALS)]
+
+
+def run_parallel(function, rngs: list[random.Random]) -> None:
+    with ThreadPoolExecutor(len(rngs)) as pool:
+        for future in [pool.submit(function, k, rng) for k, rng in enumerate(rngs)]:
+            future.result()
+
+
+def device_setpoint_pa(port: Path) -> int:
+    """What the simulated device regulates to now, read from its own sample lines."""
+    decoder = protocol.FrameDecoder()
+    with serial.Serial(str(port), 115200, timeout=0.2) as link:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            for frame in decoder.feed(link.read(4096)):
+                if isinstance(frame, protocol.Sample):
+                    return frame.setpoint_pa
+    raise TimeoutError(f'no sample from {port}')
+
+
+@pytest.mark.parametrize('seed', [1, 2])
+def test_driver_node_closes_the_port_under_any_burst(procs, tmp_path, seed):
+    def trial(k: int, rng: random.Random) -> None:
+        port = tmp_path / f'pma{k}'
+        fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port))
+        fake.wait_for_line('device at', 20)
+        driver = procs.ros2_run('pma_driver', 'driver_node', name=f'driver{k}',
+                                ros_args=['-r', f'__ns:=/t{seed}_{k}', '-p', f'port:={port}'])
+        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        send(driver, burst(rng))
+        output = finish(driver)
+        if 'configured:' in output:                # the port was open: it must be closed
+            assert 'closed ' in output, output[-3000:]
+
+    run_parallel(trial, trials(seed))
+
+
+def test_ctrl_c_under_launch_vents_the_muscle(procs, tmp_path):
+    """The reproduction from the report: SIGINT, SIGINT 20 ms later, while at 150 kPa."""
+    port = tmp_path / 'pma'
+    # Without the device's heartbeat check, only the driver's own VENT brings it to 0 Pa.
+    fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+                          '--no-heartbeat-check')
+    fake.wait_for_line('device at', 20)
+    probe = SpinningNode('signal_test_probe')
+    states: list[PmaState] = []
+    probe.node.create_subscription(PmaState, 'pma/state', states.append, 100)
+    setpoint = probe.node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+    try:
+        for attempt in range(3):
+            driver = procs.ros2_run('pma_driver', 'driver_node', name=f'driver{attempt}',
+                                    ros_args=['-p', f'port:={port}'])
+            driver.wait_for_line('active: publishing', 30)
+            wait_until(lambda: setpoint.get_subscription_count() > 0, 10, 'driver subscribed')
+            setpoint.publish(Float64(data=150_000.0))
+            wait_until(lambda: states and states[-1].gauge_setpoint_pa == 150_000.0, 10,
+                       'the device at 150 kPa')
+            send(driver, [(0.0, signal.SIGINT, True), (0.02, signal.SIGINT, False)])
+            output = finish(driver)
+            assert 'vented' in output, output[-3000:]
+            assert device_setpoint_pa(port) == 0
+    finally:
+        probe.close()
+        shutdown()
+
+
+@pytest.mark.parametrize('seed', [3])
+def test_model_node_and_fake_arduino_exit_quietly(procs, tmp_path, seed):
+    def trial(k: int, rng: random.Random) -> None:
+        if k % 2:
+            proc = procs.ros2_run('pma_model', 'model_node', name=f'model{k}',
+                                  ros_args=['-r', f'__ns:=/m{k}'])
+        else:
+            proc = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(tmp_path / f'f{k}'),
+                                  name=f'fake{k}')
+        time.sleep(rng.uniform(FIRST_MOMENT_S, 2.5))
+        send(proc, burst(rng))
+        output = finish(proc)
+        if proc.name.startswith('fake') and 'device at' in output:
+            assert 'fake_arduino: stats' in output
+
+    run_parallel(trial, trials(seed))
+
+
+@pytest.mark.parametrize('seed', [4])
+def test_recorder_finishes_its_bag_under_any_burst(procs, tmp_path, seed):
+    def trial(k: int, rng: random.Random) -> None:
+        bag = tmp_path / f'bag{k}'
+        recorder = procs.ros2_run('pma_bag', 'record', '-o', str(bag), name=f'record{k}',
+                                  ros_args=['-r', f'__ns:=/r{k}'])
+        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        send(recorder, burst(rng))
+        finish(recorder)
+        assert (bag / 'metadata.yaml').is_file(), sorted(bag.iterdir())
+        with AnyReader([bag]) as reader:           # closed cleanly: an independent reader agrees
+            assert reader.message_count == sum(1 for _ in reader.messages())
+
+    run_parallel(trial, trials(seed))
+
+
+def write_bag(path: Path, count: int = 2000) -> Path:
+    writer = BagWriter(path)
+    writer.add_topic('/signal_test', 'std_msgs/msg/Float64', [])
+    start = time.time_ns()
+    for k in range(count):
+        writer.write('/signal_test', serialize_message(Float64(data=float(k))),
+                     start + k * 5_000_000)
+    writer.close()
+    return path
+
+
+@pytest.mark.parametrize('seed', [5])
+def test_player_stops_quietly_while_looping(procs, tmp_path, seed):
+    bag = write_bag(tmp_path / 'loop_bag')
+
+    def trial(k: int, rng: random.Random) -> None:
+        player = procs.ros2_run('pma_bag', 'play', str(bag), '--loop', '--rate', '20',
+                                name=f'play{k}', ros_args=['-r', f'__ns:=/p{k}'])
+        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        send(player, burst(rng))
+        finish(player)
+
+    run_parallel(trial, trials(seed))
+
+
+def test_process_group_helper_sends_what_launch_sends(tmp_path):
+    """The trials' own check: a plain Python child dies of the burst (so ours do not by luck)."""
+    group = ProcessGroup(tmp_path)
+    proc = group.start(['python3', '-c', 'import time; print("up", flush=True); time.sleep(30)'])
+    proc.wait_for_line('up', 10)
+    send(proc, [(0.0, signal.SIGINT, True), (0.02, signal.SIGINT, False)])
+    assert proc.popen.wait(10) != 0
+    group.stop_all()
