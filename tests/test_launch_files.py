@@ -33,11 +33,13 @@ LAUNCH_FILES = {
     'driver': ROOT / 'pma_driver' / 'launch' / 'driver.launch.py',
     'bringup': ROOT / 'pma_bringup' / 'launch' / 'bringup.launch.py',
     'model': ROOT / 'pma_model' / 'launch' / 'model.launch.py',
+    'control': ROOT / 'pma_control' / 'launch' / 'length_controller.launch.py',
 }
 # (package, executable) -> the name the node gives itself in code.
 NODE_NAMES = {('pma_driver', 'driver_node'): 'driver_node',
               ('pma_model', 'model_node'): 'model_node',
-              ('pma_bag', 'record'): 'recorder'}
+              ('pma_bag', 'record'): 'recorder',
+              ('pma_control', 'length_controller'): 'length_controller'}
 
 # ---------------------------------------------------------------------------------------
 # Stand-ins for launch / launch_ros (Jazzy signatures, keyword names only).
@@ -359,6 +361,7 @@ def declared(module_procs, tmp_path_factory) -> dict[tuple[str, str], dict[str, 
                           ros_args=['-p', 'port:=/nonexistent/pma_launch_test'])
     module_procs.ros2_run('pma_model', 'model_node')
     module_procs.ros2_run('pma_bag', 'record', '-o', str(bag))
+    module_procs.ros2_run('pma_control', 'length_controller')
     probe = SpinningNode('launch_file_probe')
     try:
         result = {}
@@ -388,7 +391,7 @@ def check_nodes_against_code(launched: Launched, declared: dict) -> None:
             assert name in declared[key], f'{key[1]} does not declare parameter {name!r}'
             assert parameter_type(value) == declared[key][name], (
                 f'{key[1]}: {name}={value!r} has another type than the node declares')
-        if key[1] == 'recorder':
+        if key[1] == 'record':
             from pma_bag.record import parse_args
             assert parse_args(node['arguments']).output is not None
 
@@ -453,11 +456,14 @@ def test_model_launch_passes_refit_file_for_hot_reload(stand_ins, declared, tmp_
 def test_bringup_on_hardware_starts_driver_and_model_only(stand_ins, declared):
     launched = launch('bringup')
     check_nodes_against_code(launched, declared)
-    assert sorted(n['executable'] for n in launched.nodes) == ['driver_node', 'model_node']
+    assert sorted(n['executable'] for n in launched.nodes) == ['driver_node',
+                                                               'length_controller',
+                                                               'model_node']
     assert launched.processes == [], 'no fake_arduino without use_fake_arduino'
     driver = next(n for n in launched.nodes if n['executable'] == 'driver_node')
     assert parameters_given(driver)['port'] == '/dev/ttyACM0'
-    assert {p.name for p in launched.included} == {'driver.launch.py', 'model.launch.py'}
+    assert {p.name for p in launched.included} == {'driver.launch.py', 'model.launch.py',
+                                                   'length_controller.launch.py'}
 
 
 @pytest.mark.integration
@@ -471,7 +477,7 @@ def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_
         launched = launch('bringup', namespace=side, use_fake_arduino='true', record='true')
         check_nodes_against_code(launched, declared)
         nodes = {n['executable']: n for n in launched.nodes}
-        assert sorted(nodes) == ['driver_node', 'model_node', 'record']
+        assert sorted(nodes) == ['driver_node', 'length_controller', 'model_node', 'record']
         assert {n['namespace'] for n in nodes.values()} == {side}
         [fake] = launched.processes
         assert fake[0] == str(INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'fake_arduino')

@@ -130,11 +130,11 @@ def test_the_interface_package_builds_with_what_it_declares():
 
 def test_no_package_reads_another_packages_share_against_the_dependencies():
     """A launch file may find only packages its own package.xml depends on."""
-    for package in PACKAGES:
+    for package, root in PACKAGES.items():
         if not is_python(package):
             continue
         found = set()
-        for path in (PACKAGES[package] / 'launch').glob('*.py'):
+        for path in (root / 'launch').glob('*.py'):
             found |= set(re.findall(r"FindPackage(?:Share|Prefix)\('(\w+)'\)", path.read_text()))
         missing = found - {package} - dependencies(package, RUN_TAGS)
         assert not missing, f'{package} launch files use {sorted(missing)} without depending'

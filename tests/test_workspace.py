@@ -19,12 +19,13 @@ EXECUTABLES = {
     'pma_model': ['model_node', 'replay', 'refit'],
     'pma_bag': ['record', 'play', 'recover'],
     'pma_bringup': ['demo'],
+    'pma_control': ['length_controller'],
 }
 
 
 def test_workspace_is_built_with_every_package():
     for package in ('pma_interfaces', 'pma_common', 'pma_driver', 'pma_bag', 'pma_model',
-                    'pma_bringup'):
+                    'pma_control', 'pma_bringup'):
         index = INSTALL / package / 'share' / 'ament_index' / 'resource_index'
         marker = index / 'packages' / package
         assert marker.exists(), f'{package} is not installed in {INSTALL}'

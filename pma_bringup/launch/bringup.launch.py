@@ -1,4 +1,4 @@
-"""One PMA muscle: driver + model (+ simulated Arduino, + recorder), all in one namespace.
+"""One PMA muscle in one namespace: driver, model, length controller (+ simulated rig, recorder).
 
     ros2 launch pma_bringup bringup.launch.py port:=/dev/pma0
     ros2 launch pma_bringup bringup.launch.py use_fake_arduino:=true record:=true
@@ -82,6 +82,13 @@ def _bringup(context):
                           'params_file': arg('model_params_file'),
                           'refit_params_file': arg('refit_params_file')}.items())]))
 
+    if _flag(arg('control')):
+        actions.append(GroupAction([IncludeLaunchDescription(
+            PythonLaunchDescriptionSource(PathJoinSubstitution(
+                [FindPackageShare('pma_control'), 'launch', 'length_controller.launch.py'])),
+            launch_arguments={'namespace': namespace,
+                              'params_file': arg('control_params_file')}.items())]))
+
     if _flag(arg('record')):
         actions.append(Node(
             package='pma_bag', executable='record', name='recorder', namespace=namespace,
@@ -107,6 +114,14 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'fake_arduino_seed', default_value='0',
             description='seed of the simulated sensor noise (use_fake_arduino only)'),
+        DeclareLaunchArgument(
+            'control', default_value='true', choices=['true', 'false'],
+            description='true: also run the length controller (idle until given a target)'),
+        DeclareLaunchArgument(
+            'control_params_file',
+            default_value=PathJoinSubstitution(
+                [FindPackageShare('pma_control'), 'config', 'length_controller.yaml']),
+            description='length_controller parameters'),
         DeclareLaunchArgument(
             'record', default_value='false', choices=['true', 'false'],
             description='true: also run the recorder (MCAP bag of this namespace\'s topics)'),

@@ -1,0 +1,302 @@
+"""Length control: the controller modes on every simulated muscle, and the loop latency.
+
+    . tools/env.sh && python bench/bench_control.py [--seconds 20] [--families NAME ...]
+
+* tracking (ROS-free, simulated time, the simulated device's own sensors and regulator;
+  the true length is known only to the evaluation): feedforward only ('ff'), feedback only
+  ('fb'), feedforward + feedback ('ff_fb') on
+  - steps 25.5 -> 28.5 -> 26.5 cm: settle time to +/-2 mm of the truth, overshoot, steady
+    error (mean of the last 2 s of each step);
+  - sines 25 <-> 29.5 cm at 0.05, 0.1 and 0.2 Hz: RMSE and max error against the truth in %
+    of Table 1's stroke (5.86 cm), after the first period.
+  Targets: ff_fb RMSE at 0.1 Hz <= 2 % of stroke and <= 1/2 of fb's, on every muscle;
+  steady error within the HC-SR04's 3 mm resolution.
+* loop latency over DDS at 50 Hz: a publisher process sends pma/state; length_controller
+  (holding a target) answers each with pma/pressure_setpoint; this process receives both and
+  takes setpoint arrival - state arrival. Baseline: a bare relay node (state in, Float64 out)
+  measured the same way in the same run, alternating with the controller. Target p99 < 5 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+from benchlib import check, isolate_ros_graph, load_row, print_table, read_line, stop
+
+from pma_control.controller import ControllerSettings, LengthController
+from pma_driver.sim.closed_loop import run_closed_loop
+from pma_driver.sim.device import DeviceConfig, Rig
+from pma_model.params import default_params
+
+ROOT = Path(__file__).resolve().parents[1]
+CONTROLLER = ROOT / 'ros2_ws' / 'install' / 'pma_control' / 'lib' / 'pma_control' / \
+    'length_controller'
+STROKE_M = 0.0586
+MODES = ('ff', 'fb', 'ff_fb')
+STEPS = ((0.0, 0.255), (10.0, 0.285), (20.0, 0.265))
+STEP_END_S = 30.0
+SINE_LOW_M, SINE_HIGH_M = 0.25, 0.295
+SINE_HZ = (0.05, 0.1, 0.2)
+TOLERANCE_M = 0.002
+RESOLUTION_M = 0.003
+
+
+# --- tracking on the simulated muscles -----------------------------------------------------
+
+def muscles() -> dict[str, object]:
+    """name -> a factory of the simulated rig; every family the simulation offers."""
+    try:
+        from pma_driver.sim.families import FAMILY_NAMES, make_rig
+    except ImportError:
+        return {'preisach': Rig}
+    return {name: (lambda config, name=name: make_rig(name, config)) for name in FAMILY_NAMES}
+
+
+def run(mode: str, make_rig, profile, duration_s: float, rate_hz: int = 20):
+    control = LengthController(default_params().build_model(), ControllerSettings(mode=mode))
+
+    def step(t_s, pressure_pa, length_m):
+        control.set_target(profile(t_s))
+        return control.update(t_s, pressure_pa, length_m).command_pa
+
+    config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=11)
+    trace = run_closed_loop(step, duration_s, config=config, rig=make_rig(config)).arrays()
+    return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
+
+
+def step_profile(t_s: float) -> float:
+    return [length for start, length in STEPS if t_s >= start][-1]
+
+
+def step_metrics(t, true, _reference) -> dict[str, float]:
+    settle, overshoot, steady = [], [], []
+    for k in range(1, len(STEPS)):
+        start, target = STEPS[k]
+        end = STEPS[k + 1][0] if k + 1 < len(STEPS) else STEP_END_S
+        inside = (t >= start) & (t < end)
+        error, since = true[inside] - target, t[inside] - start
+        outside = np.nonzero(np.abs(error) > TOLERANCE_M)[0]
+        if outside.size == 0:
+            settle.append(0.0)
+        elif outside[-1] + 1 < since.size:
+            settle.append(float(since[outside[-1] + 1]))
+        else:
+            settle.append(math.inf)
+        direction = np.sign(target - STEPS[k - 1][1])
+        overshoot.append(max(0.0, float(np.max(error * direction))))
+        steady.append(abs(float(np.mean(error[since > since[-1] - 2.0]))))
+    return {'settle_s': max(settle), 'overshoot_mm': 1000 * max(overshoot),
+            'steady_mm': 1000 * max(steady)}
+
+
+def sine_profile(frequency_hz: float):
+    middle, amplitude = (SINE_LOW_M + SINE_HIGH_M) / 2, (SINE_HIGH_M - SINE_LOW_M) / 2
+    return lambda t: middle - amplitude * math.cos(2 * math.pi * frequency_hz * t)
+
+
+def sine_metrics(t, true, reference, frequency_hz: float) -> dict[str, float]:
+    after = t > 1.0 / frequency_hz
+    error = true[after] - reference[after]
+    return {'rmse_pct': 100 * float(np.sqrt(np.mean(error ** 2))) / STROKE_M,
+            'max_pct': 100 * float(np.max(np.abs(error))) / STROKE_M}
+
+
+def tracking_table(families: dict[str, object]) -> tuple[list[tuple[str, str, str]], bool]:
+    rows, ok = [], True
+    print(f'{"muscle":<12}{"mode":<7}{"step settle":>12}{"overshoot":>11}{"steady":>9}'
+          + ''.join(f'{f"{f:g} Hz RMSE/max %":>20}' for f in SINE_HZ), flush=True)
+    for family, make_rig in families.items():
+        rmse_01 = {}
+        for mode in MODES:
+            steps = step_metrics(*run(mode, make_rig, step_profile, STEP_END_S))
+            sines = []
+            for frequency in SINE_HZ:
+                duration = 1.0 / frequency * 3 + 2.0
+                sines.append(sine_metrics(*run(mode, make_rig, sine_profile(frequency),
+                                               duration), frequency))
+            rmse_01[mode] = sines[SINE_HZ.index(0.1)]['rmse_pct']
+            print(f'{family:<12}{mode:<7}{steps["settle_s"]:>10.2f} s'
+                  f'{steps["overshoot_mm"]:>8.1f} mm{steps["steady_mm"]:>6.1f} mm'
+                  + ''.join(f'{s["rmse_pct"]:>13.2f} /{s["max_pct"]:>5.2f}' for s in sines),
+                  flush=True)
+            if mode == 'ff_fb':
+                steady_ok = steps['steady_mm'] <= RESOLUTION_M * 1000
+                ok &= steady_ok
+                rows.append((f'{family}: ff_fb steady error [mm]', f'{steps["steady_mm"]:.2f}',
+                             check(steady_ok, '<= 3 mm (sensor resolution)')))
+        within = rmse_01['ff_fb'] <= 2.0
+        ratio = rmse_01['fb'] / rmse_01['ff_fb']
+        ok &= within and ratio >= 2.0
+        rows.append((f'{family}: ff_fb RMSE at 0.1 Hz [% stroke]', f'{rmse_01["ff_fb"]:.2f}',
+                     check(within, '<= 2 %')))
+        rows.append((f'{family}: fb / ff_fb RMSE at 0.1 Hz', f'{ratio:.2f}',
+                     check(ratio >= 2.0, '>= 2')))
+    return rows, ok
+
+
+# --- loop latency over DDS -----------------------------------------------------------------
+
+def publisher_main(rate_hz: float) -> None:
+    """PmaState on pma/state at rate_hz, like driver_node (reliable, depth 10)."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from pma_interfaces.msg import PmaState
+
+    rclpy.init()
+    node = rclpy.create_node('bench_state_publisher')
+    publisher = node.create_publisher(PmaState, 'pma/state', 10)
+    seq = 0
+
+    def tick():
+        nonlocal seq
+        msg = PmaState(seq=seq, gauge_pressure_pa=200_000.0 + 500.0 * math.sin(seq / 7.0),
+                       length_m=0.27)
+        msg.header.stamp = node.get_clock().now().to_msg()
+        publisher.publish(msg)
+        seq += 1
+
+    node.create_timer(1.0 / rate_hz, tick)
+    print('ready', flush=True)
+    try:
+        import rclpy.executors
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def relay_main() -> None:
+    """Baseline: every state straight back out as a Float64, nothing else in the node."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.qos import qos_profile_sensor_data
+    from std_msgs.msg import Float64
+
+    from pma_interfaces.msg import PmaState
+
+    rclpy.init()
+    node = rclpy.create_node('bench_relay')
+    publisher = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+    node.create_subscription(PmaState, 'pma/state',
+                             lambda msg: publisher.publish(Float64(data=msg.gauge_pressure_pa)),
+                             qos_profile_sensor_data)
+    print('ready', flush=True)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def measure_latency(argv: list[str], seconds: float, needs_target: bool) -> np.ndarray:
+    """Start `argv` (the node between state and setpoint), measure for `seconds`."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import Float64
+
+    from pma_interfaces.msg import LengthSetpoint, PmaState
+
+    node = rclpy.create_node('bench_control_probe')
+    lock = threading.Lock()
+    state_at: list[int] = []
+    latencies: list[float] = []
+
+    def on_state(_msg):
+        with lock:
+            state_at.append(time.monotonic_ns())
+
+    def on_setpoint(_msg):
+        now = time.monotonic_ns()
+        with lock:
+            if state_at:
+                latencies.append((now - state_at[-1]) / 1e6)
+
+    node.create_subscription(PmaState, 'pma/state', on_state, 100)
+    node.create_subscription(Float64, 'pma/pressure_setpoint', on_setpoint, 100)
+    target = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not latencies:
+            if needs_target:
+                target.publish(LengthSetpoint(length_m=0.265))
+            executor.spin_once(timeout_sec=0.1)
+        with lock:
+            latencies.clear()
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.1)
+        with lock:
+            return np.array(latencies)
+    finally:
+        stop(proc)
+        node.destroy_node()
+
+
+def latency_rows(seconds: float) -> tuple[list[tuple[str, str, str]], bool]:
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    publisher = subprocess.Popen([sys.executable, __file__, '--publish', '50'],
+                                 stdout=subprocess.PIPE, text=True)
+    try:
+        read_line(publisher, 30, 'state publisher')
+        runs = {'relay': [], 'controller': []}
+        for _ in range(2):        # alternate, so a noisy moment does not favour one side
+            runs['relay'].append(measure_latency([sys.executable, __file__, '--relay'],
+                                                 seconds / 2, False))
+            runs['controller'].append(measure_latency([str(CONTROLLER)], seconds / 2, True))
+    finally:
+        stop(publisher)
+        rclpy.try_shutdown()
+    relay, controller = (np.concatenate(runs[k]) for k in ('relay', 'controller'))
+    p50, p99 = np.percentile(controller, [50, 99])
+    r50, r99 = np.percentile(relay, [50, 99])
+    ok = p99 < 5.0
+    return [
+        ('loop latency state -> setpoint p50 [ms]', f'{p50:.2f}', f'relay {r50:.2f} ms'),
+        ('loop latency state -> setpoint p99 [ms]', f'{p99:.2f}', check(ok, '< 5 ms')),
+        ('loop latency p50 / relay p50', f'{p50 / r50:.2f}', f'{controller.size} samples'),
+        ('loop latency p99 / relay p99', f'{p99 / r99:.2f}', f'{relay.size} relay samples'),
+    ], ok
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--seconds', type=float, default=20.0, help='latency window')
+    parser.add_argument('--families', nargs='+', help='only these simulated muscles')
+    parser.add_argument('--publish', type=float, help=argparse.SUPPRESS)
+    parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.publish:
+        publisher_main(args.publish)
+        return 0
+    if args.relay:
+        relay_main()
+        return 0
+    isolate_ros_graph()
+    families = muscles()
+    if args.families:
+        families = {name: families[name] for name in args.families}
+    rows, ok = tracking_table(families)
+    latency, latency_ok = latency_rows(args.seconds)
+    print()
+    print_table([*rows, *latency, load_row()])
+    return 0 if ok and latency_ok else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

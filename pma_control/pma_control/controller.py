@@ -1,0 +1,262 @@
+"""Length control of the muscle: hysteresis-model feedforward plus feedback, without ROS.
+
+The plant from pressure to length is nonlinear (flat near 0 and 500 kPa) and hysteretic
+(the length depends on the path). The feedforward inverts the hysteresis model *from the
+muscle's current state* (HysteresisModel.pressure_for_length with BRANCH_AUTO: memory
+included), which turns the plant into roughly "length in, length out". The feedback is a PI
+on the remaining length error, in metres, passed through the same inverse, so its gains are
+dimensionless and need no retuning where the muscle is stiff or soft.
+
+The length sensor (HC-SR04) is noisy (~1.5 mm) and quantised (3 mm), so the error is taken
+from an estimate, not from the raw reading: the model's length for the measured pressure
+(smooth, no lag) plus a slowly learned bias (a scalar Kalman filter on measured - model),
+which absorbs what the model gets wrong (a muscle unlike the fit, drift, creep).
+
+Three modes, compared on the same simulated muscles in docs/control.md:
+  'ff_fb'  feedforward + feedback (the default)
+  'ff'     feedforward only: the model's inverse of the setpoint, nothing learned
+  'fb'     feedback only: a PI from length error to pressure, no model (gains in Pa/m)
+
+Safety: every command is within [0, max_gauge_pressure_pa]; a target outside the reachable
+lengths is refused with the range.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+from pma_model.detector import BRANCH_AUTO
+from pma_model.memory import HysteresisModel
+
+MODES = ('ff_fb', 'ff', 'fb')
+
+
+@dataclass(frozen=True)
+class ControllerSettings:
+    """Every tuning knob, in SI units (docs/control.md explains each and how to retune)."""
+
+    mode: str = 'ff_fb'
+    max_gauge_pressure_pa: float = 500_000.0
+    # 'ff_fb' feedback, in the length domain: correction_m = kp * e + ki * integral(e).
+    kp: float = 0.3
+    ki_per_s: float = 1.5
+    # 'fb' feedback, in the pressure domain: p = -(kp * e + ki * integral(e)). Table 1's
+    # mean slope is 500 kPa / 5.86 cm = 8.5e6 Pa/m; these are 0.6 and 2 /s times it.
+    fb_kp_pa_per_m: float = 5.0e6
+    fb_ki_pa_per_m_s: float = 1.7e7
+    fb_filter_time_constant_s: float = 0.15
+    # Errors smaller than this are not integrated: a quantised sensor must not hunt [m].
+    error_deadband_m: float = 0.0005
+    max_pressure_rate_pa_s: float = 600_000.0
+    max_setpoint_rate_m_s: float = 0.05
+    # Bias observer: how fast the model's error may wander [m/sqrt(s)], and the sensor noise.
+    bias_process_noise_m: float = 0.002
+    length_noise_m: float = 0.0018
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f'mode must be one of {MODES}, got {self.mode!r}')
+        for item in fields(self):
+            value = getattr(self, item.name)
+            if item.name != 'mode' and not (isinstance(value, (int, float))
+                                            and math.isfinite(value) and value >= 0):
+                raise ValueError(f'{item.name} must be a finite number >= 0, got {value!r}')
+        for name in ('max_gauge_pressure_pa', 'max_pressure_rate_pa_s', 'max_setpoint_rate_m_s',
+                     'length_noise_m'):
+            if not getattr(self, name) > 0:
+                raise ValueError(f'{name} must be > 0, got {getattr(self, name)!r}')
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """One step of the loop: what was commanded and why (ControlState on the ROS side)."""
+
+    command_pa: float
+    feedforward_pa: float          # the model's inverse of the setpoint; NaN in 'fb'
+    feedback_pa: float             # what the feedback added before the limits
+    setpoint_length_m: float       # after the setpoint-rate limit; NaN without a target
+    estimated_length_m: float
+    model_length_m: float          # NaN in 'fb'
+    bias_m: float                  # learned measured - model
+    saturated_low: bool
+    saturated_high: bool
+    rate_limited: bool
+
+
+class LengthController:
+    """Feed it every sample (`update`); aim it with `set_target`."""
+
+    def __init__(self, model: HysteresisModel, settings: ControllerSettings | None = None):
+        self.settings = settings or ControllerSettings()
+        self.model = model
+        self.reset()
+
+    # -- state -------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget target, integral and bias (a new muscle, or after a fault)."""
+        self.target_m: float | None = None
+        self._setpoint_m: float | None = None
+        self._integral = 0.0
+        self._bias_m = 0.0
+        self._bias_var = (10.0 * self.settings.length_noise_m) ** 2     # unknown at first
+        self._filtered_m = math.nan
+        self._command_pa: float | None = None
+        self._last_t: float | None = None
+        self._dt = 0.0
+
+    def replace_model(self, model: HysteresisModel) -> None:
+        """A new fit (a refit was loaded): keep the muscle's history and what was learned."""
+        model.resume_from(self.model)
+        self.model = model
+
+    @property
+    def command_pa(self) -> float | None:
+        return self._command_pa
+
+    @property
+    def bias_m(self) -> float:
+        return self._bias_m
+
+    def reachable_range_m(self) -> tuple[float, float]:
+        """Lengths the muscle can be held at: the model's over 0..max, plus the learned bias."""
+        p_max = self.settings.max_gauge_pressure_pa
+        ends = [float(branch.length(p)) for branch in (self.model.increasing,
+                                                       self.model.decreasing)
+                for p in (0.0, p_max)]
+        bias = self._bias_m if self.settings.mode != 'ff' else 0.0
+        return min(ends) + bias, max(ends) + bias
+
+    def set_target(self, length_m: float) -> str:
+        """Aim for `length_m`; say why it cannot be ('' when it can)."""
+        if isinstance(length_m, bool) or not isinstance(length_m, (int, float)) \
+                or not math.isfinite(length_m):
+            return f'target length must be a finite number of metres, got {length_m!r}'
+        low, high = self.reachable_range_m()
+        if not low <= length_m <= high:
+            return (f'target {length_m:.4f} m is not reachable: reachable '
+                    f'[{low:.4f}, {high:.4f}] m with 0..'
+                    f'{self.settings.max_gauge_pressure_pa:.0f} Pa')
+        self.target_m = float(length_m)
+        return ''
+
+    def clear_target(self) -> None:
+        """Stop steering; later updates repeat the last command (the muscle stays put)."""
+        self.target_m = None
+        self._setpoint_m = None
+        self._integral = 0.0
+
+    # -- the loop ----------------------------------------------------------------------
+
+    def update(self, t_s: float, gauge_pressure_pa: float, measured_length_m: float
+               ) -> ControlOutput:
+        """One sample in, one command out. A NaN length (no echo) leaves the bias as it is."""
+        s = self.settings
+        dt = 0.0 if self._last_t is None else max(0.0, t_s - self._last_t)
+        self._last_t, self._dt = t_s, dt
+        model_m = math.nan
+        if s.mode == 'fb':
+            estimate = self._filter_measurement(measured_length_m, dt)
+        else:
+            model_m = float(self.model.update(gauge_pressure_pa)[0])
+            if s.mode == 'ff_fb':
+                self._observe_bias(model_m, measured_length_m, dt)
+            estimate = model_m + self._bias_m
+        if self._command_pa is None:     # bumpless start: from the pressure the muscle has
+            self._command_pa = min(max(gauge_pressure_pa, 0.0), s.max_gauge_pressure_pa) \
+                if math.isfinite(gauge_pressure_pa) else 0.0
+        if self.target_m is None:
+            return self._output(self._command_pa, math.nan, 0.0, setpoint=math.nan,
+                                estimate=estimate, model_m=model_m)
+        setpoint = self._advance_setpoint(estimate, dt)
+        error = setpoint - estimate if math.isfinite(estimate) else 0.0
+        if s.mode == 'fb':
+            return self._feedback_only(setpoint, estimate, error, dt)
+        return self._with_feedforward(setpoint, estimate, model_m, error, dt)
+
+    def _observe_bias(self, model_m: float, measured_m: float, dt: float) -> None:
+        s = self.settings
+        self._bias_var += s.bias_process_noise_m ** 2 * dt
+        if not (math.isfinite(measured_m) and math.isfinite(model_m)):
+            return
+        gain = self._bias_var / (self._bias_var + s.length_noise_m ** 2)
+        self._bias_m += gain * (measured_m - model_m - self._bias_m)
+        self._bias_var *= 1.0 - gain
+
+    def _filter_measurement(self, measured_m: float, dt: float) -> float:
+        """Feedback only: a first-order filter trades the sensor's noise for lag."""
+        if math.isfinite(measured_m):
+            if not math.isfinite(self._filtered_m):
+                self._filtered_m = measured_m
+            else:
+                tau = self.settings.fb_filter_time_constant_s
+                self._filtered_m += (measured_m - self._filtered_m) * dt / (tau + dt)
+        return self._filtered_m
+
+    def _advance_setpoint(self, estimate: float, dt: float) -> float:
+        if self._setpoint_m is None:
+            self._setpoint_m = estimate if math.isfinite(estimate) else self.target_m
+        step = self.settings.max_setpoint_rate_m_s * dt
+        self._setpoint_m += max(-step, min(step, self.target_m - self._setpoint_m))
+        return self._setpoint_m
+
+    def _with_feedforward(self, setpoint: float, estimate: float, model_m: float, error: float,
+                          dt: float) -> ControlOutput:
+        s = self.settings
+        bias = self._bias_m if s.mode == 'ff_fb' else 0.0
+        feedforward, _, _ = self._inverse(setpoint - bias)   # the model must make this much
+        if s.mode == 'ff':
+            return self._limited(feedforward, feedforward, setpoint=setpoint,
+                                 estimate=estimate, model_m=model_m, low=False, high=False)
+        step = s.ki_per_s * error * dt if abs(error) > s.error_deadband_m else 0.0
+        self._integral += step
+        wanted, low, high = self._inverse(setpoint - bias + s.kp * error + self._integral)
+        if (low and error > 0) or (high and error < 0):
+            self._integral -= step            # anti-windup: the inverse is at an end already
+        return self._limited(wanted, feedforward, setpoint=setpoint, estimate=estimate,
+                             model_m=model_m, low=low, high=high)
+
+    def _feedback_only(self, setpoint: float, estimate: float, error: float,
+                       dt: float) -> ControlOutput:
+        s = self.settings
+        if self._setpoint_m is not None and self._integral == 0.0:
+            self._integral = self._command_pa        # bumpless: from the current command
+        # Length falls as pressure rises: a muscle too long (error < 0) needs more pressure.
+        if abs(error) > s.error_deadband_m:
+            self._integral -= s.fb_ki_pa_per_m_s * error * dt
+        self._integral = min(max(self._integral, 0.0), s.max_gauge_pressure_pa)  # anti-windup
+        wanted = self._integral - s.fb_kp_pa_per_m * error
+        return self._limited(wanted, math.nan, setpoint=setpoint, estimate=estimate,
+                             model_m=math.nan, low=wanted <= 0.0,
+                             high=wanted >= s.max_gauge_pressure_pa)
+
+    def _inverse(self, model_length_m: float) -> tuple[float, bool, bool]:
+        """(pressure, at 0 Pa end, at max end) that makes the model this long from here."""
+        result = self.model.pressure_for_length(model_length_m, BRANCH_AUTO)
+        if result.success:
+            return result.gauge_pressure_pa, False, False
+        if not math.isfinite(result.min_length_m):
+            return self._command_pa, False, False
+        if model_length_m < result.min_length_m:     # shorter than possible: full pressure
+            return self.settings.max_gauge_pressure_pa, False, True
+        return 0.0, True, False
+
+    def _limited(self, wanted: float, feedforward: float, *, setpoint: float, estimate: float,
+                 model_m: float, low: bool, high: bool) -> ControlOutput:
+        s = self.settings
+        clamped = min(max(wanted, 0.0), s.max_gauge_pressure_pa)
+        step = s.max_pressure_rate_pa_s * self._dt
+        command = min(max(clamped, self._command_pa - step), self._command_pa + step)
+        feedback = wanted - feedforward if math.isfinite(feedforward) else wanted
+        return self._output(command, feedforward, feedback, setpoint=setpoint,
+                            estimate=estimate, model_m=model_m, low=low or wanted < 0.0,
+                            high=high or wanted > s.max_gauge_pressure_pa,
+                            rate_limited=command != clamped)
+
+    def _output(self, command: float, feedforward: float, feedback: float, *,
+                setpoint: float, estimate: float, model_m: float, low: bool = False,
+                high: bool = False, rate_limited: bool = False) -> ControlOutput:
+        self._command_pa = command
+        return ControlOutput(command, feedforward, feedback, setpoint, estimate, model_m,
+                             self._bias_m, low, high, rate_limited)

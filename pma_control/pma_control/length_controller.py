@@ -1,0 +1,364 @@
+"""length_controller: hold the muscle at a length, or follow a stream of lengths.
+
+A thin ROS wrapper around pma_control.controller (docs/control.md): every `pma/state`
+sample runs one control step and publishes `pma/pressure_setpoint` (the driver still
+enforces its own limits) and `pma/control_state`. Targets come from the `pma/move_to_length`
+action or the `pma/length_setpoint` stream; the latest one wins. The hysteresis model is the
+one model_node runs: its latched `pma/model_params` is followed (a refit that model_node
+loads reaches the controller too); without model_node the shipped defaults are used.
+
+Faults (each logged, on /diagnostics and in pma/control_state):
+- no usable sample for `stale_timeout_s` (driver stopped or inactive, link lost, echo lost
+  in 'fb' mode): the running goal aborts, nothing more is published, the last command stays
+  with the driver (the driver vents on its own if its link is lost);
+- a NaN pressure: the sample is skipped (a NaN length alone is not a fault: the estimate
+  carries on from the model);
+- a new goal or stream setpoint preempts the running goal (it aborts, saying so);
+- cancelling a goal leaves the pressure where it is; so does stopping the node.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import fields
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from std_msgs.msg import Float64
+
+from pma_common.node import ros_context, spin_until_stopped
+from pma_control.controller import MODES, ControllerSettings, ControlOutput, LengthController
+from pma_interfaces.action import MoveToLength
+from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+from pma_interfaces.msg import ModelParams as ModelParamsMsg
+from pma_model.params import ModelParams, ParamsError, default_params
+
+DEFAULT_TOLERANCE_M = 0.002
+DEFAULT_SETTLE_S = 1.0
+DEFAULT_TIMEOUT_S = 30.0
+TICK_S = 0.1          # goal bookkeeping, feedback and the stale check run this often
+
+# ControllerSettings field -> (description, low, high)
+SETTING_DESCRIPTIONS = {
+    'max_gauge_pressure_pa': ('highest pressure the controller ever commands [Pa]', 1e3, 1e6),
+    'kp': ('ff_fb: proportional gain on the length error [m/m]', 0.0, 10.0),
+    'ki_per_s': ('ff_fb: integral gain on the length error [1/s]', 0.0, 100.0),
+    'fb_kp_pa_per_m': ('fb: proportional gain [Pa/m]', 0.0, 1e9),
+    'fb_ki_pa_per_m_s': ('fb: integral gain [Pa/(m s)]', 0.0, 1e10),
+    'fb_filter_time_constant_s': ('fb: time constant of the length filter [s]', 0.0, 10.0),
+    'error_deadband_m': ('errors below this are not integrated [m]', 0.0, 0.01),
+    'max_pressure_rate_pa_s': ('pressure-rate limit of the command [Pa/s]', 1e3, 1e7),
+    'max_setpoint_rate_m_s': ('length-rate limit of the setpoint [m/s]', 1e-4, 1.0),
+    'bias_process_noise_m': ('how fast the model error may wander [m/sqrt(s)]', 0.0, 0.1),
+    'length_noise_m': ('length sensor noise, one sigma [m]', 1e-5, 0.05),
+}
+
+
+def _range(low: float, high: float) -> list[FloatingPointRange]:
+    return [FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
+
+
+class LengthControllerNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__('length_controller', **kwargs)
+        defaults = ControllerSettings()
+        self.declare_parameter('mode', defaults.mode, ParameterDescriptor(
+            description=f"'ff_fb' (model feedforward + feedback), 'ff' or 'fb' ({MODES})"))
+        for name, (description, low, high) in SETTING_DESCRIPTIONS.items():
+            self.declare_parameter(name, float(getattr(defaults, name)), ParameterDescriptor(
+                description=description, floating_point_range=_range(low, high)))
+        self.declare_parameter('stale_timeout_s', 0.5, ParameterDescriptor(
+            description='no usable pma/state sample for this long is a fault [s]',
+            floating_point_range=_range(0.05, 10.0)))
+        self.declare_parameter('follow_model_node', True, ParameterDescriptor(
+            description="use model_node's model (its latched pma/model_params)",
+            read_only=True))
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self._params = default_params()
+        self._controller = LengthController(self._params.build_model(), self._settings())
+        self._goal = None                    # the running goal handle
+        self._goal_started = 0.0
+        self._inside_since: float | None = None   # since when the goal is within tolerance
+        self._last_sample_at: float | None = None
+        self._last_state: PmaState | None = None
+        self._last_output: ControlOutput | None = None
+        self._fault = ''
+        self._stats = {'steps': 0, 'nan_pressure': 0, 'nan_length': 0, 'faults': 0}
+
+        self._command_pub = self.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+        self._state_pub = self.create_publisher(ControlState, 'pma/control_state', 10)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
+        # One thread runs everything: every sample is one control step, published at once.
+        self.create_subscription(PmaState, 'pma/state', self._on_state, qos_profile_sensor_data)
+        self.create_subscription(LengthSetpoint, 'pma/length_setpoint', self._on_setpoint, 10)
+        if self.get_parameter('follow_model_node').value:
+            latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                                 reliability=ReliabilityPolicy.RELIABLE)
+            self.create_subscription(ModelParamsMsg, 'pma/model_params', self._on_model_params,
+                                     latched)
+        self._action = ActionServer(
+            self, MoveToLength, 'pma/move_to_length',
+            execute_callback=lambda handle: MoveToLength.Result(),   # replaced per goal
+            goal_callback=self._on_goal, handle_accepted_callback=self._on_accepted,
+            cancel_callback=lambda _: CancelResponse.ACCEPT)
+        self.create_timer(TICK_S, self._on_tick)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info(f'length_controller ready: mode {self._controller.settings.mode}, '
+                               f'{self._params.branch_form} model, {self._params.memory} memory')
+
+    # -- parameters --------------------------------------------------------------------
+
+    def _settings(self, changes: dict | None = None) -> ControllerSettings:
+        values = {item.name: self.get_parameter(item.name).value
+                  for item in fields(ControllerSettings)}
+        values.update(changes or {})
+        return ControllerSettings(**values)
+
+    def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        changes = {p.name: p.value for p in parameters
+                   if p.name in {item.name for item in fields(ControllerSettings)}}
+        try:
+            self._settings(changes)
+        except (ValueError, TypeError) as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        settings = self._settings()
+        if settings.mode != self._controller.settings.mode:
+            target = self._controller.target_m
+            self._controller = LengthController(self._controller.model, settings)
+            if target is not None:
+                self._controller.set_target(target)
+        else:
+            self._controller.settings = settings
+
+    def _on_model_params(self, msg: ModelParamsMsg) -> None:
+        try:
+            params = ModelParams.from_yaml(msg.parameters_yaml)
+        except ParamsError as error:
+            self.get_logger().error(f'pma/model_params not usable, keeping the model: {error}')
+            return
+        if params == self._params:
+            return
+        self._params = params
+        self._controller.replace_model(params.build_model())
+        self.get_logger().info(f"following model_node's model: {params.branch_form} "
+                               f'branches, {params.memory} memory')
+
+    # -- the loop ----------------------------------------------------------------------
+
+    def _on_state(self, state: PmaState) -> None:
+        if not math.isfinite(state.gauge_pressure_pa):
+            self._stats['nan_pressure'] += 1
+            return
+        self._stats['steps'] += 1
+        length_ok = math.isfinite(state.length_m)
+        if not length_ok:
+            self._stats['nan_length'] += 1
+        if length_ok or self._controller.settings.mode != 'fb':   # 'fb' is blind without echo
+            self._last_sample_at = time.monotonic()
+            if self._fault:
+                self.get_logger().info('samples again: the fault is cleared')
+                self._fault = ''
+        t_s = state.header.stamp.sec + state.header.stamp.nanosec * 1e-9
+        output = self._controller.update(t_s, state.gauge_pressure_pa, state.length_m)
+        self._last_state, self._last_output = state, output
+        if self._controller.target_m is not None and not self._fault:
+            self._command_pub.publish(Float64(data=float(output.command_pa)))
+        self._state_pub.publish(self._control_state(state, output))
+
+    def _control_state(self, state: PmaState, output: ControlOutput) -> ControlState:
+        msg = ControlState()
+        msg.header = state.header
+        target = self._controller.target_m
+        if self._fault:
+            msg.mode, msg.message = ControlState.MODE_FAULT, self._fault
+        elif target is None:
+            msg.mode = ControlState.MODE_IDLE
+        else:
+            msg.mode = ControlState.MODE_GOAL if self._goal is not None else \
+                ControlState.MODE_STREAM
+        msg.target_length_m = math.nan if target is None else target
+        msg.setpoint_length_m = output.setpoint_length_m
+        msg.measured_length_m = state.length_m
+        msg.estimated_length_m = output.estimated_length_m
+        msg.model_length_m = output.model_length_m
+        msg.bias_m = output.bias_m
+        msg.gauge_pressure_pa = state.gauge_pressure_pa
+        msg.feedforward_pa = output.feedforward_pa
+        msg.feedback_pa = output.feedback_pa
+        msg.gauge_pressure_command_pa = output.command_pa
+        msg.saturated_low, msg.saturated_high = output.saturated_low, output.saturated_high
+        msg.rate_limited = output.rate_limited
+        return msg
+
+    def _on_tick(self) -> None:
+        """Goal bookkeeping and the stale check, TICK_S apart."""
+        self._check_stale()
+        if self._goal is not None:
+            self._follow_goal(self._goal)
+
+    def _check_stale(self) -> None:
+        if self._fault or self._controller.target_m is None:
+            return
+        timeout = self.get_parameter('stale_timeout_s').value
+        last = self._last_sample_at
+        if last is not None and time.monotonic() - last <= timeout:
+            return
+        age = 'none yet' if last is None else f'{time.monotonic() - last:.1f} s old'
+        self._fault = (f'no usable pma/state sample for {timeout:g} s (latest: {age}): is the '
+                       'driver running and active? Holding the last command')
+        self._stats['faults'] += 1
+        self.get_logger().error(self._fault)
+
+    # -- targets -----------------------------------------------------------------------
+
+    def _on_setpoint(self, msg: LengthSetpoint) -> None:
+        reason = self._controller.set_target(msg.length_m)
+        if reason:
+            self.get_logger().warning(f'refused pma/length_setpoint: {reason}',
+                                      throttle_duration_sec=2.0)
+            return
+        if self._goal is not None:
+            self._end_goal(self._goal, False, 'preempted by pma/length_setpoint', 'abort')
+
+    def _on_goal(self, _goal) -> GoalResponse:
+        """Accept every goal: a refusal is an abort with the reason in the result, which a
+        user at a terminal sees (a rejection would only say `accepted: false`)."""
+        return GoalResponse.ACCEPT
+
+    def _on_accepted(self, goal_handle) -> None:
+        """Start steering at once; the goal's result is produced when it ends (_end_goal).
+
+        One thread runs this node, so a goal must not wait inside a callback: it is followed
+        by the tick. (A multi-threaded executor, which a blocking execute callback needs,
+        added half a millisecond to every control step.)
+        """
+        request = goal_handle.request
+        bad = next((f'{name} must be a finite number >= 0, got {value}' for name, value in
+                    (('tolerance_m', request.tolerance_m), ('settle_s', request.settle_s),
+                     ('timeout_s', request.timeout_s))
+                    if not (math.isfinite(value) and value >= 0)), '')
+        reason = bad or self._fault or self._controller.set_target(request.length_m)
+        if reason:
+            self._end_goal(goal_handle, False, reason, 'abort')
+            return
+        if self._goal is not None:
+            self._end_goal(self._goal, False, 'preempted by a new goal', 'abort')
+        self._goal = goal_handle
+        self._goal_started = time.monotonic()
+        self._inside_since = None
+
+    def _follow_goal(self, goal_handle) -> None:
+        request = goal_handle.request
+        now = time.monotonic()
+        elapsed = now - self._goal_started
+        if goal_handle.is_cancel_requested:
+            self._controller.clear_target()
+            self._end_goal(goal_handle, False, 'canceled; the pressure stays where it is',
+                           'canceled')
+            return
+        if self._fault:
+            self._controller.clear_target()
+            self._end_goal(goal_handle, False, f'aborted: {self._fault}', 'abort')
+            return
+        output = self._last_output
+        if output is None:
+            if elapsed > self.get_parameter('stale_timeout_s').value:
+                self._controller.clear_target()
+                self._end_goal(goal_handle, False, 'no pma/state sample yet: is the driver '
+                               'running and active?', 'abort')
+            return
+        tolerance = request.tolerance_m or DEFAULT_TOLERANCE_M
+        settle_s = request.settle_s or DEFAULT_SETTLE_S
+        error = request.length_m - output.estimated_length_m
+        goal_handle.publish_feedback(MoveToLength.Feedback(
+            measured_length_m=self._last_state.length_m,
+            estimated_length_m=output.estimated_length_m, error_m=error,
+            gauge_pressure_command_pa=output.command_pa))
+        if abs(error) > tolerance:
+            self._inside_since = None
+        elif self._inside_since is None:
+            self._inside_since = now
+        elif now - self._inside_since >= settle_s:
+            settle_time = self._inside_since - self._goal_started
+            self._end_goal(goal_handle, True, f'settled within {tolerance * 1000:.1f} mm for '
+                           f'{settle_s:g} s after {settle_time:.2f} s; holding', 'succeed',
+                           settle_time)
+            return
+        timeout_s = request.timeout_s or DEFAULT_TIMEOUT_S
+        if elapsed > timeout_s:
+            self._end_goal(goal_handle, False, f'not settled within {timeout_s:g} s (error '
+                           f'{error * 1000:.1f} mm); still holding the target', 'abort')
+
+    def _end_goal(self, goal_handle, success: bool, message: str, outcome: str,
+                  settle_time_s: float = math.nan) -> None:
+        """Produce the goal's result now: execute() runs the callback that reports it."""
+        if self._goal is goal_handle:
+            self._goal = None
+        output = self._last_output
+        result = MoveToLength.Result(
+            success=success, message=message, settle_time_s=settle_time_s,
+            final_length_m=output.estimated_length_m if output is not None else math.nan)
+
+        def report(handle):
+            getattr(handle, {'succeed': 'succeed', 'abort': 'abort',
+                             'canceled': 'canceled'}[outcome])()
+            return result
+
+        goal_handle.execute(report)
+        text = f'move_to_length {goal_handle.request.length_m:.4f} m: {message}'
+        if success:             # one call site per severity: rclpy refuses two at one line
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warning(text)
+
+    # -- diagnostics -------------------------------------------------------------------
+
+    def _publish_diagnostics(self) -> None:
+        output, target, fault = self._last_output, self._controller.target_m, self._fault
+        stats, settings = self._stats, self._controller.settings
+        status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: length control',
+                                  hardware_id='controller')
+        if fault:
+            status.level, status.message = DiagnosticStatus.ERROR, fault
+        elif target is None:
+            status.level, status.message = DiagnosticStatus.OK, 'idle (no target)'
+        else:
+            status.level, status.message = DiagnosticStatus.OK, f'holding {target:.4f} m'
+        values = {'mode': settings.mode, 'target [m]': '-' if target is None else f'{target:.5f}',
+                  **{key: str(value) for key, value in stats.items()}}
+        if output is not None:
+            values.update({'estimated length [m]': f'{output.estimated_length_m:.5f}',
+                           'bias [m]': f'{output.bias_m:.5f}',
+                           'command [Pa]': f'{output.command_pa:.0f}',
+                           'saturated': str(output.saturated_low or output.saturated_high)})
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self._diagnostics_pub.publish(array)
+
+
+def main(args=None) -> int:
+    with ros_context(args) as stop:
+        node = LengthControllerNode()
+        try:
+            spin_until_stopped(SingleThreadedExecutor(), node, stop)
+        finally:
+            node.destroy_node()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
+

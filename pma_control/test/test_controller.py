@@ -1,0 +1,119 @@
+"""The controller core: its limits hold for any input, and it controls the simulated rig."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pma_control.controller import MODES, ControllerSettings, LengthController
+from pma_driver.sim.closed_loop import run_closed_loop
+from pma_model.params import default_params
+
+STROKE_M = 0.0586      # Table 1: 30.06 -> 24.20 cm
+
+
+def controller(mode: str = 'ff_fb', **changes) -> LengthController:
+    return LengthController(default_params().build_model(),
+                            ControllerSettings(mode=mode, **changes))
+
+
+def test_settings_refuse_what_cannot_work():
+    with pytest.raises(ValueError, match='mode'):
+        ControllerSettings(mode='pid')
+    with pytest.raises(ValueError, match='kp'):
+        ControllerSettings(kp=math.nan)
+    with pytest.raises(ValueError, match='max_pressure_rate_pa_s'):
+        ControllerSettings(max_pressure_rate_pa_s=0.0)
+
+
+@pytest.mark.parametrize('target', [0.20, 0.31, math.nan, math.inf, 'long'])
+def test_unreachable_or_meaningless_targets_are_refused_with_the_range(target):
+    reason = controller().set_target(target)
+    assert reason
+    if isinstance(target, float) and math.isfinite(target):
+        assert 'reachable [' in reason
+    low, high = controller().reachable_range_m()
+    assert 0.24 < low < 0.245 and 0.299 < high < 0.301
+
+
+@settings(max_examples=200, deadline=None)
+@given(mode=st.sampled_from(MODES),
+       steps=st.lists(st.tuples(
+           st.floats(-1e5, 2e6),                                # pressure, even nonsense
+           st.one_of(st.floats(0.2, 0.32), st.just(math.nan)),  # length or no echo
+           st.one_of(st.none(), st.floats(0.241, 0.299))),      # a new target sometimes
+           min_size=1, max_size=60),
+       max_pa=st.floats(50_000, 500_000))
+def test_every_command_is_within_zero_and_the_maximum(mode, steps, max_pa):
+    control = controller(mode, max_gauge_pressure_pa=max_pa)
+    for k, (pressure, length, target) in enumerate(steps):
+        if target is not None:
+            control.set_target(target)
+        output = control.update(0.05 * k, pressure, length)
+        assert 0.0 <= output.command_pa <= max_pa
+
+
+def test_the_pressure_rate_limit_holds():
+    control = controller(max_pressure_rate_pa_s=100_000.0)
+    control.update(0.0, 0.0, 0.30)
+    assert control.set_target(0.25) == ''
+    previous = 0.0
+    for k in range(1, 40):
+        command = control.update(0.05 * k, 0.0, 0.30).command_pa
+        assert command - previous <= 100_000.0 * 0.05 + 1e-6
+        previous = command
+
+
+def track(mode: str, profile, duration_s: float, rate_hz: int = 20, seed: int = 0):
+    control = controller(mode)
+
+    def step(t_s, pressure_pa, length_m):
+        control.set_target(profile(t_s))
+        return control.update(t_s, pressure_pa, length_m).command_pa
+
+    trace = run_closed_loop(step, duration_s, rate_hz=rate_hz, seed=seed).arrays()
+    reference = np.array([profile(t) for t in trace['t_s']])
+    return trace, reference
+
+
+def sine(frequency_hz: float, low_m: float = 0.25, high_m: float = 0.295):
+    middle, amplitude = (low_m + high_m) / 2, (high_m - low_m) / 2
+    return lambda t: middle - amplitude * math.cos(2 * math.pi * frequency_hz * t)
+
+
+def test_a_step_settles_within_the_sensor_resolution():
+    trace, reference = track('ff_fb', lambda t: 0.265, 12.0)
+    settled = trace['t_s'] > 6.0
+    error = trace['true_length_m'][settled] - reference[settled]
+    assert abs(error.mean()) < 0.0015          # half the HC-SR04's 3 mm resolution
+    assert np.abs(error).max() < 0.003
+
+
+def test_feedforward_plus_feedback_beats_feedback_alone_on_a_sine():
+    rmse = {}
+    for mode in ('fb', 'ff_fb'):
+        trace, reference = track(mode, sine(0.1), 32.0)
+        after_first_period = trace['t_s'] > 10.0
+        error = trace['true_length_m'][after_first_period] - reference[after_first_period]
+        rmse[mode] = float(np.sqrt(np.mean(error ** 2)))
+    assert rmse['ff_fb'] <= 0.02 * STROKE_M
+    assert rmse['ff_fb'] * 2 <= rmse['fb'], rmse
+
+
+def test_the_shipped_params_file_holds_the_defaults_in_code():
+    """config/length_controller.yaml and ControllerSettings() must not drift apart."""
+    from pathlib import Path
+
+    import yaml
+
+    path = Path(__file__).resolve().parents[1] / 'config' / 'length_controller.yaml'
+    values = yaml.safe_load(path.read_text())['/**']['ros__parameters']
+    defaults = ControllerSettings()
+    for name, value in values.items():
+        if hasattr(defaults, name):
+            assert getattr(defaults, name) == value, name
+            assert type(value) is type(getattr(defaults, name)), f'{name}: write 1.0, not 1'

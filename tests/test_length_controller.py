@@ -1,0 +1,146 @@
+"""length_controller against the simulated rig: fake_arduino, driver_node and the controller as
+real processes over DDS, without model_node (the controller needs none), then with it.
+
+The probe sends MoveToLength goals and streams pma/length_setpoint like `ros2 action
+send_goal` and `ros2 topic pub -r 50` would, and reads the measured length from pma/state.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+from rclpy.action import ActionClient
+
+from pma_interfaces.action import MoveToLength
+from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+from support.ros import SpinningNode, shutdown, wait_until
+
+pytestmark = pytest.mark.integration
+
+STROKE_M = 0.0586
+
+
+class Probe:
+    def __init__(self):
+        self.spinning = SpinningNode('control_test_probe')
+        node = self.spinning.node
+        self.lock = threading.Lock()
+        self.states: list[tuple[float, PmaState]] = []
+        self.control: list[ControlState] = []
+        node.create_subscription(PmaState, 'pma/state', self._on_state, 1000)
+        node.create_subscription(ControlState, 'pma/control_state', self._on_control, 1000)
+        self.setpoints = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
+        self.move = ActionClient(node, MoveToLength, 'pma/move_to_length')
+
+    def _on_state(self, msg: PmaState) -> None:
+        with self.lock:
+            self.states.append((time.monotonic(), msg))
+
+    def _on_control(self, msg: ControlState) -> None:
+        with self.lock:
+            self.control.append(msg)
+
+    def lengths_since(self, since: float) -> np.ndarray:
+        with self.lock:
+            return np.array([s.length_m for t, s in self.states if t >= since])
+
+    def send_goal(self, length_m: float, timeout_s: float = 20.0, **fields):
+        assert self.move.wait_for_server(20), 'no pma/move_to_length server'
+        goal = MoveToLength.Goal(length_m=length_m, timeout_s=timeout_s, **fields)
+        accepted = self._wait(self.move.send_goal_async(goal), 10)
+        assert accepted.accepted
+        return accepted
+
+    @staticmethod
+    def _wait(future, timeout: float):
+        wait_until(future.done, timeout, 'the action server')
+        return future.result()
+
+    def result(self, handle, timeout: float = 40.0):
+        return self._wait(handle.get_result_async(), timeout).result
+
+    def close(self):
+        self.spinning.close()
+
+
+@pytest.fixture(scope='module')
+def rig(module_procs, tmp_path_factory):
+    port = tmp_path_factory.mktemp('rig') / 'pma'
+    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+                                 '--rate', '50', '--seed', '3')
+    fake.wait_for_line('device at', 20)
+    driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[
+        '-p', f'port:={port}', '-p', 'sample_rate_hz:=50.0'])
+    controller = module_procs.ros2_run('pma_control', 'length_controller')
+    driver.wait_for_line('active: publishing', 30)
+    controller.wait_for_line('length_controller ready', 30)
+    probe = Probe()
+    wait_until(lambda: len(probe.states) > 20 and len(probe.control) > 5, 20,
+               'pma/state and pma/control_state')
+    yield {'driver': driver, 'controller': controller, 'probe': probe, 'port': port,
+           'procs': module_procs}
+    probe.close()
+    shutdown()
+
+
+def test_move_to_length_settles_and_holds(rig):
+    probe = rig['probe']
+    handle = probe.send_goal(0.265, tolerance_m=0.002, settle_s=1.0)
+    result = probe.result(handle)
+    assert result.success, result.message
+    assert abs(result.final_length_m - 0.265) <= 0.002
+    assert 0.0 < result.settle_time_s < 15.0
+    since = time.monotonic()
+    time.sleep(3.0)                                  # the controller keeps holding it
+    held = probe.lengths_since(since)
+    held = held[np.isfinite(held)]
+    assert abs(held.mean() - 0.265) < 0.0015, held.mean()
+
+
+def test_an_unreachable_target_is_refused_with_the_reachable_range(rig):
+    result = rig['probe'].result(rig['probe'].send_goal(0.20))
+    assert not result.success
+    assert 'reachable [' in result.message and '0.20' in result.message
+
+
+def test_a_streamed_sine_is_tracked(rig):
+    probe = rig['probe']
+    wait_until(lambda: probe.setpoints.get_subscription_count() > 0, 10, 'controller subscribed')
+    frequency, low, high = 0.1, 0.255, 0.29
+    start = time.monotonic()
+    reference: list[tuple[float, float]] = []
+    while (now := time.monotonic()) - start < 25.0:
+        t = now - start
+        target = (low + high) / 2 - (high - low) / 2 * math.cos(2 * math.pi * frequency * t)
+        probe.setpoints.publish(LengthSetpoint(length_m=target))
+        reference.append((now, target))
+        time.sleep(0.02)                              # 50 Hz, as `ros2 topic pub -r 50`
+    with probe.lock:
+        states = [(t, s.length_m) for t, s in probe.states if t >= start + 10.0]
+    times = np.array([t for t, _ in states])
+    measured = np.array([length for _, length in states])
+    ref = np.interp(times, *map(np.array, zip(*reference, strict=True)))
+    ok = np.isfinite(measured)
+    # The HC-SR04 alone is ~1.7 mm RMS (noise + 3 mm steps): compare 0.5 s averages.
+    window = 25
+    smooth = np.convolve(measured[ok], np.ones(window) / window, mode='valid')
+    error = smooth - ref[ok][window // 2:window // 2 + smooth.size]
+    rmse = float(np.sqrt(np.mean(error ** 2)))
+    print(f'streamed sine 0.1 Hz: RMSE of 0.5 s means {rmse * 1000:.2f} mm')
+    assert rmse < 0.03 * STROKE_M, f'RMSE {rmse * 1000:.2f} mm'
+    with probe.lock:
+        modes = {c.mode for c in probe.control[-50:]}
+    assert ControlState.MODE_STREAM in modes
+
+
+def test_losing_the_driver_aborts_the_goal_and_says_why(rig):
+    probe = rig['probe']
+    handle = probe.send_goal(0.28, settle_s=30.0, timeout_s=60.0)
+    time.sleep(1.0)
+    rig['driver'].stop()
+    result = probe.result(handle)
+    assert not result.success and 'no usable pma/state' in result.message
