@@ -473,7 +473,7 @@ class BagReader:
         self.path = Path(path)
         self.warnings = []
         self.bag_info: dict[str, Any] | None = None   # metadata.yaml, when the bag has one
-        self.files = [_McapFile(p) for p in self._mcap_paths()]
+        self.files = self._open_files(self._mcap_paths())
         for mcap_file in self.files:
             if mcap_file.truncated:
                 message = (f'{mcap_file.path} is truncated ({mcap_file.damage}); reading the '
@@ -481,6 +481,21 @@ class BagReader:
                 self.warnings.append(message)
                 warnings.warn(message, TruncatedBagWarning, stacklevel=2)
         self._topics = self._collect_topics()
+
+    def _open_files(self, paths: list[Path]) -> list[_McapFile]:
+        files = []
+        for index, path in enumerate(paths):
+            try:
+                files.append(_McapFile(path))
+            except BagError as exc:
+                # A recorder killed just after a split leaves an empty or header-less last
+                # file: the files before it are whole, so that one is skipped, with a note.
+                if index == 0 or index < len(paths) - 1 or self.bag_info is not None:
+                    raise
+                message = f'{path} skipped: {exc}'
+                self.warnings.append(message)
+                warnings.warn(message, TruncatedBagWarning, stacklevel=3)
+        return files
 
     def _mcap_paths(self) -> list[Path]:
         if not self.path.exists():

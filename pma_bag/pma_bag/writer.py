@@ -210,6 +210,7 @@ class BagWriter:
         # Written at open too (as rosbag2 does), so a bag cut short by a crash still says
         # what the experiment was; rewritten whenever custom_data changes and at close.
         self._write_metadata_record(force=True)
+        self._guard(stream.flush)  # a header on disk at once: a crash leaves a readable file
 
     def _register(self, target: _File, topic: _Topic) -> None:
         schema = topic.schema
