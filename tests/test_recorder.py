@@ -18,11 +18,11 @@ import pytest
 import yaml
 from diagnostic_msgs.msg import KeyValue
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.highlevel import AnyReader
 from std_srvs.srv import Trigger
 
-from pma_bag import BagReader, recover_bag
+from pma_bag import BagReader, BagWriteError, BagWriter, recover_bag
 from pma_bag.reader import TruncatedBagWarning
 from pma_interfaces.msg import PmaState
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
@@ -275,6 +275,31 @@ def test_full_disk_stays_up_then_exits_non_zero_and_says_recover(procs, tmp_path
     assert len(kept) > 500 and kept == list(range(kept[0], kept[0] + len(kept)))
 
 
+def test_writer_on_a_full_disk_raises_bag_write_error_keeps_failing_and_recovers(tmp_path):
+    """A real 256 KiB filesystem fills up in the middle of a chunk."""
+    with small_filesystem(tmp_path / 'small', 256 * 1024) as disk:
+        bag = disk / 'full'
+        writer = BagWriter(bag, chunk_size=16 * 1024)
+        writer.add_topic('/pma/state', STATE)
+        written = 0
+        with pytest.raises(BagWriteError, match='No space left'):
+            for seq in range(100_000):
+                writer.write('/pma/state', serialize_message(PmaState(seq=seq)), time.time_ns())
+                written += 1
+                if seq % 500 == 0:
+                    writer.flush()
+        assert written > 1000, 'the disk held some data before it was full'
+        with pytest.raises(BagWriteError):
+            writer.write('/pma/state', b'\x00\x01\x00\x00', time.time_ns())
+        with pytest.raises(BagWriteError, match='No space left'):
+            writer.close()
+        assert not (bag / 'metadata.yaml').exists(), 'metadata must not describe a failed file'
+        report = recover_bag(bag, tmp_path / 'recovered')
+    with BagReader(report.output) as reader:
+        kept = [deserialize_message(m.data, PmaState).seq for m in reader.messages()]
+    assert kept == list(range(len(kept))) and len(kept) >= writer.messages_flushed - 500
+
+
 def test_an_existing_directory_with_other_files_is_refused(procs, tmp_path):
     """Regression: the recorder wrote its bag into a directory holding other files."""
     target = tmp_path / 'results'
@@ -290,3 +315,31 @@ def test_an_existing_directory_with_other_files_is_refused(procs, tmp_path):
 
 if __name__ == '__main__':
     sys.exit(pytest.main([__file__, '-q']))
+
+
+def test_refit_reads_a_split_compressed_bag_and_copies_its_custom_data(procs, tmp_path):
+    from pma_model.params import default_params
+
+    model = default_params().build_model()
+    levels = [*range(0, 500_001, 50_000), *range(450_000, -1, -50_000)]
+    bag = tmp_path / 'sweep'
+    start_ns = 1_700_000_000 * 10**9
+    with BagWriter(bag, compression='zstd', max_bag_size=8 * 1024, chunk_size=2048,
+                   custom_data={'muscle': 'm1', 'note': 'refit me'}) as writer:
+        writer.add_topic('/pma/state', STATE)
+        for seq in range(len(levels) * 20):
+            level = float(levels[seq // 20])
+            length, _ = model.update(level)
+            msg = PmaState(seq=seq, gauge_pressure_pa=level, length_m=float(length),
+                           gauge_setpoint_pa=level)
+            stamp = start_ns + seq * 20_000_000
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+            writer.write('/pma/state', serialize_message(msg), stamp)
+        files = len(writer.file_paths)
+    assert files > 2
+    refit = procs.ros2_run('pma_model', 'refit', bag, '--no-holdout',
+                           '--json', tmp_path / 'report.json')
+    assert refit.popen.wait(120) == 0, refit.output
+    report = yaml.safe_load((tmp_path / 'report.json').read_text())
+    assert report['custom_data'] == {'muscle': 'm1', 'note': 'refit me'}
+    assert (report['data']['n_increasing'], report['data']['n_decreasing']) == (11, 10)
