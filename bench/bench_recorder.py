@@ -1,4 +1,4 @@
-"""recorder CPU at 1 kHz against a plain rclpy subscriber, and messages written vs published.
+"""recorder CPU at 1 kHz against a plain rclpy subscriber, per chunk compression; SIGKILL loss.
 
     . tools/env.sh && python bench/bench_recorder.py [--seconds 10]
 
@@ -7,8 +7,11 @@ depth 1000) to two subscribers at once: the recorder (`recorder -o BAG`, its def
 list) and the baseline, a minimal rclpy node with a raw=True subscription (reliable,
 KEEP_ALL, like the recorder's) whose callback only counts. CPU (utime + stime from /proc,
 all threads) of both over the steady window, % of one core, and the ratio recorder /
-baseline. Then the bag is read back with BagReader: /pma/state messages written vs
-published (target: all).
+baseline, for each chunk compression (none, zstd, lz4), and each compression's CPU as a
+ratio to none's. Then the bag is read back with BagReader: /pma/state messages written vs
+published (target: all). Last, a zstd recording (split every 64 kB) is killed with SIGKILL
+after the window: the samples missing from its complete prefix (target: <= 1 s of samples,
+the flush interval documented in docs/bags.md) and the bag size.
 """
 
 from __future__ import annotations
@@ -68,8 +71,9 @@ def counter_main() -> None:
     rclpy.try_shutdown()
 
 
-def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
-    bag = work / 'bag'
+def run(seconds: float, work: Path, compression: str = 'none',
+        kill: bool = False) -> tuple[list[tuple[str, str, str]], float]:
+    bag = work / f'bag_{compression}{"_killed" if kill else ""}'
     count = round(RATE_HZ * (SETTLE_S + seconds + TAIL_S))
     procs: list[subprocess.Popen] = []
     logs = []
@@ -83,7 +87,8 @@ def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
         return proc
 
     try:
-        recorder = start([str(RECORDER), '-o', str(bag)], 'recorder')
+        options = ['--compression', compression] + (['--max-bag-size', '65536'] if kill else [])
+        recorder = start([str(RECORDER), '-o', str(bag), *options], f'recorder_{compression}')
         baseline = start([sys.executable, __file__, '--count'], 'baseline')
         read_line(baseline, 30, 'baseline subscriber start')
         publisher = start([sys.executable, str(PUBLISHER), '--topic', TOPIC,
@@ -100,6 +105,10 @@ def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
         cpu1 = {name: cpu_seconds(pid) for name, pid in pids.items()}
         elapsed = time.monotonic() - window_start
         cpu = {name: (cpu1[name] - cpu0[name]) / elapsed * 100.0 for name in pids}
+        if kill:
+            recorder.kill()
+            recorder.wait()
+            published_at_kill = round((SETTLE_S + elapsed) * RATE_HZ)
         done = read_line(publisher, seconds + 60, 'publisher end')
         match = re.fullmatch(r'publisher: done (\d+) in ([\d.]+) s', done)
         if not match:
@@ -111,6 +120,8 @@ def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
         received = baseline.stdout.read().split()
         stop(recorder)
         recorder_out = recorder.stdout.read()
+        if kill:
+            return killed_rows(bag, published_at_kill), cpu['recorder']
     finally:
         for proc in reversed(procs):
             stop(proc)
@@ -129,8 +140,9 @@ def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
         written = info.message_count if info is not None else 0
         bag_topics = sorted(reader.topics)
 
+    size = sum(p.stat().st_size for p in bag.glob('*.mcap'))
     rows = [
-        ('recorder CPU at 1 kHz [% core]', f'{cpu["recorder"]:.1f}',
+        (f'[{compression}] recorder CPU at 1 kHz [% core]', f'{cpu["recorder"]:.1f}',
          f'(recording {topics[-1] if topics else "?"} topics: {", ".join(bag_topics)})'),
         ('  baseline raw rclpy subscriber CPU [% core]', f'{cpu["baseline"]:.1f}',
          '(same topic, same messages)'),
@@ -143,9 +155,33 @@ def run(seconds: float, work: Path) -> list[tuple[str, str, str]]:
          check(written == published, f'{published}')),
         ('  recorder says it wrote (all topics)', f'{wrote[1]}', ''),
         ('  received by the baseline', f'{received[1]}', ''),
+        ('  bag size [bytes per /pma/state message]', f'{size / max(written, 1):.1f}', ''),
     ]
-    rows.append(load_row())
-    return rows
+    return rows, cpu['recorder'] / cpu['baseline']
+
+
+def killed_rows(bag: Path, published: int) -> list[tuple[str, str, str]]:
+    """What a SIGKILL'd zstd recording keeps: a gap-free prefix, at most ~1 s short."""
+    import warnings
+
+    from rclpy.serialization import deserialize_message
+
+    from pma_bag.reader import TruncatedBagWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', TruncatedBagWarning)
+        with BagReader(bag) as reader:
+            seqs = [deserialize_message(m.data, PmaState).seq
+                    for m in reader.messages([TOPIC])]
+            files = len(reader.files)
+    prefix = seqs == list(range(len(seqs)))
+    lost = published - len(seqs)
+    return [
+        ('[zstd, SIGKILL] samples kept / published before the kill', f'{len(seqs)}',
+         f'of ~{published}; {files} files; gap-free prefix: {prefix}'),
+        ('  lost at the kill [s of samples]', f'{lost / RATE_HZ:.2f}',
+         check(lost <= RATE_HZ * 1.0 and prefix, '<= 1.0 s, gap-free')),
+    ]
 
 
 def main() -> None:
@@ -161,7 +197,15 @@ def main() -> None:
         sys.exit(f'{RECORDER} not found: run `make setup`')
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))   # clean up on SIGTERM too
     work = Path(tempfile.mkdtemp(prefix='bench_recorder_'))
-    rows = run(args.seconds, work)
+    rows, ratios = [], {}
+    for compression in ('none', 'zstd', 'lz4'):
+        found, ratios[compression] = run(args.seconds, work, compression)
+        rows += found
+    for compression in ('zstd', 'lz4'):
+        rows.append((f'CPU ratio {compression} / none (each against its baseline)',
+                     f'{ratios[compression] / ratios["none"]:.2f}', ''))
+    rows += run(min(args.seconds, 5.0), work, 'zstd', kill=True)[0]
+    rows.append(load_row())
     shutil.rmtree(work, ignore_errors=True)        # kept (logs, bag) when the run failed
     print_table(rows)
 

@@ -24,6 +24,7 @@ setup(
             'record = pma_bag.entry_points:record',
             'play = pma_bag.entry_points:play',
             'recover = pma_bag.recover:main',
+            'info = pma_bag.info:main',
         ],
     },
 )

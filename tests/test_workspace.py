@@ -17,7 +17,7 @@ HELPERS = Path(__file__).parent / 'helpers'
 EXECUTABLES = {
     'pma_driver': ['driver_node', 'fake_arduino', 'recorder'],
     'pma_model': ['model_node', 'replay', 'refit'],
-    'pma_bag': ['record', 'play', 'recover'],
+    'pma_bag': ['record', 'play', 'recover', 'info'],
     'pma_bringup': ['demo'],
     'pma_control': ['length_controller'],
 }

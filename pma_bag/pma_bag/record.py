@@ -1,12 +1,25 @@
 """record: record PMA topics into a rosbag2-compatible MCAP bag (docs/bags.md).
 
-    ros2 run pma_bag record [-o BAG_DIR] [--topics T ...] [--ros-args -r __ns:=/rig1]
-    ros2 run pma_bag recover BAG [-o OUT]           (a bag cut short by a crash)
+    ros2 run pma_bag record [-o BAG_DIR] [--topics T ...] [--compression zstd|lz4|none]
+                            [--max-bag-size BYTES] [--max-bag-duration S]
+                            [--note TEXT] [--custom KEY=VALUE ...] [--start-paused]
+    ros2 run pma_bag record --idle          (no bag until a ~/start service call)
+    ros2 run pma_bag recover BAG [-o OUT]   (a bag cut short by a crash)
 
-Messages are subscribed raw and stored as received, without decode/re-encode. Each topic is
-subscribed once a publisher shows up (a periodic graph check), with the reliability and
-durability its publishers offer, so latched pma/model_params is caught too. SIGINT/SIGTERM
-close the bag; a write failure is logged and reported on /diagnostics, and the node stays up.
+Messages are subscribed raw and stored as received, without decode/re-encode. Wanted topics
+are looked up in the graph at once and then every 0.1 s (rosbag2's topic polling interval),
+and subscribed with the reliability and durability their publishers offer, so latched
+pma/model_params is caught too. Subscriptions outlive a bag: a bag started with ~/start on a
+running recorder records from the moment the call returns, and gets the latched messages
+the recorder already holds.
+
+Services (rosbag2's recorder services, plus start/stop): ~/start (pma_interfaces/srv/
+StartRecording), ~/stop (StopRecording), ~/pause, ~/resume, ~/toggle_paused, ~/split_bagfile
+(std_srvs/srv/Trigger), ~/is_paused (pma_interfaces/srv/IsPaused).
+
+SIGINT, SIGTERM and SIGHUP finish the bag (summary, metadata.yaml); signals during that are
+ignored. A write failure (disk full) is logged and reported on /diagnostics and the node stays
+up; it then exits with code 1 and says how to recover what reached the disk.
 """
 
 from __future__ import annotations
@@ -14,30 +27,64 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import threading
 import time
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from std_srvs.srv import Trigger
 
 from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
 from pma_common.node import ros_context, spin_until_stopped
+from pma_common.sequence import SequenceTracker
+from pma_interfaces.msg import PmaState
+from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 
 FLUSH_AGE_S = 0.75
 FLUSH_CHECK_S = 0.25
+GRAPH_PERIOD_S = 0.1         # rosbag2's default --topic-polling-interval
+START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its readers to match
 DEFAULT_TOPICS = ['pma/state', 'pma/pressure', 'pma/range', 'pma/prediction',
                   'pma/model_params', '/diagnostics']
+STATE_TYPE = 'pma_interfaces/msg/PmaState'
+DIAGNOSTICS_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
+# Types of the PMA topics (and whether they are latched), subscribed before discovery.
+KNOWN_TOPICS = {
+    'pma/state': (STATE_TYPE, False),
+    'pma/pressure': ('sensor_msgs/msg/FluidPressure', False),
+    'pma/range': ('sensor_msgs/msg/Range', False),
+    'pma/prediction': ('pma_interfaces/msg/PmaPrediction', False),
+    'pma/model_params': ('pma_interfaces/msg/ModelParams', True),
+    '/diagnostics': (DIAGNOSTICS_TYPE, False),
+}
+# Keys of the driver's /diagnostics copied into custom_data when the bag has none of its own.
+RIG_DIAGNOSTIC_KEYS = ('firmware', 'protocol')
+COMPRESSION_CHOICES = ('none', 'zstd', 'lz4')
+PAUSED_FOREVER = 2 ** 63
 
 
 def message_class(type_name: str):
     """The Python class of 'pkg/msg/Type' (needed for the typesupport of raw subscriptions)."""
     package, _, name = type_name.split('/')
     return getattr(importlib.import_module(f'{package}.msg'), name)
+
+
+def assumed_qos(latched: bool, depth: int) -> QoSProfile:
+    """What the PMA nodes offer (reliable; latched = transient local), for presubscribing."""
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                  else DurabilityPolicy.VOLATILE))
 
 
 def subscription_qos(offered: list[QoSProfile], depth: int) -> QoSProfile:
@@ -54,131 +101,566 @@ def subscription_qos(offered: list[QoSProfile], depth: int) -> QoSProfile:
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-class Recorder(Node):
-    """Subscribes the wanted topics as their publishers appear and writes them to a BagWriter."""
+@dataclass
+class RecordOptions:
+    """How bags are written (command line of `record`, the same for every bag of the run)."""
 
-    def __init__(self, output: Path, topics: list[str], queue_depth: int = 1000,
-                 graph_period_s: float = 0.5, fsync: bool = False):
-        super().__init__('recorder')
-        self.output = output
-        self.queue_depth = queue_depth
-        wanted = self.declare_parameter('topics', topics).value
-        self.wanted = list(dict.fromkeys(self.resolve_topic_name(t) for t in wanted))
-        self.subscriptions_by_topic: dict[str, object] = {}
-        self.skipped: set[str] = set()
+    queue_depth: int = 1000
+    fsync: bool = False
+    compression: str = ''
+    max_bag_size: int = 0
+    max_bag_duration_s: float = 0.0
+    custom_data: dict[str, str] = field(default_factory=dict)
+    start_paused: bool = False
+
+
+@dataclass
+class _Subscribed:
+    topic: str
+    type_name: str
+    offered: list | None           # publishers' QoS; None until discovery found them
+    subscription: object
+    qos: QoSProfile
+    latched: bool
+    received: int = 0                                 # messages so far
+    last_latched: tuple[bytes, dict] | None = None   # (data, info) of a latched topic
+
+
+class Bag:
+    """One bag being written, and what was lost before its messages reached the recorder."""
+
+    def __init__(self, path: Path, topics: list[str], writer: BagWriter):
+        self.path = path
+        self.topics = topics
+        self.writer = writer
+        self.state_trackers: dict[str, SequenceTracker] = {}
+        self.dds_lost = 0
         self.error = ''
-        self.announced = -1
-        self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        try:
-            # Flushed when 0.75 s old, checked every 0.25 s: on disk within 1 s of arrival.
-            self.writer: BagWriter | None = BagWriter(output, flush_interval_s=FLUSH_AGE_S,
-                                                      fsync=fsync)
-        except BagError as exc:
-            self.writer = None
-            self.fail(str(exc))
-        self.create_timer(graph_period_s, self.check_graph)
-        self.create_timer(FLUSH_CHECK_S, self.flush)
-        self.create_timer(1.0, self.publish_status)
-        self.check_graph()
 
-    def fail(self, reason: str) -> None:
+    def loss(self) -> dict[str, int]:
+        stats = [t.stats() for t in self.state_trackers.values()]
+        lost_states = sum(s.lost for s in stats)
+        return {'lost_messages': lost_states + self.dds_lost,
+                'lost_state_samples': lost_states,
+                'state_sequence_gaps': sum(s.gaps for s in stats),
+                'dds_messages_lost': self.dds_lost}
+
+
+class Recorder(Node):
+    """Subscribes the wanted topics as their publishers appear and writes the open bag."""
+
+    def __init__(self, options: RecordOptions, topics: list[str] | None = None,
+                 graph_period_s: float = GRAPH_PERIOD_S):
+        super().__init__('recorder')
+        self.options = options
+        wanted = self.declare_parameter('topics', topics or DEFAULT_TOPICS).value
+        self.default_topics = self.resolve_topics(wanted)
+        self.subscribed: dict[str, _Subscribed] = {}
+        self.skipped: set[str] = set()
+        self.bag: Bag | None = None
+        self.paused = False
+        self._pause_ns = (0, 0)                # receive-time window of the latest pause
+        self.failed_bags: list[str] = []      # bags that could not be finished (recover them)
+        self.error = ''                        # the last error, for /diagnostics
+        self.target: Path | None = None        # the bag asked for last (in /diagnostics)
+        self.rig_info: dict[str, str] = {}     # firmware/protocol seen on /diagnostics
+        self.announced = -1
+        self.last_message = 0.0                # monotonic time of the last message received
+        self._lock = threading.RLock()         # the bag, its writer and the subscriptions
+        self._graph_lock = threading.Lock()    # one graph check at a time (timer, ~/start)
+        # Messages are written in one group; the services that may wait (start) in another,
+        # so a ~/start waiting for its readers to match never holds up writing.
+        self._data_group = MutuallyExclusiveCallbackGroup()
+        self._control_group = MutuallyExclusiveCallbackGroup()
+        self._graph_group = MutuallyExclusiveCallbackGroup()
+        self._status_group = ReentrantCallbackGroup()
+        self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        status = self._status_group
+        self.create_service(StartRecording, '~/start', self.on_start,
+                            callback_group=self._control_group)
+        self.create_service(StopRecording, '~/stop', self.on_stop,
+                            callback_group=self._control_group)
+        self.create_service(Trigger, '~/split_bagfile', self.on_split,
+                            callback_group=self._control_group)
+        self.create_service(Trigger, '~/pause', self.on_pause, callback_group=status)
+        self.create_service(Trigger, '~/resume', self.on_resume, callback_group=status)
+        self.create_service(Trigger, '~/toggle_paused', self.on_toggle, callback_group=status)
+        self.create_service(IsPaused, '~/is_paused', self.on_is_paused, callback_group=status)
+        self.create_timer(graph_period_s, self.check_graph, callback_group=self._graph_group)
+        self.create_timer(FLUSH_CHECK_S, self.flush, callback_group=self._data_group)
+        self.create_timer(1.0, self.publish_status, callback_group=status)
+        self.presubscribe()
+
+    def resolve_topics(self, topics) -> list[str]:
+        return list(dict.fromkeys(self.resolve_topic_name(t) for t in topics))
+
+    # -- bags ------------------------------------------------------------------------------
+
+    def start_bag(self, path: Path | None, topics: list[str] | None = None,
+                  custom_data: dict[str, str] | None = None, paused: bool = False) -> Bag:
+        """Finish the open bag, if any, and open a new one (BagError if it cannot be made)."""
+        path = (path or default_bag_name()).absolute()
+        self.target = path
+        with self._lock:
+            if self.bag is not None:
+                self.finish_bag()
+            data = {**self.options.custom_data, **(custom_data or {})}
+            for key, value in self.rig_info.items():
+                data.setdefault(key, value)
+            writer = BagWriter(path, flush_interval_s=FLUSH_AGE_S, fsync=self.options.fsync,
+                               compression=self.options.compression,
+                               max_bag_size=self.options.max_bag_size,
+                               max_bag_duration_s=self.options.max_bag_duration_s,
+                               custom_data=data)
+            bag = Bag(path, self.resolve_topics(topics) if topics else self.default_topics,
+                      writer)
+            self.bag, self.error, self.paused = bag, '', False
+            self._pause_ns = (0, 0)
+            self.set_paused(paused)
+            now = time.time_ns()
+            for entry in self.subscribed.values():
+                if entry.topic in bag.topics:
+                    self._add_to_bag(bag, entry)
+                    if entry.last_latched is not None:
+                        # The value in force when the bag started, stamped with the start.
+                        data, info = entry.last_latched
+                        self._write(bag, entry, data, {**info, 'received_timestamp': now})
+        self.check_graph()
+        return bag
+
+    def finish_bag(self) -> tuple[Bag | None, str]:
+        """Close the open bag; (bag, '') or (bag, error) when it could not be finished."""
+        with self._lock:
+            bag, self.bag = self.bag, None
+            if bag is None:
+                return None, ''
+            writer = bag.writer
+            loss = bag.loss()
+            try:
+                if writer.failed is None:
+                    writer.update_custom_data({k: str(v) for k, v in loss.items()})
+                writer.close()
+            except BagError as exc:
+                bag.error = bag.error or str(exc)
+        if bag.error:
+            self.failed_bags.append(str(bag.path))
+            print(f'recorder: ERROR bag {bag.path} is incomplete ({bag.error}); '
+                  f'{writer.messages_flushed} messages reached the disk. Recover them with: '
+                  f'ros2 run pma_bag recover {bag.path}', flush=True)
+        else:
+            print(f'recorder: wrote {writer.message_count} messages to {bag.path}', flush=True)
+        if loss['lost_messages']:
+            print(f'recorder: {loss["lost_messages"]} messages were lost before reaching the '
+                  f'recorder (pma/state sequence: {loss["lost_state_samples"]} in '
+                  f'{loss["state_sequence_gaps"]} gaps; DDS message-lost events: '
+                  f'{loss["dds_messages_lost"]})', flush=True)
+        return bag, bag.error
+
+    def fail(self, bag: Bag | None, reason: str) -> None:
         """Stop writing, say why (log + /diagnostics ERROR) and keep the node alive."""
-        if not self.error:
-            self.error = reason
-            self.get_logger().error(f'recording stopped: {reason}')
-            print(f'recorder: ERROR {reason}', flush=True)
+        if bag is not None:
+            if bag.error:
+                return
+            bag.error = reason
+        self.error = reason
+        self.get_logger().error(f'recording stopped: {reason}')
+        print(f'recorder: ERROR {reason}', flush=True)
         self.publish_status()
+
+    # -- topics ----------------------------------------------------------------------------
+
+    def wanted_topics(self) -> list[str]:
+        bag = self.bag
+        extra = [t for t in bag.topics if t not in self.default_topics] if bag else []
+        return self.default_topics + extra
 
     def check_graph(self) -> None:
         """Subscribe every wanted topic that now has publishers."""
-        if self.writer is None or self.error:
-            return
-        for topic in self.wanted:
-            if topic in self.subscriptions_by_topic or topic in self.skipped:
-                continue
-            publishers = self.get_publishers_info_by_topic(topic)
-            if publishers:
-                self.subscribe(topic, publishers)
-        count = len(self.subscriptions_by_topic)
-        if count != self.announced:
-            self.announced = count
-            print(f'recorder: recording {count} topics to {self.output}', flush=True)
+        with self._graph_lock:
+            self._check_graph()
 
-    def subscribe(self, topic: str, publishers) -> None:
+    def _check_graph(self) -> None:
+        wanted = [t for t in self.wanted_topics() if t not in self.skipped]
+        unknown = [t for t in wanted
+                   if t not in self.subscribed or self.subscribed[t].offered is None]
+        if unknown:
+            present = {name for name, _ in self.get_topic_names_and_types()}
+            for topic in unknown:
+                if topic in present:
+                    publishers = self.get_publishers_info_by_topic(topic)
+                    if publishers:
+                        self.subscribe_offered(topic, publishers)
+        bag = self.bag
+        if bag is not None:
+            count = sum(1 for t in bag.topics
+                        if t in self.subscribed and self.subscribed[t].offered is not None)
+            if count != self.announced:
+                self.announced = count
+                print(f'recorder: recording {count} topics to {bag.path}', flush=True)
+
+    def presubscribe(self) -> None:
+        """Subscribe the PMA topics of known type at once, before discovery finds them.
+
+        A reader created after its writer was discovered is found by that writer only
+        through another discovery round, which took 0.5-3 s (and lost those samples); a
+        reader that exists from the start matches as a plain subscriber's does. The QoS is
+        what the PMA nodes offer; subscribe_offered() adapts it when the offers differ.
+        """
+        for name, (type_name, latched) in KNOWN_TOPICS.items():
+            topic = self.resolve_topic_name(name)
+            if topic in self.default_topics and topic not in self.subscribed:
+                self._subscribe(topic, type_name, None, assumed_qos(latched,
+                                                                   self.options.queue_depth))
+
+    def subscribe_offered(self, topic: str, publishers) -> None:
+        """Subscribe (or adapt a presubscription) to what the publishers of `topic` offer."""
         type_name = publishers[0].topic_type
         offered = [p.qos_profile for p in publishers if p.topic_type == type_name]
+        qos = subscription_qos(offered, self.options.queue_depth)
+        entry = self.subscribed.get(topic)
+        if entry is not None:
+            same = (entry.type_name == type_name and entry.qos.reliability == qos.reliability
+                    and entry.qos.durability == qos.durability)
+            if same:
+                with self._lock:
+                    entry.offered = offered
+                    if self.bag is not None and topic in self.bag.topics:
+                        self._add_to_bag(self.bag, entry)
+                return
+            self.get_logger().info(f'{topic}: publishers offer {type_name} '
+                                   f'{qos.reliability.name.lower()} '
+                                   f'{qos.durability.name.lower()}; subscribing again')
+            with self._lock:
+                self.destroy_subscription(entry.subscription)
+                del self.subscribed[topic]
+        self._subscribe(topic, type_name, offered, qos)
+
+    def _subscribe(self, topic: str, type_name: str, offered, qos: QoSProfile) -> None:
         try:
             msg_type = message_class(type_name)
-            self.writer.add_topic(topic, type_name, offered)
-        except (ImportError, AttributeError, ValueError, BagError) as exc:
+        except (ImportError, AttributeError, ValueError) as exc:
             self.skipped.add(topic)
             self.get_logger().error(f'not recording {topic} [{type_name}]: {exc}')
             return
-        qos = subscription_qos(offered, self.queue_depth)
-        self.subscriptions_by_topic[topic] = self.create_subscription(
-            msg_type, topic, lambda data, info, topic=topic: self.on_message(topic, data, info),
-            qos, raw=True)
-        self.get_logger().info(
-            f'recording {topic} [{type_name}] {qos.reliability.name.lower()} '
-            f'{qos.durability.name.lower()}')
+        entry = _Subscribed(topic, type_name, offered, None, qos,
+                            qos.durability == DurabilityPolicy.TRANSIENT_LOCAL)
 
-    def on_message(self, topic: str, data: bytes, info) -> None:
-        if self.writer is None or self.error:
-            return
+        def on_message(data, info, entry=entry):
+            self.on_message(entry, data, info)
+
+        def on_lost(event, entry=entry):
+            self.on_message_lost(entry, event.total_count_change)
+
+        with self._lock:
+            if self.bag is not None and topic in self.bag.topics:
+                try:
+                    self._add_to_bag(self.bag, entry)
+                except BagError as exc:
+                    self.skipped.add(topic)
+                    self.get_logger().error(f'not recording {topic} [{type_name}]: {exc}')
+                    return
+            try:
+                entry.subscription = self.create_subscription(
+                    msg_type, topic, on_message, qos, raw=True,
+                    callback_group=self._data_group,
+                    event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost))
+            except UnsupportedEventTypeError:
+                self.get_logger().warning('this middleware reports no lost messages; only '
+                                          'pma/state sequence gaps are counted')
+                entry.subscription = self.create_subscription(
+                    msg_type, topic, on_message, qos, raw=True, callback_group=self._data_group)
+            self.subscribed[topic] = entry
+        self.get_logger().info(
+            f'subscribed {topic} [{type_name}] {qos.reliability.name.lower()} '
+            f'{qos.durability.name.lower()}'
+            + (' (before discovery)' if offered is None else ''))
+
+    def _add_to_bag(self, bag: Bag, entry: _Subscribed) -> None:
+        """Declare the topic in the bag, with its publishers' QoS (deferred until known)."""
+        if entry.topic not in bag.writer.topics:
+            if entry.offered is None:
+                publishers = [p for p in self.get_publishers_info_by_topic(entry.topic)
+                              if p.topic_type == entry.type_name]
+                if not publishers:
+                    return      # declared when its first message or publisher shows up
+                entry.offered = [p.qos_profile for p in publishers]
+            bag.writer.add_topic(entry.topic, entry.type_name, entry.offered)
+        if entry.type_name == STATE_TYPE:
+            bag.state_trackers.setdefault(entry.topic, SequenceTracker())
+
+    def matched(self, topics: list[str]) -> list[str]:
+        """Those of `topics` whose reader has matched every publisher the graph shows."""
+        done = []
+        for topic in topics:
+            entry = self.subscribed.get(topic)
+            if entry is None:
+                continue
+            publishers = len(self.get_publishers_info_by_topic(topic))
+            if entry.subscription.get_publisher_count() >= max(publishers, 1):
+                done.append(topic)
+        return done
+
+    # -- messages --------------------------------------------------------------------------
+
+    def on_message(self, entry: _Subscribed, data: bytes, info: dict) -> None:
+        self.last_message = time.monotonic()
+        entry.received += 1
+        if entry.latched:
+            entry.last_latched = (data, info)
+        if entry.type_name == DIAGNOSTICS_TYPE:
+            self.note_rig_info(data)
+        with self._lock:
+            bag = self.bag
+            if bag is None or bag.error or entry.topic not in bag.topics:
+                return
+            if entry.topic not in bag.writer.topics:
+                try:
+                    self._add_to_bag(bag, entry)
+                except BagError as exc:
+                    self.fail(bag, str(exc))
+                    return
+                if entry.topic not in bag.writer.topics:
+                    return
+            tracker = bag.state_trackers.get(entry.topic)
+            if tracker is not None:   # counted while paused too: not recorded is not lost
+                tracker.add(deserialize_message(data, PmaState).seq)
+            if not self.was_paused_at(info.get('received_timestamp') or time.time_ns()):
+                self._write(bag, entry, data, info)
+
+    def _write(self, bag: Bag, entry: _Subscribed, data: bytes, info: dict) -> None:
         # log_time = when DDS received it (rosbag2's recv_timestamp), not when this callback
         # ran: a backlog in the executor must not bunch the timeline up.
         received_ns = info.get('received_timestamp') or time.time_ns()
         try:
-            self.writer.write(topic, data, received_ns, info.get('source_timestamp'))
+            bag.writer.write(entry.topic, data, received_ns, info.get('source_timestamp'))
         except BagWriteError as exc:
-            self.fail(str(exc))
+            self.fail(bag, str(exc))
+
+    def on_message_lost(self, entry: _Subscribed, count: int) -> None:
+        with self._lock:
+            if self.bag is not None and entry.topic in self.bag.topics:
+                self.bag.dds_lost += count
+        self.get_logger().warning(f'{count} messages on {entry.topic} lost before reaching '
+                                  'the recorder (DDS message-lost event)')
+
+    def note_rig_info(self, data: bytes) -> None:
+        """Remember the driver's firmware/protocol from its /diagnostics for custom_data."""
+        if all(key in self.rig_info for key in RIG_DIAGNOSTIC_KEYS):
+            return
+        try:
+            array = deserialize_message(data, DiagnosticArray)
+        except Exception:  # the typesupport raises several types; a bad message is not ours
+            return
+        found = {}
+        for status in array.status:
+            for item in status.values:
+                if item.key in RIG_DIAGNOSTIC_KEYS and item.value not in ('', '-'):
+                    found.setdefault(item.key, item.value)
+        new = {k: v for k, v in found.items() if k not in self.rig_info}
+        if not new:
+            return
+        with self._lock:
+            self.rig_info.update(new)
+            bag = self.bag
+            if bag is not None and bag.writer.failed is None and not bag.writer.closed:
+                bag.writer.update_custom_data(
+                    {k: v for k, v in new.items() if k not in bag.writer.custom_data})
 
     def flush(self) -> None:
         """Push the current chunk to disk once it is FLUSH_AGE_S old (a SIGKILL loses <= 1 s)."""
-        if self.writer is not None and not self.error:
+        with self._lock:
+            bag = self.bag
+            if bag is not None and not bag.error:
+                try:
+                    bag.writer.flush_if_due()
+                except BagWriteError as exc:
+                    self.fail(bag, str(exc))
+
+    # -- services --------------------------------------------------------------------------
+
+    def on_start(self, request, response):
+        subscribed_before = set(self.subscribed)
+        try:
+            bag = self.start_bag(Path(request.bag_path) if request.bag_path else None,
+                                 list(request.topics),
+                                 {kv.key: kv.value for kv in request.custom_data})
+        except BagError as exc:
+            response.success, response.message = False, str(exc)
+            self.fail(None, str(exc))
+            return response
+        # Return once every wanted topic that has publishers is subscribed and matched, so
+        # the caller's first samples are in the bag. Runs in the control group: messages
+        # keep being written meanwhile.
+        deadline = time.monotonic() + START_MATCH_TIMEOUT_S
+        while True:
+            self.check_graph()
+            present = {name for name, _ in self.get_topic_names_and_types()}
+            expected = [t for t in bag.topics if t in present and t not in self.skipped]
+            # A reader that matched its writers may still be unknown to them for a moment
+            # (each side learns of the other separately) and a volatile writer does not
+            # send to it yet: a topic subscribed for this bag counts once a sample came.
+            matched = [t for t in self.matched(expected)
+                       if t in subscribed_before or self.subscribed[t].received]
+            if len(matched) == len(expected) or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        late = sorted(set(expected) - set(matched))
+        response.success = True
+        response.bag_path = str(bag.path)
+        response.topics = matched
+        response.message = (f'recording {len(matched)} topics to {bag.path}'
+                            + (f'; not matched yet: {", ".join(late)}' if late else ''))
+        return response
+
+    def on_stop(self, _request, response):
+        bag, error = self.finish_bag()
+        if bag is None:
+            response.success, response.message = False, 'not recording'
+            return response
+        loss = bag.loss()
+        response.success = not error
+        response.message = error or f'wrote {bag.writer.message_count} messages to {bag.path}'
+        response.bag_path = str(bag.path)
+        response.message_count = bag.writer.message_count
+        response.lost_message_count = loss['lost_messages']
+        return response
+
+    def on_split(self, _request, response):
+        with self._lock:
+            bag = self.bag
+            if bag is None or bag.error:
+                response.success, response.message = False, 'not recording'
+                return response
             try:
-                self.writer.flush_if_due()
+                split = bag.writer.split()
             except BagWriteError as exc:
-                self.fail(str(exc))
+                self.fail(bag, str(exc))
+                response.success, response.message = False, str(exc)
+                return response
+        response.success = split
+        response.message = (f'now writing {bag.writer.mcap_path.name}' if split else
+                            f'{bag.writer.mcap_path.name} holds no message yet; not split')
+        return response
+
+    def was_paused_at(self, received_ns: int) -> bool:
+        """Paused when the message arrived? By receive time, not by when it is handled."""
+        start, end = self._pause_ns
+        return start <= received_ns < end
+
+    def set_paused(self, paused: bool) -> bool:
+        with self._lock:
+            changed, self.paused = self.paused != paused, paused
+            if changed and paused:
+                self._pause_ns = (time.time_ns(), PAUSED_FOREVER)
+            elif changed:
+                self._pause_ns = (self._pause_ns[0], time.time_ns())
+        if changed:
+            self.get_logger().info('paused' if paused else 'resumed')
+        return changed
+
+    def on_pause(self, _request, response):
+        response.success = True
+        response.message = 'paused' if self.set_paused(True) else 'already paused'
+        return response
+
+    def on_resume(self, _request, response):
+        response.success = True
+        response.message = 'resumed' if self.set_paused(False) else 'already recording'
+        return response
+
+    def on_toggle(self, _request, response):
+        with self._lock:
+            paused = not self.paused
+            self.set_paused(paused)
+        response.success, response.message = True, 'paused' if paused else 'resumed'
+        return response
+
+    def on_is_paused(self, _request, response):
+        response.paused = self.paused
+        return response
+
+    # -- status ----------------------------------------------------------------------------
 
     def publish_status(self) -> None:
-        status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: bag recorder',
-                                  hardware_id=str(self.output))
+        with self._lock:
+            bag = self.bag
+            status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: bag recorder',
+                                      hardware_id=str(self.target or ''))
+            values = {'state': 'idle' if bag is None else
+                      ('paused' if self.paused else 'recording')}
+            if bag is not None:
+                loss = bag.loss()
+                topics = sum(1 for t in bag.topics if t in self.subscribed)
+                values.update({'bag': str(bag.path),
+                               'file': bag.writer.mcap_path.name,
+                               'messages_written': str(bag.writer.message_count),
+                               **{k: str(v) for k, v in loss.items()}})
         if self.error:
             status.level, status.message = DiagnosticStatus.ERROR, self.error
+        elif bag is None:
+            status.level, status.message = DiagnosticStatus.OK, 'idle (no bag open)'
+        elif loss['lost_messages']:
+            status.level = DiagnosticStatus.WARN
+            status.message = (f'recording {topics} topics; {loss["lost_messages"]} messages '
+                              'lost before reaching the recorder')
         else:
             status.level = DiagnosticStatus.OK
-            status.message = f'recording {len(self.subscriptions_by_topic)} topics'
-        written = self.writer.message_count if self.writer is not None else 0
-        status.values = [KeyValue(key='bag', value=str(self.output)),
-                         KeyValue(key='messages_written', value=str(written))]
+            status.message = f'{values["state"]} {topics} topics'
+        if self.failed_bags:
+            values['incomplete bags (recover them)'] = ', '.join(self.failed_bags)
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics.publish(array)
 
-    def close_bag(self) -> None:
-        if self.writer is None:
-            return
-        writer, self.writer = self.writer, None
-        try:
-            writer.close()
-        except BagError as exc:
-            print(f'recorder: ERROR closing {self.output}: {exc}', flush=True)
-            return
-        print(f'recorder: wrote {writer.message_count} messages to {self.output}', flush=True)
+
+def drain(executor, node: Recorder, quiet_s: float = 0.2, limit_s: float = 1.0) -> None:
+    """After a stop request, write what DDS already delivered (until quiet_s without any).
+
+    A recorder stopped right after its publishers finish would otherwise drop the backlog
+    still queued in its readers.
+    """
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline and executor.context.ok() \
+            and time.monotonic() - node.last_message < quiet_s:
+        executor.spin_once(timeout_sec=0.02)
 
 
 def default_bag_name() -> Path:
     return Path(datetime.now().strftime('pma_bag_%Y_%m_%d-%H_%M_%S'))
 
 
+def key_value(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition('=')
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f'expected KEY=VALUE, got {text!r}')
+    return key, value
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog='record', description=__doc__.split('\n')[0])
     parser.add_argument('-o', '--output', type=Path,
-                        help='bag directory to create (default pma_bag_<date-time>)')
+                        help='bag directory to create (default pma_bag_<date-time>); it must '
+                             'not exist or be empty')
+    parser.add_argument('--idle', action='store_true',
+                        help='open no bag; wait for ~/start (e.g. from the driver\'s Sweep)')
     parser.add_argument('--topics', nargs='+', metavar='TOPIC',
                         help='topics to record (default: the PMA topics; relative names are '
                              'resolved in the node namespace)')
+    parser.add_argument('--compression', choices=COMPRESSION_CHOICES, default='none',
+                        help='MCAP chunk compression (what rosbag2\'s mcap storage config '
+                             'sets; every MCAP reader decompresses it)')
+    parser.add_argument('--max-bag-size', type=int, default=0, metavar='BYTES',
+                        help='split into <bag>_<n>.mcap files of about BYTES (0: no split)')
+    parser.add_argument('--max-bag-duration', type=float, default=0.0, metavar='S',
+                        help='split into files of at most S seconds (0: no split)')
+    parser.add_argument('--note', help='free operator note, stored in metadata.yaml '
+                                       'custom_data["note"]')
+    parser.add_argument('--custom', nargs='+', type=key_value, default=[],
+                        metavar='KEY=VALUE', help='more custom_data entries (rig=..., '
+                                                  'muscle=..., calibration=...)')
+    parser.add_argument('--start-paused', action='store_true',
+                        help='open the bag paused; ~/resume starts writing')
     parser.add_argument('--queue-depth', type=int, default=1000,
                         help='subscription queue depth per topic')
     parser.add_argument('--fsync', action='store_true',
@@ -186,7 +668,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                              '(costs disk bandwidth on slow media)')
     parser.add_argument('--recover', type=Path, metavar='BAG',
                         help='same as `ros2 run pma_bag recover BAG`')
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.idle and args.output:
+        parser.error('--idle opens no bag: give the path in the ~/start request instead')
+    if args.max_bag_size < 0 or args.max_bag_duration < 0 or args.queue_depth < 1:
+        parser.error('--max-bag-size and --max-bag-duration must be >= 0, --queue-depth >= 1')
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,15 +685,38 @@ def main(argv: list[str] | None = None) -> int:
     if args.recover is not None:
         return recover_main([str(args.recover)]
                             + (['-o', str(args.output)] if args.output else []))
+    custom = dict(args.custom)
+    if args.note:
+        custom['note'] = args.note
+    options = RecordOptions(queue_depth=args.queue_depth, fsync=args.fsync,
+                            compression='' if args.compression == 'none' else args.compression,
+                            max_bag_size=args.max_bag_size,
+                            max_bag_duration_s=args.max_bag_duration, custom_data=custom,
+                            start_paused=args.start_paused)
     with ros_context(argv) as stop:
-        node = Recorder(args.output or default_bag_name(), args.topics or DEFAULT_TOPICS,
-                        queue_depth=args.queue_depth, fsync=args.fsync)
+        node = Recorder(options, args.topics)
+        # Two threads: one writes (data group), one serves a ~/start that waits for matches.
+        executor = MultiThreadedExecutor(num_threads=2)
         try:
-            spin_until_stopped(SingleThreadedExecutor(), node, stop)
+            if args.idle:
+                print(f'recorder: idle; start a bag with {node.get_fully_qualified_name()}'
+                      '/start', flush=True)
+            else:
+                try:
+                    node.start_bag(args.output, paused=options.start_paused)
+                except BagError as exc:
+                    node.fail(None, str(exc))
+            spin_until_stopped(executor, node, stop)
+            drain(executor, node)
         finally:
-            node.close_bag()
+            executor.shutdown(timeout_sec=5)
+            node.finish_bag()
             node.destroy_node()
-    return 0
+        if stop.extra_signals:
+            print(f'recorder: ignored {stop.extra_signals} more stop signals while finishing',
+                  flush=True)
+    failed = node.failed_bags or (node.error and not args.idle)
+    return 1 if failed else 0
 
 
 def legacy_main() -> int:

@@ -49,7 +49,11 @@ def recover_bag(bag: str | os.PathLike, output: str | os.PathLike | None = None)
         warnings.simplefilter('ignore', TruncatedBagWarning)
         reader = BagReader(source)
     with reader:
-        with BagWriter(target) as writer:
+        # The input's chunk compression and experiment metadata carry over; a split input
+        # becomes one file (its parts are in log-time order already).
+        compression = min(reader.compressions - {''}, default='')
+        with BagWriter(target, compression=compression,
+                       custom_data=reader.custom_data) as writer:
             for topic in reader.topics.values():
                 writer.add_topic(topic.name, topic.type_name, topic.offered_qos_profiles,
                                  schema=topic.schema)

@@ -1,8 +1,9 @@
-"""BagWriter: a rosbag2 (jazzy, metadata v9) bag directory holding one MCAP file.
+"""BagWriter: a rosbag2 (jazzy, metadata v9) bag directory of one or more MCAP files.
 
-Layout `<bag>/<bag>_0.mcap` + `<bag>/metadata.yaml`, profile `ros2`, one `ros2msg` schema per
-type, `cdr` channels carrying `offered_qos_profiles` and `topic_type_hash`, chunks with message
-indexes and a Statistics record: what `ros2 bag record -s mcap` writes (docs/bags.md).
+Layout `<bag>/<bag>_0.mcap` [`<bag>_1.mcap` ...] + `<bag>/metadata.yaml`, profile `ros2`,
+one `ros2msg` schema per type, `cdr` channels carrying `offered_qos_profiles` and
+`topic_type_hash`, chunks with message indexes and CRCs, a Statistics record and a `rosbag2`
+Metadata record: what `ros2 bag record -s mcap` writes (docs/bags.md).
 
 Crash safety: an MCAP chunk reaches the disk only when it is finished, so the writer finishes
 and flushes the chunk at least every `flush_interval_s`; a SIGKILL then loses at most that
@@ -74,55 +75,189 @@ def dump_qos_profiles(profiles: list[dict[str, Any]]) -> str:
     return yaml.safe_dump(profiles, default_flow_style=False, sort_keys=False).strip()
 
 
+COMPRESSIONS = {'': CompressionType.NONE, 'none': CompressionType.NONE,
+                'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4}
+
+
 @dataclass
 class _Topic:
     name: str
     schema: MessageSchema
     qos_profiles: list[dict[str, Any]]
-    channel_id: int
+    channel_metadata: dict[str, str]
     message_count: int = 0
-    extra: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
+class _File:
+    """One `<bag>_<n>.mcap` of the bag, open or finished."""
+
+    path: Path
+    stream: Any = None
+    mcap: Writer | None = None
+    channel_ids: dict[str, int] = field(default_factory=dict)
+    schema_ids: dict[str, int] = field(default_factory=dict)
+    message_count: int = 0
+    start_time_ns: int | None = None
+    end_time_ns: int | None = None
+
+    def entry(self) -> dict[str, Any]:
+        start = self.start_time_ns or 0
+        end = self.end_time_ns if self.end_time_ns is not None else start
+        return {'path': self.path.name,
+                'starting_time': {'nanoseconds_since_epoch': start},
+                'duration': {'nanoseconds': end - start},
+                'message_count': self.message_count}
+
+
+def check_output_directory(bag_dir: Path) -> None:
+    """Refuse a path that is a file or a directory holding anything (rosbag2 refuses it too).
+
+    Writing into a directory with other files would mix a bag with unrelated data, and
+    `reindex`/`recover` pick up every `*_N.mcap` there.
+    """
+    if bag_dir.is_dir():
+        contents = sorted(p.name for p in bag_dir.iterdir())
+        if contents:
+            what = ('a bag' if 'metadata.yaml' in contents
+                    or any(n.endswith('.mcap') for n in contents) else 'other files')
+            shown = ', '.join(contents[:3]) + (', ...' if len(contents) > 3 else '')
+            raise BagWriteError(f'{bag_dir} already exists and holds {what} ({shown}); '
+                                'choose a new output path')
+    elif bag_dir.exists():
+        raise BagWriteError(f'cannot create bag {bag_dir}: it exists and is not a directory')
 
 
 class BagWriter:
     """Write raw CDR messages into a new rosbag2-compatible MCAP bag directory.
 
-    Not thread-safe: call it from one thread (the recorder's executor).
+    Split like `ros2 bag record --max-bag-size/--max-bag-duration`: a new `<bag>_<n>.mcap`
+    starts before a message when the current file holds max_bag_size bytes or more on disk
+    (the chunk still in memory is not counted, as in rosbag2, so a file can end up to one
+    chunk larger; the recorder flushes a chunk every 0.75 s) or when the message is more than
+    max_bag_duration_s after the file's first one; every
+    file is finished (summary, indexes) when the next one starts, so only the last one can
+    be cut short by a crash. compression is the MCAP chunk compression ('zstd', 'lz4' or ''):
+    what rosbag2's mcap storage config sets, which every MCAP reader decompresses itself
+    (metadata.yaml compression_format stays '', as rosbag2 writes it for chunk compression).
+
+    Not thread-safe: call it from one thread at a time.
     """
 
     def __init__(self, bag_dir: str | os.PathLike, *, chunk_size: int = DEFAULT_CHUNK_SIZE,
                  flush_interval_s: float = 1.0, fsync: bool = False, ros_distro: str | None = None,
-                 compression: str = ''):
+                 compression: str = '', max_bag_size: int = 0, max_bag_duration_s: float = 0.0,
+                 custom_data: Mapping[str, str] | None = None):
         self.bag_dir = Path(bag_dir)
-        self.mcap_path = self.bag_dir / f'{self.bag_dir.name}_0.mcap'
         self.metadata_path = self.bag_dir / 'metadata.yaml'
         self.flush_interval_s = flush_interval_s
         self.fsync = fsync
         self.ros_distro = ros_distro or os.environ.get('ROS_DISTRO', 'jazzy')
+        if compression not in COMPRESSIONS:
+            raise BagWriteError(f'unknown chunk compression {compression!r} '
+                                '(use zstd, lz4 or none)')
+        if max_bag_size < 0 or max_bag_duration_s < 0:
+            raise BagWriteError('max_bag_size and max_bag_duration_s must be >= 0 (0 = no split)')
+        self.compression = '' if compression == 'none' else compression
+        self.chunk_size = chunk_size
+        self.max_bag_size = int(max_bag_size)
+        self.max_bag_duration_ns = int(max_bag_duration_s * _NS_PER_S)
+        self.custom_data: dict[str, str] = {str(k): str(v) for k, v in (custom_data or {}).items()}
         self.message_count = 0
         self.messages_flushed = 0  # message_count at the last flush: what a crash keeps
         self.start_time_ns: int | None = None
         self.end_time_ns: int | None = None
         self._topics: dict[str, _Topic] = {}
-        self._schema_ids: dict[str, int] = {}
+        self._files: list[_File] = []
         self._failed: BagWriteError | None = None
         self._closed = False
-        if self.metadata_path.exists() or self.mcap_path.is_file():
-            raise BagWriteError(f'{self.bag_dir} already holds a bag; choose a new output path')
-        compressions = {'': CompressionType.NONE, 'zstd': CompressionType.ZSTD,
-                        'lz4': CompressionType.LZ4}
-        if compression not in compressions:
-            raise BagWriteError(f'unknown chunk compression {compression!r} (use zstd or lz4)')
+        self._metadata_written = ''   # custom_data as last stored in the file
+        check_output_directory(self.bag_dir)
         try:
             self.bag_dir.mkdir(parents=True, exist_ok=True)
-            self._stream = open(self.mcap_path, 'wb')  # closed in close()
         except OSError as exc:
-            reason = exc.strerror or exc
-            raise BagWriteError(f'cannot create bag {self.bag_dir}: {reason}') from exc
-        self._mcap = Writer(self._stream, chunk_size=chunk_size,
-                            compression=compressions[compression], index_types=IndexType.ALL)
-        self._guard(lambda: self._mcap.start(profile='ros2', library=LIBRARY))
+            raise BagWriteError(
+                f'cannot create bag {self.bag_dir}: {exc.strerror or exc}') from exc
+        self._open_file()
         self._last_flush = time.monotonic()
+
+    # -- files -----------------------------------------------------------------------------
+
+    @property
+    def mcap_path(self) -> Path:
+        """The file being written now."""
+        return self._files[-1].path
+
+    @property
+    def file_paths(self) -> list[Path]:
+        return [f.path for f in self._files]
+
+    def _open_file(self) -> None:
+        path = self.bag_dir / f'{self.bag_dir.name}_{len(self._files)}.mcap'
+        try:
+            stream = open(path, 'xb')  # closed in _finish_file
+        except OSError as exc:
+            raise BagWriteError(
+                f'cannot create bag {self.bag_dir}: {exc.strerror or exc}') from exc
+        current = _File(path, stream)
+        self._files.append(current)
+        current.mcap = Writer(stream, chunk_size=self.chunk_size,
+                              compression=COMPRESSIONS[self.compression],
+                              index_types=IndexType.ALL, enable_data_crcs=True)
+        self._guard(lambda: current.mcap.start(profile='ros2', library=LIBRARY))
+        for topic in self._topics.values():
+            self._register(current, topic)
+        # Written at open too (as rosbag2 does), so a bag cut short by a crash still says
+        # what the experiment was; rewritten whenever custom_data changes and at close.
+        self._write_metadata_record(force=True)
+        self._guard(stream.flush)  # a header on disk at once: a crash leaves a readable file
+
+    def _register(self, target: _File, topic: _Topic) -> None:
+        schema = topic.schema
+        schema_id = target.schema_ids.get(schema.type_name)
+        if schema_id is None:
+            schema_id = self._guard(lambda: target.mcap.register_schema(
+                name=schema.type_name, encoding=schema.encoding,
+                data=schema.text.encode('utf-8')))
+            target.schema_ids[schema.type_name] = schema_id
+        target.channel_ids[topic.name] = self._guard(lambda: target.mcap.register_channel(
+            topic=topic.name, message_encoding='cdr', schema_id=schema_id,
+            metadata=topic.channel_metadata))
+
+    def _finish_file(self, current: _File) -> None:
+        """Summary and indexes of one file, then close it (kept closed on any error)."""
+        try:
+            self._write_metadata_record(force=True)
+            self._guard(current.mcap.finish)
+            self._guard(current.stream.flush)
+            if self.fsync:
+                self._guard(lambda: os.fsync(current.stream.fileno()))
+        finally:
+            try:
+                current.stream.close()
+            except OSError:
+                pass  # already reported by _guard; the data section stays recoverable
+
+    def split(self) -> bool:
+        """Finish the current file and continue in `<bag>_<n+1>.mcap` (False: it is empty)."""
+        self._check_open()
+        current = self._files[-1]
+        if current.message_count == 0:
+            return False
+        self._finish_file(current)
+        self._open_file()
+        self._last_flush = time.monotonic()
+        self.messages_flushed = self.message_count
+        return True
+
+    def _split_due(self, log_time_ns: int) -> bool:
+        current = self._files[-1]
+        if current.message_count == 0:
+            return False
+        if self.max_bag_duration_ns and current.start_time_ns is not None \
+                and log_time_ns - current.start_time_ns > self.max_bag_duration_ns:
+            return True
+        return bool(self.max_bag_size) and current.stream.tell() >= self.max_bag_size
 
     # -- topics and messages -------------------------------------------------------------
 
@@ -138,22 +273,17 @@ class BagWriter:
         schema defaults to the installed definition of type_name (SchemaError if missing);
         recover passes the schema found in the damaged bag instead.
         """
+        self._check_open()
         if topic in self._topics:
             raise BagWriteError(f'topic {topic} was already added')
         schema = schema or message_schema(type_name)
         profiles = [qos_profile_dict(p) for p in offered_qos_profiles]
-        schema_id = self._schema_ids.get(schema.type_name)
-        if schema_id is None:
-            schema_id = self._guard(lambda: self._mcap.register_schema(
-                name=schema.type_name, encoding=schema.encoding,
-                data=schema.text.encode('utf-8')))
-            self._schema_ids[schema.type_name] = schema_id
         metadata = {'offered_qos_profiles': dump_qos_profiles(profiles)}
         if schema.type_hash:
             metadata['topic_type_hash'] = schema.type_hash
-        channel_id = self._guard(lambda: self._mcap.register_channel(
-            topic=topic, message_encoding='cdr', schema_id=schema_id, metadata=metadata))
-        self._topics[topic] = _Topic(topic, schema, profiles, channel_id)
+        entry = _Topic(topic, schema, profiles, metadata)
+        self._register(self._files[-1], entry)
+        self._topics[topic] = entry
 
     def write(self, topic: str, data: bytes, log_time_ns: int,
               publish_time_ns: int | None = None) -> None:
@@ -161,16 +291,29 @@ class BagWriter:
         entry = self._topics.get(topic)
         if entry is None:
             raise BagWriteError(f'topic {topic} was not added before writing')
-        self._guard(lambda: self._mcap.add_message(
-            channel_id=entry.channel_id, log_time=log_time_ns, data=data,
+        self._check_open()
+        if (self.max_bag_size or self.max_bag_duration_ns) and self._split_due(log_time_ns):
+            self.split()
+        current = self._files[-1]
+        self._guard(lambda: current.mcap.add_message(
+            channel_id=current.channel_ids[topic], log_time=log_time_ns, data=data,
             publish_time=log_time_ns if publish_time_ns is None else publish_time_ns))
         entry.message_count += 1
         self.message_count += 1
+        current.message_count += 1
+        if current.start_time_ns is None or log_time_ns < current.start_time_ns:
+            current.start_time_ns = log_time_ns
+        if current.end_time_ns is None or log_time_ns > current.end_time_ns:
+            current.end_time_ns = log_time_ns
         if self.start_time_ns is None or log_time_ns < self.start_time_ns:
             self.start_time_ns = log_time_ns
         if self.end_time_ns is None or log_time_ns > self.end_time_ns:
             self.end_time_ns = log_time_ns
         self.flush_if_due()
+
+    def update_custom_data(self, values: Mapping[str, str]) -> None:
+        """Add or change `custom_data` entries; stored in the file at the next flush/close."""
+        self.custom_data.update({str(k): str(v) for k, v in values.items()})
 
     def flush_if_due(self) -> None:
         """Flush when the last flush is older than flush_interval_s (call it from a timer too)."""
@@ -179,11 +322,31 @@ class BagWriter:
 
     def flush(self) -> None:
         """Finish the current chunk and push it to the OS, so a hard kill cannot lose it."""
-        self._guard(self._mcap.flush)
+        self._check_open()
+        current = self._files[-1]
+        self._write_metadata_record()
+        self._guard(current.mcap.flush)
         if self.fsync:
-            self._guard(lambda: os.fsync(self._stream.fileno()))
+            self._guard(lambda: os.fsync(current.stream.fileno()))
         self._last_flush = time.monotonic()
         self.messages_flushed = self.message_count
+
+    def _write_metadata_record(self, force: bool = False) -> None:
+        """The rosbag2 Metadata record, when custom_data changed since it was last stored."""
+        info = self.metadata()
+        key = repr(sorted(self.custom_data.items()))
+        if not force and key == self._metadata_written:
+            return
+        text = yaml.safe_dump(info, default_flow_style=False, sort_keys=False)
+        current = self._files[-1]
+        self._guard(lambda: current.mcap.add_metadata('rosbag2', {'serialized_metadata': text}))
+        self._metadata_written = key
+
+    def _check_open(self) -> None:
+        if self._failed is not None:
+            raise self._failed
+        if self._closed:
+            raise BagWriteError(f'bag {self.bag_dir} is already closed')
 
     # -- closing ---------------------------------------------------------------------------
 
@@ -212,44 +375,49 @@ class BagWriter:
             ],
             'compression_format': '',
             'compression_mode': '',
-            'relative_file_paths': [self.mcap_path.name],
-            'files': [{
-                'path': self.mcap_path.name,
-                'starting_time': {'nanoseconds_since_epoch': start},
-                'duration': {'nanoseconds': duration},
-                'message_count': self.message_count,
-            }],
-            'custom_data': None,
+            'relative_file_paths': [f.path.name for f in self._files],
+            'files': [f.entry() for f in self._files],
+            'custom_data': dict(self.custom_data) or None,
             'ros_distro': self.ros_distro,
         }
 
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def failed(self) -> BagWriteError | None:
+        """The write error that stopped this bag, if any."""
+        return self._failed
+
     def close(self) -> None:
-        """Write the summary (statistics, indexes) and metadata.yaml; safe to call twice."""
+        """Finish the last file and write metadata.yaml; safe to call twice.
+
+        After a write error (disk full) no metadata.yaml is written: it would describe data
+        that is not in the files. The files stay as they are for `recover`.
+        """
         if self._closed:
             return
         self._closed = True
-        info = self.metadata()
-        info_text = yaml.safe_dump(info, default_flow_style=False, sort_keys=False)
-        try:
-            self._guard(lambda: self._mcap.add_metadata(
-                'rosbag2', {'serialized_metadata': info_text}))
-            self._guard(self._mcap.finish)
-            self._guard(self._stream.flush)
-            if self.fsync:
-                self._guard(lambda: os.fsync(self._stream.fileno()))
-        finally:
-            try:
-                self._stream.close()
-            except OSError:
-                pass  # already reported by _guard; the data section stays recoverable
-        text = metadata_yaml_text(info)
+        if self._failed is not None:
+            self._close_quietly()
+            raise self._failed
+        self._finish_file(self._files[-1])
+        text = metadata_yaml_text(self.metadata())
         temporary = self.metadata_path.with_suffix('.yaml.tmp')
         try:
             temporary.write_text(text, encoding='utf-8')
             temporary.replace(self.metadata_path)
         except OSError as exc:
+            temporary.unlink(missing_ok=True)
             raise BagWriteError(
                 f'cannot write {self.metadata_path}: {exc.strerror or exc}') from exc
+
+    def _close_quietly(self) -> None:
+        try:
+            self._files[-1].stream.close()
+        except OSError:
+            pass  # the buffered rest cannot reach a full disk; the error is reported already
 
     def __enter__(self) -> BagWriter:
         return self

@@ -114,6 +114,24 @@ def check_data(data) -> None:
                                'at least 5 per branch')
 
 
+def bag_custom_data(path) -> dict[str, str] | None:
+    """The experiment metadata a bag input carries (rig, muscle, firmware, note, ...)."""
+    path = Path(path)
+    if not (path.is_dir() or path.suffix == '.mcap'):
+        return None
+    import warnings
+
+    from pma_bag import BagError, BagReader
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore')
+            with BagReader(path) as reader:
+                return reader.custom_data
+    except BagError:
+        return None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
     try:
@@ -133,6 +151,9 @@ def run(args: argparse.Namespace) -> int:
 
         report, fitted = build_report(data, MODEL_NAMES, holdout=not args.no_holdout,
                                       on_model=announce)
+        experiment = bag_custom_data(args.input)
+        if experiment is not None:
+            report['custom_data'] = experiment   # the bag's metadata.yaml custom_data
         if args.memory_check:
             announce(f'the memory rules along {args.memory_check}')
             report['memory_check'] = memory_check(

@@ -1,0 +1,345 @@
+"""The recorder over real DDS: services, split + compressed bags, custom data, signals, crashes.
+
+Every bag is checked with BagReader, rosbags (an independent reader) and `info`; the probe
+that calls the services and watches the topics is a node in this test process.
+"""
+
+from __future__ import annotations
+
+import itertools
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from diagnostic_msgs.msg import KeyValue
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
+from rosbags.highlevel import AnyReader
+from std_srvs.srv import Trigger
+
+from pma_bag import BagReader, BagWriteError, BagWriter, recover_bag
+from pma_bag.reader import TruncatedBagWarning
+from pma_interfaces.msg import PmaState
+from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
+from support.filesystems import small_filesystem
+from support.procs import INSTALL
+from support.ros import SpinningNode, shutdown, wait_until
+
+pytestmark = pytest.mark.integration
+
+HELPERS = Path(__file__).resolve().parent / 'helpers'
+STATE = 'pma_interfaces/msg/PmaState'
+INFO = INSTALL / 'pma_bag' / 'lib' / 'pma_bag' / 'info'
+
+
+class Probe:
+    """Watches topics (newest seq per topic) and calls the recorder's services."""
+
+    def __init__(self, topics=('/pma/state',)):
+        self.spinning = SpinningNode('recorder_probe')
+        self.node = self.spinning.node
+        self.first: dict[str, int] = {}
+        self.newest: dict[str, int] = {}
+        self._lock = threading.Lock()
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        for topic in topics:
+            self.node.create_subscription(
+                PmaState, topic, lambda msg, topic=topic: self._seen(topic, msg.seq), qos)
+
+    def _seen(self, topic: str, seq: int) -> None:
+        with self._lock:
+            self.first.setdefault(topic, seq)
+            self.newest[topic] = seq
+
+    def call(self, srv_type, name: str, request=None, timeout: float = 20.0):
+        client = self.node.create_client(srv_type, name)
+        try:
+            assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
+            future = client.call_async(request or srv_type.Request())
+            wait_until(future.done, timeout, f'{name} response')
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def close(self) -> None:
+        self.spinning.close()
+
+
+@pytest.fixture
+def probe():
+    made = []
+
+    def make(topics=('/pma/state',)):
+        made.append(Probe(topics))
+        return made[-1]
+
+    yield make
+    for item in made:
+        item.close()
+    shutdown()
+
+
+def state_seqs(bag: Path, topic: str = '/pma/state') -> list[int]:
+    with BagReader(bag) as reader:
+        return [deserialize_message(m.data, PmaState).seq for m in reader.messages([topic])]
+
+
+def state_log_times(bag: Path, topic: str = '/pma/state') -> list[int]:
+    with BagReader(bag) as reader:
+        return [m.log_time_ns for m in reader.messages([topic])]
+
+
+def rosbags_seqs(bag: Path, topic: str = '/pma/state') -> list[int]:
+    with AnyReader([bag]) as reader:
+        connections = [c for c in reader.connections if c.topic == topic]
+        return [reader.deserialize(raw, STATE).seq
+                for _, _, raw in reader.messages(connections)]
+
+
+def bag_info(bag: Path) -> dict:
+    return yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+
+
+def publisher(procs, rate: float, count: int, topic: str = '/pma/state', wait: int = 1):
+    proc = procs.python(HELPERS / 'bag_state_publisher.py', '--topic', topic, '--rate',
+                        str(rate), '--count', str(count), '--wait-subscribers', str(wait),
+                        '--linger', '0.5')
+    proc.wait_for_line('publisher: ready', timeout=30)
+    return proc
+
+
+def test_services_drive_split_compressed_bags_with_custom_data(procs, probe, tmp_path):
+    """The Sweep's path: an idle recorder, ~/start (returns matched), pause, split, stop."""
+    recorder = procs.ros2_run('pma_bag', 'record', '--idle', '--compression', 'zstd',
+                              '--topics', 'pma/state', cwd=tmp_path)
+    recorder.wait_for_line('recorder: idle', timeout=30)
+    watch = probe()
+    source = publisher(procs, rate=200, count=200 * 60)
+    wait_until(lambda: '/pma/state' in watch.newest, 30, 'the publisher streaming')
+    time.sleep(0.5)              # the recorder subscribes while idle; its bag has not started
+    request = StartRecording.Request(bag_path='sweep1', custom_data=[
+        KeyValue(key='note', value='services test'), KeyValue(key='muscle', value='m2')])
+    response = watch.call(StartRecording, '/recorder/start', request)
+    seq_at_start = watch.newest['/pma/state']
+    assert response.success, response.message
+    assert response.bag_path == str(tmp_path / 'sweep1')
+    assert list(response.topics) == ['/pma/state']
+    assert not watch.call(IsPaused, '/recorder/is_paused').paused
+    time.sleep(1.0)
+    pause_called = time.time_ns()
+    assert watch.call(Trigger, '/recorder/pause').success
+    pause_returned = time.time_ns()
+    assert watch.call(IsPaused, '/recorder/is_paused').paused
+    time.sleep(1.0)
+    resume_called = time.time_ns()
+    resumed = watch.call(Trigger, '/recorder/resume')
+    resume_returned = time.time_ns()
+    assert resumed.success and not watch.call(IsPaused, '/recorder/is_paused').paused
+    time.sleep(1.0)
+    split = watch.call(Trigger, '/recorder/split_bagfile')
+    assert split.success and 'sweep1_1.mcap' in split.message, split.message
+    time.sleep(1.0)
+    assert watch.call(Trigger, '/recorder/toggle_paused').message == 'paused'
+    assert watch.call(Trigger, '/recorder/toggle_paused').message == 'resumed'
+    time.sleep(0.5)
+    stopped = watch.call(StopRecording, '/recorder/stop')
+    stop_seq = watch.newest['/pma/state']
+    assert stopped.success, stopped.message
+    assert stopped.lost_message_count == 0, 'a pause is not a loss'
+    bag = tmp_path / 'sweep1'
+    seqs = state_seqs(bag)
+    assert stopped.message_count == len(seqs)
+    # Every sample published after ~/start returned is in the bag: no missed first seconds.
+    assert seqs[0] <= seq_at_start + 1, (seqs[0], seq_at_start)
+    times = state_log_times(bag)
+    gaps = [i for i, (a, b) in enumerate(itertools.pairwise(seqs)) if b != a + 1]
+    # The 1 s pause, and maybe a few samples of the quick toggle_paused pair after it.
+    assert 1 <= len(gaps) <= 2, gaps
+    # Paused by receive time (the log time): nothing received between the calls is kept.
+    gap = gaps[0]
+    assert pause_called - 50_000_000 <= times[gap] <= pause_returned
+    assert resume_called <= times[gap + 1] <= resume_returned + 50_000_000
+    assert seqs[-1] <= stop_seq
+    info = bag_info(bag)
+    assert info['relative_file_paths'][:2] == ['sweep1_0.mcap', 'sweep1_1.mcap']
+    assert info['custom_data']['note'] == 'services test'
+    assert info['custom_data']['muscle'] == 'm2'
+    assert info['custom_data']['lost_messages'] == '0'
+    assert rosbags_seqs(bag) == seqs, 'rosbags reads the split, compressed bag as one'
+    with BagReader(bag) as reader:
+        assert reader.compressions == {'zstd'}
+    shown = subprocess.run([str(INFO), str(bag), '--check'], capture_output=True, text=True,
+                           check=False)
+    assert shown.returncode == 0, shown.stdout + shown.stderr
+    assert 'note: services test' in shown.stdout and 'zstd' in shown.stdout
+    assert 'sweep1_1.mcap' in shown.stdout and 'CRC check sweep1_1.mcap: OK' in shown.stdout
+    # The same recorder starts a second bag at another path, and is idle after ~/stop.
+    again = watch.call(StartRecording, '/recorder/start',
+                       StartRecording.Request(bag_path=str(tmp_path / 'sweep2')))
+    assert again.success, again.message
+    time.sleep(0.5)
+    assert watch.call(StopRecording, '/recorder/stop').message_count > 50
+    assert not watch.call(StopRecording, '/recorder/stop').success, 'idle: nothing to stop'
+    source.stop()
+    recorder.signal(signal.SIGINT)
+    assert recorder.popen.wait(20) == 0, recorder.output
+
+
+def test_start_of_a_new_bag_on_a_running_recorder_misses_nothing(procs, probe, tmp_path):
+    """~/start on a recorder that is up returns with pma/state subscribed and matched; the
+    bag holds every sample published after the call returned."""
+    recorder = procs.ros2_run('pma_bag', 'record', '--idle', cwd=tmp_path)
+    recorder.wait_for_line('recorder: idle', timeout=30)
+    watch = probe()
+    publisher(procs, rate=200, count=200 * 30)
+    wait_until(lambda: '/pma/state' in watch.newest, 30, 'the publisher streaming')
+    response = watch.call(StartRecording, '/recorder/start',
+                          StartRecording.Request(bag_path='next'))
+    newest_at_return = watch.newest['/pma/state']
+    assert response.success and '/pma/state' in response.topics, response.message
+    time.sleep(0.5)
+    assert watch.call(StopRecording, '/recorder/stop').success
+    seqs = state_seqs(tmp_path / 'next')
+    assert seqs[0] <= newest_at_return + 1, (seqs[0], newest_at_return)
+    assert seqs == list(range(seqs[0], seqs[-1] + 1))
+
+
+def test_sigterm_with_more_signals_while_finishing_leaves_a_complete_bag(procs, tmp_path):
+    bag = tmp_path / 'term'
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', 'pma/state',
+                              '--compression', 'lz4', '--max-bag-duration', '1', '--note',
+                              'signals', '--custom', 'rig=bench-a', 'calibration=cal1.yaml')
+    recorder.wait_for_line('recorder: recording', timeout=30)
+    source = publisher(procs, rate=500, count=1500)
+    source.wait_for_line('publisher: done', timeout=40)
+    recorder.signal(signal.SIGTERM)
+    for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGTERM):
+        time.sleep(0.01)
+        recorder.signal(sig)
+    assert recorder.popen.wait(20) == 0, recorder.output
+    assert 'recorder: wrote' in recorder.output
+    info = bag_info(bag)
+    assert len(info['files']) >= 3
+    assert {'note': 'signals', 'rig': 'bench-a', 'calibration': 'cal1.yaml'}.items() \
+        <= info['custom_data'].items()
+    assert state_seqs(bag) == rosbags_seqs(bag) == list(range(1500))
+
+
+def test_sigkill_with_compression_loses_at_most_the_last_second(procs, probe, tmp_path):
+    bag = tmp_path / 'killed'
+    watch = probe()
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', 'pma/state',
+                              '--compression', 'zstd', '--max-bag-size', '20000',
+                              '--note', 'killed on purpose')
+    recorder.wait_for_line('recorder: recording', timeout=30)
+    publisher(procs, rate=500, count=500 * 30, wait=2)
+    wait_until(lambda: watch.newest.get('/pma/state', 0) > 1500, 30, '3 s of samples')
+    published = watch.newest['/pma/state']
+    recorder.signal(signal.SIGKILL)
+    recorder.popen.wait(10)
+    assert not (bag / 'metadata.yaml').exists()
+    with pytest.warns(TruncatedBagWarning), BagReader(bag) as reader:
+        kept = [deserialize_message(m.data, PmaState).seq for m in reader.messages()]
+        assert reader.custom_data['note'] == 'killed on purpose'
+        assert len(reader.files) > 2
+    assert kept == list(range(len(kept))), 'a gap-free prefix'
+    # Flushed every 0.75 s (checked every 0.25 s): at most ~1 s (500 samples) lost.
+    assert len(kept) >= published - 500 - 50, (len(kept), published)
+    report = recover_bag(bag, tmp_path / 'recovered')
+    assert report.message_count == len(kept)
+    assert rosbags_seqs(report.output) == kept
+    assert bag_info(report.output)['custom_data']['note'] == 'killed on purpose'
+
+
+def test_full_disk_stays_up_then_exits_non_zero_and_says_recover(procs, tmp_path):
+    """Regression: after a disk-full error the recorder exited 0 on SIGINT with no hint."""
+    with small_filesystem(tmp_path / 'small', 192 * 1024) as disk:
+        bag = disk / 'full'
+        recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', 'pma/state')
+        recorder.wait_for_line('recorder: recording', timeout=30)
+        publisher(procs, rate=1000, count=1000 * 30)
+        recorder.wait_for_line('No space left', timeout=40)
+        time.sleep(1.0)
+        assert recorder.alive(), 'stays up and keeps reporting'
+        recorder.signal(signal.SIGINT)
+        assert recorder.popen.wait(20) == 1, recorder.output
+        assert f'ros2 run pma_bag recover {bag}' in recorder.output
+        assert not (bag / 'metadata.yaml').exists()
+        report = recover_bag(bag, tmp_path / 'recovered')
+    kept = state_seqs(report.output)
+    assert len(kept) > 500 and kept == list(range(kept[0], kept[0] + len(kept)))
+
+
+def test_writer_on_a_full_disk_raises_bag_write_error_keeps_failing_and_recovers(tmp_path):
+    """A real 256 KiB filesystem fills up in the middle of a chunk."""
+    with small_filesystem(tmp_path / 'small', 256 * 1024) as disk:
+        bag = disk / 'full'
+        writer = BagWriter(bag, chunk_size=16 * 1024)
+        writer.add_topic('/pma/state', STATE)
+        written = 0
+        with pytest.raises(BagWriteError, match='No space left'):
+            for seq in range(100_000):
+                writer.write('/pma/state', serialize_message(PmaState(seq=seq)), time.time_ns())
+                written += 1
+                if seq % 500 == 0:
+                    writer.flush()
+        assert written > 1000, 'the disk held some data before it was full'
+        with pytest.raises(BagWriteError):
+            writer.write('/pma/state', b'\x00\x01\x00\x00', time.time_ns())
+        with pytest.raises(BagWriteError, match='No space left'):
+            writer.close()
+        assert not (bag / 'metadata.yaml').exists(), 'metadata must not describe a failed file'
+        report = recover_bag(bag, tmp_path / 'recovered')
+    with BagReader(report.output) as reader:
+        kept = [deserialize_message(m.data, PmaState).seq for m in reader.messages()]
+    assert kept == list(range(len(kept))) and len(kept) >= writer.messages_flushed - 500
+
+
+def test_an_existing_directory_with_other_files_is_refused(procs, tmp_path):
+    """Regression: the recorder wrote its bag into a directory holding other files."""
+    target = tmp_path / 'results'
+    target.mkdir()
+    (target / 'notes.txt').write_text('keep me alone')
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', target)
+    recorder.wait_for_line('recorder: ERROR', timeout=30)
+    assert 'holds other files' in recorder.output
+    recorder.signal(signal.SIGINT)
+    assert recorder.popen.wait(20) == 1
+    assert sorted(p.name for p in target.iterdir()) == ['notes.txt']
+
+
+if __name__ == '__main__':
+    sys.exit(pytest.main([__file__, '-q']))
+
+
+def test_refit_reads_a_split_compressed_bag_and_copies_its_custom_data(procs, tmp_path):
+    from pma_model.params import default_params
+
+    model = default_params().build_model()
+    levels = [*range(0, 500_001, 50_000), *range(450_000, -1, -50_000)]
+    bag = tmp_path / 'sweep'
+    start_ns = 1_700_000_000 * 10**9
+    with BagWriter(bag, compression='zstd', max_bag_size=8 * 1024, chunk_size=2048,
+                   custom_data={'muscle': 'm1', 'note': 'refit me'}) as writer:
+        writer.add_topic('/pma/state', STATE)
+        for seq in range(len(levels) * 20):
+            level = float(levels[seq // 20])
+            length, _ = model.update(level)
+            msg = PmaState(seq=seq, gauge_pressure_pa=level, length_m=float(length),
+                           gauge_setpoint_pa=level)
+            stamp = start_ns + seq * 20_000_000
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+            writer.write('/pma/state', serialize_message(msg), stamp)
+        files = len(writer.file_paths)
+    assert files > 2
+    refit = procs.ros2_run('pma_model', 'refit', bag, '--no-holdout',
+                           '--json', tmp_path / 'report.json')
+    assert refit.popen.wait(120) == 0, refit.output
+    report = yaml.safe_load((tmp_path / 'report.json').read_text())
+    assert report['custom_data'] == {'muscle': 'm1', 'note': 'refit me'}
+    assert (report['data']['n_increasing'], report['data']['n_decreasing']) == (11, 10)
