@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import struct
 import sys
 import threading
 import time
@@ -35,9 +36,8 @@ from pathlib import Path
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -47,7 +47,6 @@ from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
 from pma_common.node import ros_context, spin_until_stopped
 from pma_common.sequence import SequenceTracker
-from pma_interfaces.msg import PmaState
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 
 FLUSH_AGE_S = 0.75
@@ -71,6 +70,21 @@ KNOWN_TOPICS = {
 RIG_DIAGNOSTIC_KEYS = ('firmware', 'protocol')
 COMPRESSION_CHOICES = ('none', 'zstd', 'lz4')
 PAUSED_FOREVER = 2 ** 63
+_U32 = struct.Struct('<I')
+
+
+def pma_state_seq(cdr: bytes) -> int:
+    """PmaState.seq read straight from the CDR bytes (0.3 us here; a full decode takes 21 us).
+
+    Layout after the 4-byte encapsulation header: header.stamp (sec, nanosec), the frame_id
+    string (uint32 length incl. NUL, the bytes), then seq aligned to 4.
+    """
+    if cdr[1] != 1:
+        raise ValueError('not little-endian CDR')
+    (length,) = _U32.unpack_from(cdr, 4 + 8)
+    offset = 8 + 4 + length
+    offset += -offset % 4
+    return _U32.unpack_from(cdr, 4 + offset)[0]
 
 
 def message_class(type_name: str):
@@ -166,29 +180,20 @@ class Recorder(Node):
         self.rig_info: dict[str, str] = {}     # firmware/protocol seen on /diagnostics
         self.announced = -1
         self.last_message = 0.0                # monotonic time of the last message received
-        self._lock = threading.RLock()         # the bag, its writer and the subscriptions
-        self._graph_lock = threading.Lock()    # one graph check at a time (timer, ~/start)
-        # Messages are written in one group; the services that may wait (start) in another,
-        # so a ~/start waiting for its readers to match never holds up writing.
-        self._data_group = MutuallyExclusiveCallbackGroup()
-        self._control_group = MutuallyExclusiveCallbackGroup()
-        self._graph_group = MutuallyExclusiveCallbackGroup()
-        self._status_group = ReentrantCallbackGroup()
+        # One thread runs every callback (a two-thread executor doubled the recorder's CPU
+        # at 1 kHz); the lock only guards against a signal-time finish_bag.
+        self._lock = threading.RLock()
         self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        status = self._status_group
-        self.create_service(StartRecording, '~/start', self.on_start,
-                            callback_group=self._control_group)
-        self.create_service(StopRecording, '~/stop', self.on_stop,
-                            callback_group=self._control_group)
-        self.create_service(Trigger, '~/split_bagfile', self.on_split,
-                            callback_group=self._control_group)
-        self.create_service(Trigger, '~/pause', self.on_pause, callback_group=status)
-        self.create_service(Trigger, '~/resume', self.on_resume, callback_group=status)
-        self.create_service(Trigger, '~/toggle_paused', self.on_toggle, callback_group=status)
-        self.create_service(IsPaused, '~/is_paused', self.on_is_paused, callback_group=status)
-        self.create_timer(graph_period_s, self.check_graph, callback_group=self._graph_group)
-        self.create_timer(FLUSH_CHECK_S, self.flush, callback_group=self._data_group)
-        self.create_timer(1.0, self.publish_status, callback_group=status)
+        self.create_service(StartRecording, '~/start', self.on_start)
+        self.create_service(StopRecording, '~/stop', self.on_stop)
+        self.create_service(Trigger, '~/split_bagfile', self.on_split)
+        self.create_service(Trigger, '~/pause', self.on_pause)
+        self.create_service(Trigger, '~/resume', self.on_resume)
+        self.create_service(Trigger, '~/toggle_paused', self.on_toggle)
+        self.create_service(IsPaused, '~/is_paused', self.on_is_paused)
+        self.create_timer(graph_period_s, self.check_graph)
+        self.create_timer(FLUSH_CHECK_S, self.flush)
+        self.create_timer(1.0, self.publish_status)
         self.presubscribe()
 
     def resolve_topics(self, topics) -> list[str]:
@@ -276,10 +281,6 @@ class Recorder(Node):
 
     def check_graph(self) -> None:
         """Subscribe every wanted topic that now has publishers."""
-        with self._graph_lock:
-            self._check_graph()
-
-    def _check_graph(self) -> None:
         wanted = [t for t in self.wanted_topics() if t not in self.skipped]
         unknown = [t for t in wanted
                    if t not in self.subscribed or self.subscribed[t].offered is None]
@@ -362,13 +363,12 @@ class Recorder(Node):
             try:
                 entry.subscription = self.create_subscription(
                     msg_type, topic, on_message, qos, raw=True,
-                    callback_group=self._data_group,
                     event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost))
             except UnsupportedEventTypeError:
                 self.get_logger().warning('this middleware reports no lost messages; only '
                                           'pma/state sequence gaps are counted')
                 entry.subscription = self.create_subscription(
-                    msg_type, topic, on_message, qos, raw=True, callback_group=self._data_group)
+                    msg_type, topic, on_message, qos, raw=True)
             self.subscribed[topic] = entry
         self.get_logger().info(
             f'subscribed {topic} [{type_name}] {qos.reliability.name.lower()} '
@@ -423,7 +423,7 @@ class Recorder(Node):
                     return
             tracker = bag.state_trackers.get(entry.topic)
             if tracker is not None:   # counted while paused too: not recorded is not lost
-                tracker.add(deserialize_message(data, PmaState).seq)
+                tracker.add(pma_state_seq(data))
             if not self.was_paused_at(info.get('received_timestamp') or time.time_ns()):
                 self._write(bag, entry, data, info)
 
@@ -479,7 +479,16 @@ class Recorder(Node):
     # -- services --------------------------------------------------------------------------
 
     def on_start(self, request, response):
-        subscribed_before = set(self.subscribed)
+        """Open a bag; return once its topics' readers match every publisher (<= 3 s).
+
+        Matching happens in the middleware's own threads, so this waits without the
+        executor: messages queue in the readers meanwhile (reliable ones in full) and are
+        written, with their receive times, right after. Subscriptions outlive bags, so on a
+        recorder that has been up a moment the topics are matched already and this returns
+        at once. (A reader can match its writer before the writer knows of it; a caller
+        that must not miss a sample of its own also waits until its publishers count the
+        recorder's readers, as the driver's Sweep does.)
+        """
         try:
             bag = self.start_bag(Path(request.bag_path) if request.bag_path else None,
                                  list(request.topics),
@@ -488,23 +497,15 @@ class Recorder(Node):
             response.success, response.message = False, str(exc)
             self.fail(None, str(exc))
             return response
-        # Return once every wanted topic that has publishers is subscribed and matched, so
-        # the caller's first samples are in the bag. Runs in the control group: messages
-        # keep being written meanwhile.
         deadline = time.monotonic() + START_MATCH_TIMEOUT_S
         while True:
-            self.check_graph()
-            present = {name for name, _ in self.get_topic_names_and_types()}
-            expected = [t for t in bag.topics if t in present and t not in self.skipped]
-            # A reader that matched its writers may still be unknown to them for a moment
-            # (each side learns of the other separately) and a volatile writer does not
-            # send to it yet: a topic subscribed for this bag counts once a sample came.
-            matched = [t for t in self.matched(expected)
-                       if t in subscribed_before or self.subscribed[t].received]
-            if len(matched) == len(expected) or time.monotonic() > deadline:
+            published = [t for t in bag.topics
+                         if t in self.subscribed and self.get_publishers_info_by_topic(t)]
+            matched = self.matched(published)
+            if len(matched) == len(published) or time.monotonic() >= deadline:
                 break
             time.sleep(0.01)
-        late = sorted(set(expected) - set(matched))
+        late = sorted(set(published) - set(matched))
         response.success = True
         response.bag_path = str(bag.path)
         response.topics = matched
@@ -695,8 +696,7 @@ def main(argv: list[str] | None = None) -> int:
                             start_paused=args.start_paused)
     with ros_context(argv) as stop:
         node = Recorder(options, args.topics)
-        # Two threads: one writes (data group), one serves a ~/start that waits for matches.
-        executor = MultiThreadedExecutor(num_threads=2)
+        executor = SingleThreadedExecutor()
         try:
             if args.idle:
                 print(f'recorder: idle; start a bag with {node.get_fully_qualified_name()}'
@@ -709,7 +709,6 @@ def main(argv: list[str] | None = None) -> int:
             spin_until_stopped(executor, node, stop)
             drain(executor, node)
         finally:
-            executor.shutdown(timeout_sec=5)
             node.finish_bag()
             node.destroy_node()
         if stop.extra_signals:

@@ -246,3 +246,17 @@ def test_bag_reader_filters_topics_and_start_time(written):
     with BagReader(mcap_file(bag)) as reader:
         got = [(m.topic, m.log_time_ns) for m in reader.messages(['/diagnostics'], start)]
     assert got == [(t, ts) for t, ts, _ in truth if t == '/diagnostics' and ts >= start]
+
+
+@pytest.mark.parametrize('frame_id', ['', 'a', 'ab', 'abc', 'pma_link', 'x' * 13])
+def test_the_recorder_reads_pma_state_seq_without_decoding(frame_id):
+    """The CDR offset of seq moves with the frame_id's length: every alignment case."""
+    from rclpy.serialization import serialize_message
+
+    from pma_bag.record import pma_state_seq
+    from pma_interfaces.msg import PmaState
+
+    state = PmaState(seq=4_000_000_123)
+    state.header.frame_id = frame_id
+    state.header.stamp.sec = 17
+    assert pma_state_seq(serialize_message(state)) == 4_000_000_123
