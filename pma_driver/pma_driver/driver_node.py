@@ -822,8 +822,13 @@ class PmaDriver(Node):
                 'bad frames': str(stats.dropped_total),
                 **{f'bad frames ({reason})': str(n) for reason, n in
                    sorted(stats.dropped.items())},
-                'sequence gaps': str(stats.gap_events),
-                'lost samples': str(stats.lost_samples),
+                # By seq: what never came, apart from late, repeated and stray numbers.
+                'lost samples': str(stats.sequence.lost),
+                'sequence gaps': str(stats.sequence.gaps),
+                'late samples': str(stats.sequence.late),
+                'duplicate samples': str(stats.sequence.duplicates),
+                'stray sequence numbers': str(stats.sequence.stray),
+                'sequence restarts': str(stats.sequence.restarts),
                 'connects': str(stats.connects),
                 'disconnects': str(stats.disconnects),
                 'ACK': str(stats.acks), 'NAK': str(stats.naks),
