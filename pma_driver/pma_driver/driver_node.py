@@ -25,12 +25,7 @@ import rclpy
 import rclpy.exceptions
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
@@ -44,9 +39,17 @@ from std_srvs.srv import Trigger
 from pma_bag.record import DEFAULT_TOPICS
 from pma_common.node import ros_context, spin_until_stopped
 from pma_driver import protocol
-from pma_driver.calibration import LengthCalibration, PressureCalibration
 from pma_driver.clock_sync import ClockSync
 from pma_driver.link import LinkError, LinkState, PortOpenError, SerialLink
+from pma_driver.parameters import (
+    PARAMETERS,
+    calibrations,
+    check_parameters,
+    descriptor,
+    device_ceiling_pa,
+    stall_timeout_s,
+    startup_commands,
+)
 from pma_driver.protocol import Ack, Command, Hello
 from pma_driver.sweep import SweepError, SweepPlan, plan_sweep
 from pma_interfaces.action import Sweep
@@ -61,107 +64,6 @@ RECORDER_READY_RE = re.compile(r'recorder: recording (\d+) topics')
 RECORDER_TOPICS = 4
 FAULT_BITS = (protocol.STATUS_OVERPRESSURE | protocol.STATUS_HEARTBEAT_LOST
               | protocol.STATUS_SENSOR_RANGE)
-
-
-def _floats(low: float, high: float) -> list[FloatingPointRange]:
-    return [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
-
-
-def _ints(low: int, high: int) -> list[IntegerRange]:
-    return [IntegerRange(from_value=low, to_value=high, step=1)]
-
-
-# name: (default, description, extra descriptor fields). Defaults equal config/driver_node.yaml.
-PARAMETERS = {
-    'port': ('/dev/ttyACM0', 'Serial port; a /dev/serial/by-id/... path survives replugging',
-             {'read_only': True}),
-    'baud': (115200, 'Serial baud rate (the firmware uses 115200)',
-             {'read_only': True, 'integer_range': _ints(1200, 4_000_000)}),
-    'frame_id': ('pma_link', 'frame_id of every published header', {'read_only': True}),
-    'sample_rate_hz': (20.0, 'Sample rate asked of the device (RATE, whole Hz) [Hz]',
-                       {'floating_point_range': _floats(1.0, 5000.0)}),
-    'max_gauge_pressure_pa': (500_000.0, 'Highest gauge pressure ever commanded (MAX) [Pa]; '
-                              'never above the device ceiling',
-                              {'floating_point_range': _floats(1000.0, 1_000_000.0)}),
-    'ambient_pressure_pa': (101_325.0, 'Ambient pressure added to gauge for pma/pressure [Pa]',
-                            {'floating_point_range': _floats(50_000.0, 120_000.0)}),
-    'calibration.adc_reference_v': (5.0, 'ADC reference voltage [V]',
-                                    {'floating_point_range': _floats(1.0, 6.0)}),
-    'calibration.volts_at_zero': (0.5, 'Sensor output at 0 Pa gauge [V]', {}),
-    'calibration.volts_at_full': (4.5, 'Sensor output at full_scale_pa [V]', {}),
-    'calibration.full_scale_pa': (500_000.0, 'Sensor full scale [Pa, gauge]',
-                                  {'floating_point_range': _floats(1000.0, 10_000_000.0)}),
-    'calibration.tare_offset_pa': (0.0, 'Subtracted from every pressure reading [Pa]', {}),
-    'calibration.speed_of_sound_m_s': (343.0, 'Speed of sound for the echo time [m/s]',
-                                       {'floating_point_range': _floats(300.0, 400.0)}),
-    'calibration.length_offset_m': (0.40, 'length_m = length_offset_m + range_sign * range [m]',
-                                    {}),
-    'calibration.range_sign': (-1.0, '+1 or -1: direction of the range along the muscle', {}),
-    'heartbeat_period_s': (0.2, 'Host heartbeat (HB) period [s]',
-                           {'floating_point_range': _floats(0.01, 5.0)}),
-    'heartbeat_timeout_ms': (1000, 'Device vents after this long without a command (HBTO) [ms]',
-                             {'integer_range': _ints(100, 10_000)}),
-    'reconnect_period_s': (1.0, 'Retry period when the port is missing or lost [s]',
-                           {'floating_point_range': _floats(0.1, 60.0)}),
-    'handshake_timeout_s': (2.0, 'Wait this long for the firmware HELLO after opening [s]',
-                            {'floating_point_range': _floats(0.1, 30.0)}),
-    'autostart': (True, 'Configure and activate without a lifecycle manager',
-                  {'read_only': True}),
-    'qos_reliability': ('reliable', "'reliable' (REP-2003 system default) or 'best_effort'",
-                        {'read_only': True}),
-    'qos_depth': (10, 'History depth of the data topics',
-                  {'read_only': True, 'integer_range': _ints(1, 10_000)}),
-    'sweep.tolerance_pa': (10_000.0, 'A sweep step is reached within this of its setpoint [Pa]',
-                           {'floating_point_range': _floats(100.0, 100_000.0)}),
-    'sweep.step_timeout_s': (10.0, 'Hold starts anyway after this long (logged) [s]',
-                             {'floating_point_range': _floats(0.1, 600.0)}),
-}
-
-
-def calibrations(values: dict) -> tuple[PressureCalibration, LengthCalibration]:
-    """Calibration dataclasses from parameter values (they validate; ValueError says why)."""
-    pressure = PressureCalibration(
-        adc_reference_v=values['calibration.adc_reference_v'],
-        volts_at_zero=values['calibration.volts_at_zero'],
-        volts_at_full=values['calibration.volts_at_full'],
-        full_scale_pa=values['calibration.full_scale_pa'],
-        tare_offset_pa=values['calibration.tare_offset_pa'])
-    length = LengthCalibration(
-        speed_of_sound_m_s=values['calibration.speed_of_sound_m_s'],
-        length_offset_m=values['calibration.length_offset_m'],
-        range_sign=values['calibration.range_sign'])
-    return pressure, length
-
-
-def check_parameters(values: dict, hello: Hello | None) -> str:
-    """Why these parameter values cannot be used ('' when they can)."""
-    for name, value in values.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            return f'{name} must be finite, got {value}'
-    if values['qos_reliability'] not in ('reliable', 'best_effort'):
-        return "qos_reliability must be 'reliable' or 'best_effort'"
-    if not values['sample_rate_hz'] >= 1.0:
-        return f'sample_rate_hz must be >= 1 Hz (the device takes whole Hz), got ' \
-            f'{values["sample_rate_hz"]}'
-    if not values['max_gauge_pressure_pa'] > 0:
-        return 'max_gauge_pressure_pa must be > 0 Pa'
-    if values['heartbeat_period_s'] * 1000.0 > values['heartbeat_timeout_ms'] / 2:
-        return (f'heartbeat_period_s ({values["heartbeat_period_s"]} s) must be at most half '
-                f'of heartbeat_timeout_ms ({values["heartbeat_timeout_ms"]} ms)')
-    if hello is not None:
-        if values['sample_rate_hz'] > hello.max_rate_hz:
-            return (f'sample_rate_hz {values["sample_rate_hz"]} Hz is above the device maximum '
-                    f'{hello.max_rate_hz} Hz')
-        # limit_pa is the firmware's compiled hard limit; its current ceiling_pa is only what
-        # the last MAX set, which this parameter is about to set again.
-        if values['max_gauge_pressure_pa'] > hello.limit_pa:
-            return (f'max_gauge_pressure_pa {values["max_gauge_pressure_pa"]:.0f} Pa is above '
-                    f'the device limit {hello.limit_pa} Pa')
-    try:
-        calibrations(values)
-    except ValueError as error:
-        return f'calibration: {error}'
-    return ''
 
 
 def to_time_msg(ns: int) -> Time:
@@ -182,9 +84,8 @@ class PmaDriver(Node):
 
     def __init__(self, **kwargs):
         super().__init__('driver_node', **kwargs)
-        for name, (default, description, extra) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(
-                description=description, **extra))
+        for name, (default, _, _) in PARAMETERS.items():
+            self.declare_parameter(name, default, descriptor(name))
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -252,7 +153,7 @@ class PmaDriver(Node):
         link.heartbeat_period_s = values['heartbeat_period_s']
         link.reconnect_period_s = values['reconnect_period_s']
         link.handshake_timeout_s = values['handshake_timeout_s']
-        link.stall_timeout_s = self._stall_timeout(values)
+        link.stall_timeout_s = stall_timeout_s(values['sample_rate_hz'])
         commands = {'sample_rate_hz': (Command.RATE, max(1, round(values['sample_rate_hz']))),
                     'max_gauge_pressure_pa': (Command.MAX, self._device_max_pa(values)),
                     'heartbeat_timeout_ms': (Command.HEARTBEAT_TIMEOUT,
@@ -261,33 +162,17 @@ class PmaDriver(Node):
             if name in names and link.connected:
                 self._send(command, value)
 
-    @staticmethod
-    def _stall_timeout(values: dict) -> float:
-        return max(1.0, 5.0 / values['sample_rate_hz'])
-
     def _device_max_pa(self, values: dict | None = None) -> int:
         """The ceiling to send with MAX: the parameter, never above the device's own."""
         values = values or self._values()
-        limit = values['max_gauge_pressure_pa']
         hello = self._link.hello if self._link is not None else None
-        if hello is not None:
-            limit = min(limit, hello.limit_pa)
-        return math.floor(limit)
+        return device_ceiling_pa(values['max_gauge_pressure_pa'], hello)
 
     def _startup_commands(self, hello: Hello):
-        values = self._values()
-        if values['max_gauge_pressure_pa'] > hello.limit_pa:
-            self.get_logger().warning(
-                f'max_gauge_pressure_pa {values["max_gauge_pressure_pa"]:.0f} Pa is above the '
-                f'device limit {hello.limit_pa} Pa: using the device limit')
-        rate = round(values['sample_rate_hz'])
-        if rate > hello.max_rate_hz:
-            self.get_logger().warning(f'sample_rate_hz {rate} is above the device maximum '
-                                      f'{hello.max_rate_hz}: using {hello.max_rate_hz}')
-            rate = hello.max_rate_hz
-        return [(Command.HEARTBEAT_TIMEOUT, (values['heartbeat_timeout_ms'],)),
-                (Command.MAX, (self._device_max_pa(values),)),
-                (Command.RATE, (max(1, rate),))]
+        commands, warnings = startup_commands(self._values(), hello)
+        for warning in warnings:
+            self.get_logger().warning(warning)
+        return commands
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -327,7 +212,7 @@ class PmaDriver(Node):
             reconnect_period_s=values['reconnect_period_s'],
             handshake_timeout_s=values['handshake_timeout_s'],
             heartbeat_period_s=values['heartbeat_period_s'],
-            stall_timeout_s=self._stall_timeout(values))
+            stall_timeout_s=stall_timeout_s(values['sample_rate_hz']))
         try:
             link.open()
         except PortOpenError as error:
