@@ -330,9 +330,10 @@ class PmaDriver(Node):
             goal_handle.publish_feedback(feedback)
 
         report = self._sweeps.run(
-            SweepGoal(request.max_gauge_pressure_pa, request.step_pa, request.hold_s,
-                      request.cycles, tuple(request.reversal_pressures_pa), request.record,
-                      request.bag_path, request.note),
+            SweepGoal(max_gauge_pressure_pa=request.max_gauge_pressure_pa,
+                      step_pa=request.step_pa, hold_s=request.hold_s, cycles=request.cycles,
+                      reversal_pressures_pa=tuple(request.reversal_pressures_pa),
+                      record=request.record, bag_path=request.bag_path, note=request.note),
             SweepSettings(values['sweep.tolerance_pa'], values['sweep.step_timeout_s']),
             cancel_requested=lambda: goal_handle.is_cancel_requested,
             feedback=publish_feedback,
