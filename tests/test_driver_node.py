@@ -438,7 +438,11 @@ def test_every_valid_frame_is_published_once_and_every_bad_one_counted(rig, prob
 
 
 def test_stall_stops_heartbeats_so_the_device_vents_then_streams_again(rig, probe):
-    _, driver, _ = rig('--stall-after', '8', '--stall-for', '6')
+    # While stalled, the link probes with HELLO every handshake_timeout_s (2 s), 1 s after it
+    # noticed; a HELLO clears the device's HEARTBEAT_LOST latch, which its heartbeat timeout
+    # (1 s) sets again. Resuming 6 s into the stall came right at a re-latch (a coin flip, in
+    # the old driver too); 6.5 s resumes half-way between two edges, latched.
+    _, driver, _ = rig('--stall-after', '8', '--stall-for', '6.5')
     driver.wait_for_line('active: publishing', 30)
     probe.wait_states(3)
     probe.publish_setpoint(100_000.0)
