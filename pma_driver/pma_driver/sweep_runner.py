@@ -134,7 +134,7 @@ class _Run:
     settings: SweepSettings
     cancel_requested: Callable[[], bool]
     feedback: Callable[[SweepProgress], None]
-    metadata: Mapping[str, float]
+    calibration: Mapping[str, float]
     plan: SweepPlan | None = None
     start_count: int = 0
     commanded: bool = False         # a step was sent: from here on, a failure vents
@@ -161,8 +161,9 @@ class SweepRunner:
             calibration: Mapping[str, float] | None = None) -> SweepReport:
         """Run the goal to its end; every failure is a report with its reason, never a raise."""
         if not self.control.claim_sweep():
-            return SweepReport(Outcome.ABORTED, 'another sweep is running; this one did not '
-                               'start (nothing commanded)')
+            message = 'another sweep is running; this one did not start (nothing commanded)'
+            self.on_event(logging.WARNING, f'sweep {Outcome.ABORTED.value}: {message}')
+            return SweepReport(Outcome.ABORTED, message)
         run = _Run(goal, settings, cancel_requested, feedback, calibration or {})
         try:
             return self._run(run)
@@ -191,7 +192,7 @@ class SweepRunner:
                 return self._finish(run, Outcome.ABORTED, 'not started: no recorder configured')
             link = self.control.link
             metadata = recording_metadata(goal, run.plan, link.hello if link else None,
-                                          run.metadata)
+                                          run.calibration)
             try:
                 bag_path = self.recorder.start(goal.bag_path, metadata)
             except RecorderError as error:
