@@ -7,6 +7,7 @@ parameter and lifecycle services and sends Sweep goals.
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import os
 import threading
@@ -17,24 +18,25 @@ import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lifecycle_msgs.srv import ChangeState, GetState
-from mcap.reader import make_reader
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import DescribeParameters, SetParameters
 from rclpy.action import ActionClient
 from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 
 from pma_driver.calibration import PressureCalibration
-from pma_driver.driver_node import PARAMETERS
+from pma_driver.parameters import PARAMETERS
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
-from support.procs import INSTALL
+from support.procs import INSTALL, ROOT
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
 DRIVER = '/driver_node'
 DIAG_NAME = '/driver_node: serial link'
+RECORDER_STAND_IN = ROOT / 'tests' / 'helpers' / 'recorder_stand_in.py'
+GOAL_STATUS_ABORTED = 6
 
 
 @pytest.fixture(scope='module')
@@ -187,7 +189,7 @@ def rig(procs, tmp_path):
     """Start fake_arduino (extra CLI flags) and driver_node on its --link path."""
 
     def start(*fake_args: str, driver_params: tuple[str, ...] = (), start_fake: bool = True,
-              params_file: Path | None = None):
+              params_file: Path | None = None, namespace: str = ''):
         port = tmp_path / 'ttyPMA'
         fake = None
         if start_fake:
@@ -197,6 +199,8 @@ def rig(procs, tmp_path):
         params = [f'port:={port}', *driver_params]
         ros_args = ['--params-file', str(params_file)] if params_file else []
         ros_args += [arg for p in params for arg in ('-p', p)]
+        if namespace:
+            ros_args += ['-r', f'__ns:={namespace}']
         driver = procs.ros2_run('pma_driver', 'driver_node', ros_args=ros_args)
         return fake, driver, port
 
@@ -277,12 +281,30 @@ def test_sweep_action_gives_feedback_and_a_result(rig, probe):
     assert max(f.gauge_setpoint_pa for f in feedback) == 200_000.0
     progress = [f.progress for f in feedback]
     assert progress == sorted(progress) and progress[-1] == pytest.approx(1.0)
-    # Above the ceiling: rejected, with the reason in the log.
-    bad = probe.sweep.send_goal_async(Sweep.Goal(
-        max_gauge_pressure_pa=600_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1))
-    wait_until(bad.done, 10, 'goal answer')
-    assert not bad.result().accepted
-    driver.wait_for_line('above the driver ceiling', 5)
+    # Goals that cannot run are accepted and aborted at once, with the reason in the result
+    # (a rejection carries none); a step_pa of 0.01 Pa (3 GB of plan) is refused by arithmetic.
+    for bad, words in ((dict(max_gauge_pressure_pa=600_000.0), 'above the driver ceiling'),
+                       (dict(step_pa=0.01), 'is step_pa 0.01 Pa too small?')):
+        fields = dict(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1)
+        answer = run_goal(probe.sweep, Sweep.Goal(**{**fields, **bad}), timeout=10)
+        assert answer.status == GOAL_STATUS_ABORTED, answer
+        assert answer.result.message.startswith('goal refused: ') and words in \
+            answer.result.message, answer.result.message
+        assert not answer.result.success and answer.result.sample_count == 0
+    assert {m.gauge_setpoint_pa for m in probe.wait_states(5)} == {0.0}   # nothing commanded
+    assert driver.alive()
+
+
+def run_goal(client: ActionClient, goal, timeout: float, feedback: list | None = None):
+    """Send a goal that must be accepted; its final (status, result)."""
+    sent = client.send_goal_async(goal, feedback_callback=None if feedback is None else (
+        lambda f: feedback.append(f.feedback)))
+    wait_until(sent.done, 10, 'goal answer')
+    handle = sent.result()
+    assert handle.accepted
+    result_future = handle.get_result_async()
+    wait_until(result_future.done, timeout, 'sweep result')
+    return result_future.result()
 
 
 def test_sweep_cancel_vents(rig, probe):
@@ -416,7 +438,11 @@ def test_every_valid_frame_is_published_once_and_every_bad_one_counted(rig, prob
 
 
 def test_stall_stops_heartbeats_so_the_device_vents_then_streams_again(rig, probe):
-    _, driver, _ = rig('--stall-after', '8', '--stall-for', '6')
+    # While stalled, the link probes with HELLO every handshake_timeout_s (2 s), 1 s after it
+    # noticed; a HELLO clears the device's HEARTBEAT_LOST latch, which its heartbeat timeout
+    # (1 s) sets again. Resuming 6 s into the stall came right at a re-latch (a coin flip, in
+    # the old driver too); 6.5 s resumes half-way between two edges, latched.
+    _, driver, _ = rig('--stall-after', '8', '--stall-for', '6.5')
     driver.wait_for_line('active: publishing', 30)
     probe.wait_states(3)
     probe.publish_setpoint(100_000.0)
@@ -486,6 +512,19 @@ def test_parameters_are_validated_and_port_is_read_only(rig, probe):
     assert not read_only.successful and 'read-only' in read_only.reason.lower()
     heartbeat = probe.set_parameter('heartbeat_period_s', 0.9)   # > half of the 1000 ms timeout
     assert not heartbeat.successful and 'half' in heartbeat.reason
+    # Calibrations that would make every reading nonsense are refused, with the reason.
+    for name, value, words in (('calibration.volts_at_full', 40.0, 'out of range'),
+                               ('calibration.tare_offset_pa', 1e12, 'out of range'),
+                               ('calibration.volts_at_full', 5.2, 'within the ADC reference'),
+                               ('calibration.full_scale_pa', 300_000.0,
+                                'cannot read max_gauge_pressure_pa')):
+        refused = probe.set_parameter(name, value)
+        assert not refused.successful and words in refused.reason, (name, refused.reason)
+    calibration = [name for name in PARAMETERS if name.startswith('calibration.')]
+    described = probe.call(DescribeParameters, f'{DRIVER}/describe_parameters',
+                           DescribeParameters.Request(names=calibration), idempotent=True)
+    for item in described.descriptors:
+        assert len(item.floating_point_range) == 1, f'{item.name} has no range'
     good = probe.set_parameter('sample_rate_hz', 50.0)
     assert good.successful, good.reason
     states = probe.wait_states(60)
@@ -538,27 +577,87 @@ def test_tare_at_rest_zeroes_device_and_host_alike(rig, probe):
     assert driver.alive()
 
 
-def test_sweep_records_its_own_bag(rig, probe, tmp_path):
-    _, driver, _ = rig()
+def read_calls(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def test_a_recording_sweep_asks_the_recorder_in_its_namespace(rig, procs, probe, tmp_path):
+    # The driver's recorder is `recorder` in its own namespace (/rig1/recorder/start), not the
+    # one in the root namespace, which must not hear a thing.
+    ours, other = tmp_path / 'rig1_calls.jsonl', tmp_path / 'root_calls.jsonl'
+    for calls, namespace in ((ours, '/rig1'), (other, '/')):
+        procs.python(RECORDER_STAND_IN, '--calls', str(calls), '--ros-args', '-r',
+                     f'__ns:={namespace}', name=f'recorder{namespace.replace("/", "_")}'
+                     ).wait_for_line('recorder_stand_in: ready', 20)
+    # Made before the driver starts, as the probe's own client: a client made just before its
+    # goal can lose the server's answer while the server's reply writer is still matching it.
+    sweep = ActionClient(probe.node, Sweep, '/rig1/pma/sweep')
+    try:
+        _, driver, _ = rig(namespace='/rig1')
+        driver.wait_for_line('active: publishing', 30)
+        driver.wait_for_line('(protocol v1', 10)                     # the handshake
+        assert sweep.wait_for_server(timeout_sec=10)
+        bag = tmp_path / 'sweep_bag'
+        answer = run_goal(sweep, Sweep.Goal(
+            max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1,
+            record=True, bag_path=str(bag), note='new muscle, 21 degC'), timeout=60)
+    finally:
+        sweep.destroy()
+    result = answer.result
+    assert result.success, result.message
+    assert result.bag_path == str(bag)
+    start, stop = read_calls(ours)
+    assert start['call'] == 'start' and start['node'] == '/rig1/recorder'
+    assert start['bag_path'] == str(bag) and start['topics'] == []   # the recorder's own list
+    data = start['custom_data']
+    assert data['note'] == 'new muscle, 21 degC'
+    assert json.loads(data['sweep.setpoints_pa']) == [0, 100_000, 0]
+    assert (data['sweep.step_pa'], data['sweep.hold_s'], data['sweep.cycles']) == (
+        '100000.0', '0.5', '1')
+    assert (data['device.firmware'], data['device.firmware_version'],
+            data['device.protocol_version']) == ('fake_arduino', '0.1.0', '1')
+    assert {k: float(v) for k, v in data.items() if k.startswith('calibration.')} == {
+        name: default for name, (default, _, _) in PARAMETERS.items()
+        if name.startswith('calibration.')}
+    # The bag covers the whole staircase: its 100 kPa step came between start and stop.
+    assert stop == {'call': 'stop', 'bag_path': str(bag), 'setpoints_pa': stop['setpoints_pa']}
+    assert 100_000.0 in stop['setpoints_pa'] and stop['setpoints_pa'][-1] == 0.0
+    assert result.message == (f'3 steps done; bag {bag}: {len(stop["setpoints_pa"])} messages, '
+                              '0 lost')
+    assert read_calls(other) == []
+
+
+def test_a_recording_sweep_without_a_recorder_aborts_at_once_and_says_how_to_start_one(
+        rig, procs, probe, tmp_path):
+    _, driver, _ = rig(driver_params=('sweep.recorder_timeout_s:=1.0',))
     driver.wait_for_line('active: publishing', 30)
     probe.wait_states(3)
     assert probe.sweep.wait_for_server(timeout_sec=10)
-    bag = tmp_path / 'sweep_bag'
-    goal = Sweep.Goal(max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1,
-                      record=True, bag_path=str(bag))
-    sent = probe.sweep.send_goal_async(goal)
-    wait_until(sent.done, 10, 'goal answer')
-    result_future = sent.result().get_result_async()
-    wait_until(result_future.done, 60, 'sweep result')
-    result = result_future.result().result
-    assert result.success, result.message
-    assert result.bag_path == str(bag)
-    files = list(bag.glob('*.mcap'))
-    assert files, f'no MCAP file in {bag}: {list(bag.iterdir())}'
-    with open(files[0], 'rb') as stream:
-        reader = make_reader(stream)
-        topics = {channel.topic for _, channel, _ in reader.iter_messages()}
-    assert '/pma/state' in topics
+    goal = Sweep.Goal(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1,
+                      record=True)
+    feedback: list[Sweep.Feedback] = []
+    sent = time.monotonic()
+    answer = run_goal(probe.sweep, goal, timeout=15, feedback=feedback)
+    assert time.monotonic() - sent < 5.0
+    assert answer.status == GOAL_STATUS_ABORTED and not answer.result.success
+    message = answer.result.message
+    assert message.startswith('not started: no recorder answers at /recorder/start'), message
+    assert 'within 1 s' in message and '`ros2 run pma_bag record --idle`' in message
+    assert 'record:=true' in message
+    assert feedback == [] and answer.result.bag_path == ''
+    # A recorder that answers but cannot record: its reason, and still nothing commanded.
+    # (Time for the driver to discover it: the recorder's services are brand new.)
+    assert probe.set_parameter('sweep.recorder_timeout_s', 10.0).successful
+    calls = tmp_path / 'calls.jsonl'
+    procs.python(RECORDER_STAND_IN, '--calls', str(calls), '--refuse',
+                 'disk full (/data: 0 bytes free)').wait_for_line('recorder_stand_in: ready', 20)
+    answer = run_goal(probe.sweep, goal, timeout=15, feedback=feedback)
+    assert answer.status == GOAL_STATUS_ABORTED
+    assert answer.result.message == ('not started: the recorder refused to start: disk full '
+                                     '(/data: 0 bytes free)')
+    assert [c['call'] for c in read_calls(calls)] == ['start'] and feedback == []
+    assert {m.gauge_setpoint_pa for m in probe.wait_states(5)} == {0.0}
+    assert driver.alive()
 
 
 def test_ctrl_c_vents_before_closing(rig, procs, probe):

@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass
 
 ADC_FULL_SCALE = 1023  # 10-bit ADC of the ATmega2560
+MIN_SPAN_COUNTS = 100  # fewer counts over the sensor's span: worse than 1 % of full scale each
+MAX_TARE_FRACTION = 0.1  # of full scale: the most a sensor's zero may be off and still be tared
 
 
 @dataclass(frozen=True)
@@ -27,13 +29,34 @@ class PressureCalibration:
     tare_offset_pa: float = 0.0  # subtracted after conversion (set by tare at rest)
 
     def __post_init__(self):
+        for name in ('adc_reference_v', 'volts_at_zero', 'volts_at_full', 'full_scale_pa',
+                     'tare_offset_pa'):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f'{name} must be finite')
         for name in ('adc_reference_v', 'full_scale_pa'):
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f'{name} must be finite and > 0')
+            if not getattr(self, name) > 0:
+                raise ValueError(f'{name} must be > 0')
+        if not self.volts_at_zero >= 0:
+            raise ValueError('volts_at_zero must be >= 0 V (the ADC reads 0..adc_reference_v)')
         if not self.volts_at_full > self.volts_at_zero:
             raise ValueError('volts_at_full must be above volts_at_zero')
-        if not math.isfinite(self.tare_offset_pa):
-            raise ValueError('tare_offset_pa must be finite')
+        if self.volts_at_full > self.adc_reference_v:
+            raise ValueError(
+                f'the sensor span {self.volts_at_zero:g}..{self.volts_at_full:g} V must lie '
+                f'within the ADC reference 0..{self.adc_reference_v:g} V (adc_reference_v), '
+                'or the top of the range reads as saturated')
+        span_counts = (self.volts_at_full - self.volts_at_zero) / self.adc_reference_v \
+            * ADC_FULL_SCALE
+        if span_counts < MIN_SPAN_COUNTS:
+            raise ValueError(
+                f'the sensor span {self.volts_at_zero:g}..{self.volts_at_full:g} V covers only '
+                f'{span_counts:.0f} ADC counts (at least {MIN_SPAN_COUNTS}: 1 % of full scale '
+                'per count)')
+        if abs(self.tare_offset_pa) > MAX_TARE_FRACTION * self.full_scale_pa:
+            raise ValueError(
+                f'tare_offset_pa {self.tare_offset_pa:.0f} Pa is more than '
+                f'{MAX_TARE_FRACTION * 100:g} % of full_scale_pa {self.full_scale_pa:.0f} Pa: '
+                'a zero that far off is a wrong or broken sensor, not an offset')
 
     @property
     def pa_per_volt(self) -> float:
@@ -94,6 +117,12 @@ class LengthCalibration:
             raise ValueError('range_sign must be -1 or +1')
         if not math.isfinite(self.length_offset_m):
             raise ValueError('length_offset_m must be finite')
+        longest_m = max(self.range_to_length_m(r) for r in (self.min_range_m, self.max_range_m))
+        if longest_m <= 0:
+            raise ValueError(
+                f'length_offset_m {self.length_offset_m:g} m with range_sign '
+                f'{self.range_sign:+g} gives no muscle length > 0 within the sensor range '
+                f'{self.min_range_m:g}..{self.max_range_m:g} m')
 
     def echo_to_range_m(self, echo_us: float) -> float:
         """Distance to the target [m]; NaN for no echo or a reading outside the sensor's range."""

@@ -1,37 +1,25 @@
 """driver_node: the managed (lifecycle) ROS 2 driver of the PMA rig.
 
-A thin node around link.SerialLink (port, handshake, heartbeats, reconnect),
-clock_sync.ClockSync (device time to ROS time), calibration (raw to SI) and sweep
-(the Sweep action's staircase). docs/driver.md documents parameters, topics, QoS,
-diagnostics and the lifecycle.
+A thin node: parameters (parameters.py) configure a link.SerialLink (port, handshake,
+heartbeats, reconnect); every sample is stamped (clock_sync) and published as
+messages.sample_messages builds it; commands go through control.DeviceControl; the Sweep
+action runs in sweep_runner.SweepRunner, recording through recorder_client.RecorderClient.
+docs/driver.md documents parameters, topics, QoS, diagnostics and the lifecycle.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import os
-import re
-import signal
-import subprocess
 import sys
-import threading
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import rclpy
 import rclpy.exceptions
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import Node, State, TransitionCallbackReturn
@@ -41,140 +29,25 @@ from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from pma_bag.record import DEFAULT_TOPICS
 from pma_common.node import ros_context, spin_until_stopped
 from pma_driver import protocol
-from pma_driver.calibration import LengthCalibration, PressureCalibration
 from pma_driver.clock_sync import ClockSync
-from pma_driver.link import LinkError, LinkState, PortOpenError, SerialLink
-from pma_driver.protocol import Ack, Command, Hello
-from pma_driver.sweep import SweepError, SweepPlan, plan_sweep
+from pma_driver.control import DeviceControl
+from pma_driver.link import PortOpenError, SerialLink
+from pma_driver.messages import FAULT_BITS, link_level, link_values, sample_messages
+from pma_driver.parameters import (
+    PARAMETERS,
+    calibrations,
+    check_parameters,
+    descriptor,
+    stall_timeout_s,
+    startup_commands,
+)
+from pma_driver.protocol import Command, Hello
+from pma_driver.recorder_client import RecorderClient
+from pma_driver.sweep_runner import Outcome, SweepGoal, SweepRunner, SweepSettings
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
-
-FIELD_OF_VIEW_RAD = 0.26          # HC-SR04: about 15 degrees
-# The recorder prints this when ready, and again whenever its topic count changes; we wait
-# until it records every one of its default topics that has a publisher now (at least our
-# own four: pma/state, pma/pressure, pma/range, /diagnostics), so that e.g. model_node's
-# pma/prediction is in the bag from the first step on.
-RECORDER_READY_RE = re.compile(r'recorder: recording (\d+) topics')
-RECORDER_TOPICS = 4
-FAULT_BITS = (protocol.STATUS_OVERPRESSURE | protocol.STATUS_HEARTBEAT_LOST
-              | protocol.STATUS_SENSOR_RANGE)
-
-
-def _floats(low: float, high: float) -> list[FloatingPointRange]:
-    return [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
-
-
-def _ints(low: int, high: int) -> list[IntegerRange]:
-    return [IntegerRange(from_value=low, to_value=high, step=1)]
-
-
-# name: (default, description, extra descriptor fields). Defaults equal config/driver_node.yaml.
-PARAMETERS = {
-    'port': ('/dev/ttyACM0', 'Serial port; a /dev/serial/by-id/... path survives replugging',
-             {'read_only': True}),
-    'baud': (115200, 'Serial baud rate (the firmware uses 115200)',
-             {'read_only': True, 'integer_range': _ints(1200, 4_000_000)}),
-    'frame_id': ('pma_link', 'frame_id of every published header', {'read_only': True}),
-    'sample_rate_hz': (20.0, 'Sample rate asked of the device (RATE, whole Hz) [Hz]',
-                       {'floating_point_range': _floats(1.0, 5000.0)}),
-    'max_gauge_pressure_pa': (500_000.0, 'Highest gauge pressure ever commanded (MAX) [Pa]; '
-                              'never above the device ceiling',
-                              {'floating_point_range': _floats(1000.0, 1_000_000.0)}),
-    'ambient_pressure_pa': (101_325.0, 'Ambient pressure added to gauge for pma/pressure [Pa]',
-                            {'floating_point_range': _floats(50_000.0, 120_000.0)}),
-    'calibration.adc_reference_v': (5.0, 'ADC reference voltage [V]',
-                                    {'floating_point_range': _floats(1.0, 6.0)}),
-    'calibration.volts_at_zero': (0.5, 'Sensor output at 0 Pa gauge [V]', {}),
-    'calibration.volts_at_full': (4.5, 'Sensor output at full_scale_pa [V]', {}),
-    'calibration.full_scale_pa': (500_000.0, 'Sensor full scale [Pa, gauge]',
-                                  {'floating_point_range': _floats(1000.0, 10_000_000.0)}),
-    'calibration.tare_offset_pa': (0.0, 'Subtracted from every pressure reading [Pa]', {}),
-    'calibration.speed_of_sound_m_s': (343.0, 'Speed of sound for the echo time [m/s]',
-                                       {'floating_point_range': _floats(300.0, 400.0)}),
-    'calibration.length_offset_m': (0.40, 'length_m = length_offset_m + range_sign * range [m]',
-                                    {}),
-    'calibration.range_sign': (-1.0, '+1 or -1: direction of the range along the muscle', {}),
-    'heartbeat_period_s': (0.2, 'Host heartbeat (HB) period [s]',
-                           {'floating_point_range': _floats(0.01, 5.0)}),
-    'heartbeat_timeout_ms': (1000, 'Device vents after this long without a command (HBTO) [ms]',
-                             {'integer_range': _ints(100, 10_000)}),
-    'reconnect_period_s': (1.0, 'Retry period when the port is missing or lost [s]',
-                           {'floating_point_range': _floats(0.1, 60.0)}),
-    'handshake_timeout_s': (2.0, 'Wait this long for the firmware HELLO after opening [s]',
-                            {'floating_point_range': _floats(0.1, 30.0)}),
-    'autostart': (True, 'Configure and activate without a lifecycle manager',
-                  {'read_only': True}),
-    'qos_reliability': ('reliable', "'reliable' (REP-2003 system default) or 'best_effort'",
-                        {'read_only': True}),
-    'qos_depth': (10, 'History depth of the data topics',
-                  {'read_only': True, 'integer_range': _ints(1, 10_000)}),
-    'sweep.tolerance_pa': (10_000.0, 'A sweep step is reached within this of its setpoint [Pa]',
-                           {'floating_point_range': _floats(100.0, 100_000.0)}),
-    'sweep.step_timeout_s': (10.0, 'Hold starts anyway after this long (logged) [s]',
-                             {'floating_point_range': _floats(0.1, 600.0)}),
-}
-
-
-def calibrations(values: dict) -> tuple[PressureCalibration, LengthCalibration]:
-    """Calibration dataclasses from parameter values (they validate; ValueError says why)."""
-    pressure = PressureCalibration(
-        adc_reference_v=values['calibration.adc_reference_v'],
-        volts_at_zero=values['calibration.volts_at_zero'],
-        volts_at_full=values['calibration.volts_at_full'],
-        full_scale_pa=values['calibration.full_scale_pa'],
-        tare_offset_pa=values['calibration.tare_offset_pa'])
-    length = LengthCalibration(
-        speed_of_sound_m_s=values['calibration.speed_of_sound_m_s'],
-        length_offset_m=values['calibration.length_offset_m'],
-        range_sign=values['calibration.range_sign'])
-    return pressure, length
-
-
-def check_parameters(values: dict, hello: Hello | None) -> str:
-    """Why these parameter values cannot be used ('' when they can)."""
-    for name, value in values.items():
-        if isinstance(value, float) and not math.isfinite(value):
-            return f'{name} must be finite, got {value}'
-    if values['qos_reliability'] not in ('reliable', 'best_effort'):
-        return "qos_reliability must be 'reliable' or 'best_effort'"
-    if not values['sample_rate_hz'] >= 1.0:
-        return f'sample_rate_hz must be >= 1 Hz (the device takes whole Hz), got ' \
-            f'{values["sample_rate_hz"]}'
-    if not values['max_gauge_pressure_pa'] > 0:
-        return 'max_gauge_pressure_pa must be > 0 Pa'
-    if values['heartbeat_period_s'] * 1000.0 > values['heartbeat_timeout_ms'] / 2:
-        return (f'heartbeat_period_s ({values["heartbeat_period_s"]} s) must be at most half '
-                f'of heartbeat_timeout_ms ({values["heartbeat_timeout_ms"]} ms)')
-    if hello is not None:
-        if values['sample_rate_hz'] > hello.max_rate_hz:
-            return (f'sample_rate_hz {values["sample_rate_hz"]} Hz is above the device maximum '
-                    f'{hello.max_rate_hz} Hz')
-        # limit_pa is the firmware's compiled hard limit; its current ceiling_pa is only what
-        # the last MAX set, which this parameter is about to set again.
-        if values['max_gauge_pressure_pa'] > hello.limit_pa:
-            return (f'max_gauge_pressure_pa {values["max_gauge_pressure_pa"]:.0f} Pa is above '
-                    f'the device limit {hello.limit_pa} Pa')
-    try:
-        calibrations(values)
-    except ValueError as error:
-        return f'calibration: {error}'
-    return ''
-
-
-def to_time_msg(ns: int) -> Time:
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
-
-
-def recorder_executable() -> Path:
-    """pma_bag's record executable (install/pma_bag/lib/pma_bag/record)."""
-    try:
-        from ament_index_python.packages import get_package_prefix
-        return Path(get_package_prefix('pma_bag')) / 'lib' / 'pma_bag' / 'record'
-    except (ImportError, LookupError, ValueError):
-        return Path(sys.argv[0]).resolve().parents[2] / 'pma_bag' / 'lib' / 'pma_bag' / 'record'
 
 
 class PmaDriver(Node):
@@ -182,49 +55,47 @@ class PmaDriver(Node):
 
     def __init__(self, **kwargs):
         super().__init__('driver_node', **kwargs)
-        for name, (default, description, extra) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(
-                description=description, **extra))
+        for name, (default, _, _) in PARAMETERS.items():
+            self.declare_parameter(name, default, descriptor(name))
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
+        values = self._values()
 
         self._link: SerialLink | None = None
+        self._control = DeviceControl(values['max_gauge_pressure_pa'], self._log)
         self._clock_sync = ClockSync()
-        self._pressure_cal, self._length_cal = calibrations(self._values())
-        self._frame_id = self.get_parameter('frame_id').value
-        self._ambient_pa = self.get_parameter('ambient_pressure_pa').value
-        self._active = False
+        self._pressure_cal, self._length_cal = calibrations(values)
+        self._frame_id = values['frame_id']
+        self._ambient_pa = values['ambient_pressure_pa']
         self._published = 0
         self._unpublished = 0           # decoded while configured but not active
-        self._latest: protocol.Sample | None = None
-        self._latest_gauge_pa = math.nan
-        self._last_fault = ('', '')          # (status text, ROS time) of the last fault bits
-        self._sweep_lock = threading.Lock()
-        self._sweep_running = False
-        # Held from "may this pressure be commanded?" to "sent", and by deactivate around
-        # "inactive + VENT", so no SET can overtake the VENT of a deactivation.
-        self._command_lock = threading.RLock()
+        self._last_fault = ('', '')     # (status text, ROS time) of the last fault bits
         self._rate_count = (0, time.monotonic())
         self._rate_hz = 0.0
         self._configure_error = ''
         self._pubs = None
         self._refusal_logged: dict[str, float] = {}
 
+        self._recorder = RecorderClient(self, values['sweep.recorder'],
+                                        values['sweep.recorder_timeout_s'])
+        self._sweeps = SweepRunner(self._control, recorder=self._recorder,
+                                   sample_count=lambda: self._published, on_event=self._log)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
-        self._diagnostics_timer = self.create_timer(1.0, self._publish_diagnostics)
-        self._setpoint_sub = self.create_subscription(
-            Float64, 'pma/pressure_setpoint', self._on_setpoint, 10)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.create_subscription(Float64, 'pma/pressure_setpoint', self._on_setpoint, 10)
+        # Every goal is accepted: one that cannot run is aborted at once with the reason in
+        # its result, which a client at a terminal sees (a rejection carries no reason).
         self._sweep_server = ActionServer(
             self, Sweep, 'pma/sweep', execute_callback=self._execute_sweep,
-            goal_callback=self._on_sweep_goal, cancel_callback=lambda _: CancelResponse.ACCEPT,
+            cancel_callback=lambda _: CancelResponse.ACCEPT,
             callback_group=ReentrantCallbackGroup())
         # Blocks on the device's reply, so it must not hold up the default group.
-        self._tare_service = self.create_service(Trigger, '~/tare', self._on_tare,
-                                                 callback_group=ReentrantCallbackGroup())
+        self.create_service(Trigger, '~/tare', self._on_tare,
+                            callback_group=ReentrantCallbackGroup())
         self._autostart_timer = None
-        if self.get_parameter('autostart').value:
-            self._autostart_timer = self.create_timer(
-                self.get_parameter('reconnect_period_s').value, self._autostart)
+        if values['autostart']:
+            self._autostart_timer = self.create_timer(values['reconnect_period_s'],
+                                                      self._autostart)
             self._autostart()
 
     # -- parameters ----------------------------------------------------------------------
@@ -246,48 +117,28 @@ class PmaDriver(Node):
         if any(name.startswith('calibration.') for name in names):
             self._pressure_cal, self._length_cal = calibrations(values)
         self._ambient_pa = values['ambient_pressure_pa']
+        self._control.max_gauge_pressure_pa = values['max_gauge_pressure_pa']
+        self._recorder.timeout_s = values['sweep.recorder_timeout_s']
         link = self._link
         if link is None:
             return
         link.heartbeat_period_s = values['heartbeat_period_s']
         link.reconnect_period_s = values['reconnect_period_s']
         link.handshake_timeout_s = values['handshake_timeout_s']
-        link.stall_timeout_s = self._stall_timeout(values)
+        link.stall_timeout_s = stall_timeout_s(values['sample_rate_hz'])
         commands = {'sample_rate_hz': (Command.RATE, max(1, round(values['sample_rate_hz']))),
-                    'max_gauge_pressure_pa': (Command.MAX, self._device_max_pa(values)),
+                    'max_gauge_pressure_pa': (Command.MAX, self._control.ceiling_pa()),
                     'heartbeat_timeout_ms': (Command.HEARTBEAT_TIMEOUT,
                                              values['heartbeat_timeout_ms'])}
         for name, (command, value) in commands.items():
             if name in names and link.connected:
-                self._send(command, value)
-
-    @staticmethod
-    def _stall_timeout(values: dict) -> float:
-        return max(1.0, 5.0 / values['sample_rate_hz'])
-
-    def _device_max_pa(self, values: dict | None = None) -> int:
-        """The ceiling to send with MAX: the parameter, never above the device's own."""
-        values = values or self._values()
-        limit = values['max_gauge_pressure_pa']
-        hello = self._link.hello if self._link is not None else None
-        if hello is not None:
-            limit = min(limit, hello.limit_pa)
-        return math.floor(limit)
+                self._control.send(command, value)
 
     def _startup_commands(self, hello: Hello):
-        values = self._values()
-        if values['max_gauge_pressure_pa'] > hello.limit_pa:
-            self.get_logger().warning(
-                f'max_gauge_pressure_pa {values["max_gauge_pressure_pa"]:.0f} Pa is above the '
-                f'device limit {hello.limit_pa} Pa: using the device limit')
-        rate = round(values['sample_rate_hz'])
-        if rate > hello.max_rate_hz:
-            self.get_logger().warning(f'sample_rate_hz {rate} is above the device maximum '
-                                      f'{hello.max_rate_hz}: using {hello.max_rate_hz}')
-            rate = hello.max_rate_hz
-        return [(Command.HEARTBEAT_TIMEOUT, (values['heartbeat_timeout_ms'],)),
-                (Command.MAX, (self._device_max_pa(values),)),
-                (Command.RATE, (max(1, rate),))]
+        commands, warnings = startup_commands(self._values(), hello)
+        for warning in warnings:
+            self.get_logger().warning(warning)
+        return commands
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -322,12 +173,12 @@ class PmaDriver(Node):
         self._pressure_cal, self._length_cal = calibrations(values)
         link = SerialLink(
             values['port'], values['baud'], on_sample=self._on_sample, on_hello=self._on_hello,
-            on_event=self._on_link_event, startup_commands=self._startup_commands,
+            on_event=self._log, startup_commands=self._startup_commands,
             receive_clock_ns=lambda: self.get_clock().now().nanoseconds,
             reconnect_period_s=values['reconnect_period_s'],
             handshake_timeout_s=values['handshake_timeout_s'],
             heartbeat_period_s=values['heartbeat_period_s'],
-            stall_timeout_s=self._stall_timeout(values))
+            stall_timeout_s=stall_timeout_s(values['sample_rate_hz']))
         try:
             link.open()
         except PortOpenError as error:
@@ -341,27 +192,23 @@ class PmaDriver(Node):
         self._pubs = (self.create_lifecycle_publisher(PmaState, 'pma/state', qos),
                       self.create_lifecycle_publisher(FluidPressure, 'pma/pressure', qos),
                       self.create_lifecycle_publisher(Range, 'pma/range', qos))
-        self._link = link
+        self._link = self._control.link = link
         link.start()
         self.get_logger().info(f'configured: {values["port"]} open at {values["baud"]} baud')
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
         result = super().on_activate(state)
-        self._active = True
+        self._control.active = True
         self.get_logger().info('active: publishing pma/state, pma/pressure, pma/range')
         return result
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
-        with self._command_lock:
-            self._active = False
-            self._vent('deactivated')
+        self._control.deactivate()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
-        with self._command_lock:
-            self._active = False
-            self._close_link(vent=True)
+        self.shutdown_hardware()
         for pub in self._pubs or ():
             self.destroy_publisher(pub)
         self._pubs = None
@@ -376,21 +223,18 @@ class PmaDriver(Node):
         return TransitionCallbackReturn.SUCCESS
 
     def shutdown_hardware(self) -> None:
-        """Vent the muscle and close the port (shutdown, Ctrl-C, errors)."""
-        with self._command_lock:
-            self._active = False
-            self._close_link(vent=True)
-
-    def _close_link(self, vent: bool) -> None:
-        link, self._link = self._link, None
+        """Vent the muscle and close the port (cleanup, shutdown, Ctrl-C, errors)."""
+        with self._control.lock:
+            self._control.active = False
+            link, self._link, self._control.link = self._link, None, None
         if link is not None:
-            link.stop(vent=vent)
+            link.stop(vent=True)
             if self.context.ok():  # after Ctrl-C the context is gone and so is /rosout
-                self.get_logger().info(f'closed {link.port}{" (vented)" if vent else ""}')
+                self.get_logger().info(f'closed {link.port} (vented)')
 
     # -- link callbacks (link thread) ------------------------------------------------------
 
-    def _on_link_event(self, level: int, message: str) -> None:
+    def _log(self, level: int, message: str) -> None:
         # One call site per severity: rclpy refuses to log from one line at two severities.
         logger = self.get_logger()
         if level >= logging.ERROR:
@@ -414,120 +258,36 @@ class PmaDriver(Node):
 
     def _on_sample(self, sample: protocol.Sample, receive_ns: int) -> None:
         stamp_ns = self._clock_sync.stamp(sample.t_ms, receive_ns)
-        gauge_pa = self._pressure_cal.adc_to_pa(sample.adc)
-        self._latest = sample
-        self._latest_gauge_pa = gauge_pa
+        self._control.note_sample(sample, self._pressure_cal.adc_to_pa(sample.adc))
         if sample.status & FAULT_BITS:
             self._last_fault = (protocol.status_text(sample.status & FAULT_BITS),
                                 f'{stamp_ns / 1e9:.3f}')
         pubs = self._pubs
-        if not self._active or pubs is None:
+        if not self._control.active or pubs is None:
             self._unpublished += 1
             return
-        header_stamp = to_time_msg(stamp_ns)
-        state = PmaState()
-        state.header.stamp = header_stamp
-        state.header.frame_id = self._frame_id
-        state.seq = sample.seq
-        state.device_time_s = sample.t_ms / 1000.0
-        state.gauge_pressure_pa = gauge_pa
-        state.length_m = self._length_cal.echo_to_length_m(sample.echo_us)
-        state.gauge_setpoint_pa = float(sample.setpoint_pa)
-        state.valve_state = sample.valve
-        state.status = sample.status
-        state.pressure_adc = sample.adc
-        state.echo_us = sample.echo_us
-
-        pressure = FluidPressure()
-        pressure.header = state.header
-        pressure.fluid_pressure = gauge_pa + self._ambient_pa
-        pressure.variance = self._pressure_cal.pa_per_count ** 2 / 12.0  # quantisation
-
-        ranged = Range()
-        ranged.header = state.header
-        ranged.radiation_type = Range.ULTRASOUND
-        ranged.field_of_view = FIELD_OF_VIEW_RAD
-        ranged.min_range = self._length_cal.min_range_m
-        ranged.max_range = self._length_cal.max_range_m
-        # REP-117: +inf = nothing within range (no echo); NaN = a reading outside the span.
-        ranged.range = (math.inf if sample.echo_us == 0
-                        else self._length_cal.echo_to_range_m(sample.echo_us))
+        messages = sample_messages(
+            sample, stamp_ns, frame_id=self._frame_id, pressure=self._pressure_cal,
+            length=self._length_cal, ambient_pressure_pa=self._ambient_pa)
         try:
-            pubs[0].publish(state)
-            pubs[1].publish(pressure)
-            pubs[2].publish(ranged)
+            for pub, msg in zip(pubs, messages, strict=True):
+                pub.publish(msg)
         except Exception as error:  # shutting down under us: the link must survive it
             self.get_logger().warning(f'publish failed: {error}', throttle_duration_sec=5.0)
             return
         self._published += 1
 
-    # -- commands ------------------------------------------------------------------------
-
-    def _send(self, command: Command, *args: int) -> bool:
-        """Send without blocking; a NAK or a timeout is logged."""
-        link = self._link
-        if link is None or not link.connected:
-            self.get_logger().warning(
-                f'{command.value} {args} not sent: link '
-                f'{link.state.value if link else "not configured"}', throttle_duration_sec=2.0)
-            return False
-
-        def on_reply(reply) -> None:
-            if not isinstance(reply, Ack):
-                what = 'no reply' if reply is None else f'NAK {reply.reason}'
-                self.get_logger().error(f'device refused {command.value} {args}: {what}')
-
-        try:
-            link.send_async(command, *args, on_reply=on_reply)
-        except LinkError as error:
-            self.get_logger().warning(str(error), throttle_duration_sec=2.0)
-            return False
-        return True
-
-    def _vent(self, why: str) -> None:
-        if self._link is not None and self._link.connected and self._send(Command.VENT):
-            self.get_logger().info(f'vented ({why})')
-
-    def _link_streaming(self) -> bool:
-        """Commands need a streaming link: a stalled one too means nobody can watch them."""
-        link = self._link
-        return link is not None and link.state is LinkState.STREAMING
-
-    def _link_text(self) -> str:
-        link = self._link
-        return f'link {link.state.value}' if link is not None else 'link closed'
-
-    def setpoint_refusal(self, gauge_pa: float) -> tuple[str, str]:
-        """(kind, reason) why this setpoint must not reach the device; ('', '') when it may."""
-        limit = self._device_max_pa()
-        if not math.isfinite(gauge_pa):
-            return 'non-finite', f'setpoint {gauge_pa} is not a finite number'
-        if gauge_pa < 0:
-            return 'negative', f'setpoint {gauge_pa:.0f} Pa is negative (gauge pressure)'
-        if gauge_pa > limit:
-            return 'too high', (f'setpoint {gauge_pa:.0f} Pa is above max_gauge_pressure_pa '
-                                f'{limit} Pa')
-        if not self._active:
-            return 'inactive', f'driver is {self._state_label()}, not active'
-        if not self._link_streaming():
-            return 'link', self._link_text()
-        return '', ''
+    # -- setpoints and tare ----------------------------------------------------------------
 
     def _on_setpoint(self, msg: Float64) -> None:
-        with self._command_lock:
-            kind, reason = self.setpoint_refusal(msg.data)
-            if not reason and self._sweep_running:
-                kind, reason = 'sweep', 'a sweep is running'
-            if not reason:
-                self._send(Command.SET, round(msg.data))
-                return
+        kind, reason = self._control.command_setpoint(msg.data)
+        if kind == 'inactive':
+            reason = f'driver is {self._state_label()}, not active'
         # Throttled per kind, so a flood of one kind of refusal hides no other kind.
         now = time.monotonic()
-        if now - self._refusal_logged.get(kind, -math.inf) >= 1.0:
+        if reason and now - self._refusal_logged.get(kind, -math.inf) >= 1.0:
             self._refusal_logged[kind] = now
             self.get_logger().warning(f'refused setpoint: {reason}')
-
-    # -- tare ------------------------------------------------------------------------------
 
     def _on_tare(self, _request, response):
         """Zero the pressure at rest, on the device and here, from the same ADC count.
@@ -537,246 +297,51 @@ class PmaDriver(Node):
         zero, and the host's offset is computed from exactly that count, so both agree.
         """
         response.success, response.message = self._tare()
-        log = self.get_logger()
         if response.success:
-            log.info(response.message)
+            self.get_logger().info(response.message)
         else:
-            log.warning(f'tare refused: {response.message}')
+            self.get_logger().warning(f'tare refused: {response.message}')
         return response
 
     def _tare(self) -> tuple[bool, str]:
-        with self._command_lock:
-            if not self._active or not self._link_streaming():
-                return False, (f'driver {self._state_label()}, {self._link_text()}: '
-                               'nothing to tare')
-            if self._sweep_running:
-                return False, 'a sweep is running'
-            latest = self._latest
-            if latest is None or latest.setpoint_pa != 0:
-                return False, ('the muscle is not vented: send setpoint 0.0 first and let the '
-                               'pressure settle')
-            try:
-                reply = self._link.send(Command.TARE)   # held: cleanup takes the lock too
-            except LinkError as error:
-                return False, str(error)
-        if not isinstance(reply, Ack) or reply.value is None:
-            return False, (f'device refused TARE: {getattr(reply, "reason", reply)} (the reading '
-                           'is not within 25 kPa of zero or outside the sensor span)')
-        untared = replace(self._pressure_cal, tare_offset_pa=0.0)
-        offset_pa = float(untared.adc_to_pa(reply.value))
+        adc, reason = self._control.tare()
+        if adc is None:
+            return False, reason
+        offset_pa = float(replace(self._pressure_cal, tare_offset_pa=0.0).adc_to_pa(adc))
         result = self.set_parameters([Parameter('calibration.tare_offset_pa', value=offset_pa)])[0]
         if not result.successful:
             return False, f'device tared, but calibration.tare_offset_pa refused: {result.reason}'
-        return True, (f'tared: ADC {reply.value} is 0 Pa on the device and here '
+        return True, (f'tared: ADC {adc} is 0 Pa on the device and here '
                       f'(calibration.tare_offset_pa = {offset_pa:.1f} Pa)')
 
     # -- sweep action ----------------------------------------------------------------------
 
-    def _plan(self, goal) -> SweepPlan:
-        return plan_sweep(goal.max_gauge_pressure_pa, goal.step_pa, goal.hold_s, goal.cycles,
-                          list(goal.reversal_pressures_pa), ceiling_pa=self._device_max_pa())
-
-    def _on_sweep_goal(self, goal) -> GoalResponse:
-        try:
-            self._plan(goal)
-        except SweepError as error:
-            self.get_logger().error(f'sweep goal rejected: {error}')
-            return GoalResponse.REJECT
-        if not self._active or self._link is None or not self._link.connected:
-            self.get_logger().error(f'sweep goal rejected: driver {self._state_label()}, '
-                                    f'{self._link_text()}')
-            return GoalResponse.REJECT
-        with self._sweep_lock:
-            if self._sweep_running:
-                self.get_logger().error('sweep goal rejected: another sweep is running')
-                return GoalResponse.REJECT
-            self._sweep_running = True
-        return GoalResponse.ACCEPT
-
     def _execute_sweep(self, goal_handle):
-        try:
-            return self._run_sweep(goal_handle)
-        finally:
-            with self._sweep_lock:
-                self._sweep_running = False
+        request = goal_handle.request
+        values = self._values()
+        feedback = Sweep.Feedback()
 
-    def _run_sweep(self, goal_handle):
-        goal = goal_handle.request
-        result = Sweep.Result()
-        start_count = self._published   # reset once the recorder runs: count what it can see
-
-        def finish(outcome: str, message: str):
-            if outcome != 'succeed':
-                # Whatever stopped the run (cancel, NAK, lost reply, stall, deactivation), the
-                # muscle must not stay at the last step's pressure.
-                self._vent(f'sweep {outcome}')
-            result.message = message
-            result.sample_count = self._published - start_count
-            result.success = outcome == 'succeed'
-            getattr(goal_handle, {'succeed': 'succeed', 'abort': 'abort',
-                                  'cancel': 'canceled'}[outcome])()
-            summary = f'sweep {outcome}: {message} ({result.sample_count} samples)'
-            if result.success:
-                self.get_logger().info(summary)
-            else:
-                self.get_logger().warning(summary)
-            return result
-
-        try:
-            plan = self._plan(goal)
-        except SweepError as error:
-            return finish('abort', str(error))
-        recorder = None
-        if goal.record:
-            bag = Path(goal.bag_path).expanduser() if goal.bag_path else (
-                Path.cwd() / time.strftime('sweep_%Y%m%d_%H%M%S'))
-            try:
-                recorder = self._start_recorder(bag.resolve())
-            except RuntimeError as error:
-                return finish('abort', f'recorder: {error}')
-            result.bag_path = str(bag.resolve())
-            start_count = self._published
-        try:
-            outcome, message = self._follow_plan(goal_handle, plan, start_count)
-        finally:
-            if recorder is not None:
-                self._stop_recorder(recorder)
-        return finish(outcome, message)
-
-    def _follow_plan(self, goal_handle, plan: SweepPlan, start_count: int) -> tuple[str, str]:
-        tolerance = self.get_parameter('sweep.tolerance_pa').value
-        step_timeout = self.get_parameter('sweep.step_timeout_s').value
-        feedback = Sweep.Feedback(step_count=plan.step_count)
-        self.get_logger().info(f'sweep: {plan.step_count} steps up to '
-                               f'{max(plan.setpoints_pa):.0f} Pa, hold {plan.hold_s:g} s')
-
-        def send_feedback(index: int, setpoint: float, hold_fraction: float) -> None:
-            feedback.progress = plan.progress(index, hold_fraction)
-            feedback.gauge_setpoint_pa = setpoint
-            feedback.sample_count = self._published - start_count
-            feedback.step_index = index
+        def publish_feedback(progress) -> None:
+            feedback.progress = progress.progress
+            feedback.gauge_setpoint_pa = progress.gauge_setpoint_pa
+            feedback.sample_count = progress.sample_count
+            feedback.step_index = progress.step_index
+            feedback.step_count = progress.step_count
             goal_handle.publish_feedback(feedback)
 
-        def interrupted() -> tuple[str, str] | None:
-            if goal_handle.is_cancel_requested:
-                return 'cancel', 'canceled; vented to 0 Pa'
-            if not self._active:
-                return 'abort', 'driver deactivated; vented'
-            if not self._link_streaming():
-                return 'abort', (f'{self._link_text()} during the sweep; vented (the device '
-                                 'also vents on heartbeat loss)')
-            return None
-
-        for index, setpoint in enumerate(plan.setpoints_pa):
-            with self._command_lock:
-                stop = interrupted()
-                if stop:
-                    return stop
-                limit = self._device_max_pa()   # the parameter may have been lowered
-                if setpoint > limit:
-                    return 'abort', (f'step {setpoint:.0f} Pa is above max_gauge_pressure_pa '
-                                     f'{limit} Pa (lowered during the sweep); vented')
-                reply, error = self._set_with_retry(round(setpoint))
-            if reply is None:
-                return 'abort', f'SET {setpoint:.0f} Pa failed: {error}; vented'
-            if not isinstance(reply, Ack):
-                return 'abort', (f'device refused SET {setpoint:.0f} Pa: NAK {reply.reason}; '
-                                 'vented')
-            send_feedback(index, setpoint, 0.0)
-            deadline = time.monotonic() + step_timeout
-            while not abs(self._latest_gauge_pa - setpoint) <= tolerance:  # NaN: not reached
-                stop = interrupted()
-                if stop:
-                    return stop
-                if time.monotonic() > deadline:
-                    self.get_logger().warning(
-                        f'sweep step {index}: {setpoint:.0f} Pa not reached within '
-                        f'{step_timeout:g} s (at {self._latest_gauge_pa:.0f} Pa); holding')
-                    break
-                time.sleep(0.02)
-            hold_end = time.monotonic() + plan.hold_s
-            next_feedback = time.monotonic() + 0.5
-            while (now := time.monotonic()) < hold_end:
-                stop = interrupted()
-                if stop:
-                    return stop
-                if now >= next_feedback:
-                    send_feedback(index, setpoint, 1.0 - (hold_end - now) / plan.hold_s)
-                    next_feedback = now + 0.5
-                time.sleep(min(0.05, hold_end - now))
-        send_feedback(plan.step_count - 1, plan.setpoints_pa[-1], 1.0)
-        return 'succeed', f'{plan.step_count} steps done'
-
-    def _set_with_retry(self, gauge_pa: int):
-        """SET, once more if the reply got lost (SET is idempotent): (reply, error text)."""
-        error = ''
-        for _ in range(2):
-            link = self._link
-            if link is None:
-                return None, 'link closed'
-            try:
-                return link.send(Command.SET, gauge_pa), ''
-            except LinkError as failure:
-                error = str(failure)
-        return None, error
-
-    def _start_recorder(self, bag: Path) -> subprocess.Popen:
-        exe = recorder_executable()
-        if not exe.exists():
-            raise RuntimeError(f'{exe} not found (build the workspace)')
-        argv = [str(exe), '-o', str(bag), '--ros-args', '-r',
-                f'__ns:={self.get_namespace()}']
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, text=True, start_new_session=True,
-                                env=dict(os.environ, PYTHONUNBUFFERED='1'))
-        expected = max(RECORDER_TOPICS, sum(
-            1 for topic in DEFAULT_TOPICS
-            if self.count_publishers(self.resolve_topic_name(topic)) > 0))
-        ready = threading.Event()       # the recorder has subscribed every published topic
-        announced = threading.Event()   # it has started (maybe with 0 topics yet)
-        failed = threading.Event()      # it cannot write the bag (it says why and stays up)
-        tail: list[str] = []
-
-        def pump() -> None:
-            for line in proc.stdout:
-                tail.append(line.rstrip())
-                del tail[:-20]
-                if line.startswith('recorder: ERROR'):
-                    failed.set()
-                match = RECORDER_READY_RE.search(line)
-                if match:
-                    announced.set()
-                    if int(match.group(1)) >= expected:
-                        ready.set()
-                self.get_logger().debug(f'recorder: {line.rstrip()}')
-
-        threading.Thread(target=pump, daemon=True).start()
-        start = time.monotonic()
-        while not ready.wait(0.1):
-            waited = time.monotonic() - start
-            if proc.poll() is not None or failed.is_set() or waited > 15.0:
-                self._stop_recorder(proc)
-                if failed.is_set():
-                    raise RuntimeError(' | '.join(t for t in tail if 'ERROR' in t))
-                raise RuntimeError(f'did not start (exit code {proc.returncode}): '
-                                   + ' | '.join(tail[-5:]))
-            if announced.is_set() and waited > 5.0:
-                self.get_logger().warning(
-                    f'recorder: not all of the {expected} published topics subscribed after '
-                    f'5 s: {tail[-1:]}')
-                break
-        self.get_logger().info(f'recording to {bag}')
-        return proc
-
-    def _stop_recorder(self, proc: subprocess.Popen) -> None:
-        for sig, wait in ((signal.SIGINT, 10.0), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if proc.poll() is not None:
-                break
-            proc.send_signal(sig)
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.wait(wait)
-        if proc.returncode not in (0, None):
-            self.get_logger().warning(f'recorder exited with code {proc.returncode}')
+        report = self._sweeps.run(
+            SweepGoal(max_gauge_pressure_pa=request.max_gauge_pressure_pa,
+                      step_pa=request.step_pa, hold_s=request.hold_s, cycles=request.cycles,
+                      reversal_pressures_pa=tuple(request.reversal_pressures_pa),
+                      record=request.record, bag_path=request.bag_path, note=request.note),
+            SweepSettings(values['sweep.tolerance_pa'], values['sweep.step_timeout_s']),
+            cancel_requested=lambda: goal_handle.is_cancel_requested,
+            feedback=publish_feedback,
+            calibration={k: v for k, v in values.items() if k.startswith('calibration.')})
+        {Outcome.SUCCEEDED: goal_handle.succeed, Outcome.ABORTED: goal_handle.abort,
+         Outcome.CANCELED: goal_handle.canceled}[report.outcome]()
+        return Sweep.Result(success=report.success, message=report.message,
+                            bag_path=report.bag_path, sample_count=report.sample_count)
 
     # -- diagnostics -----------------------------------------------------------------------
 
@@ -802,34 +367,15 @@ class PmaDriver(Node):
         else:
             stats = link.stats()
             pubs = self._pubs
-            status.level, status.message = self._link_level(stats)
+            status.level, status.message = link_level(stats, self._control.latest)
+            values.update(link_values(stats, link.baud))
             values.update({
-                'link state': stats.state.value,
-                'baud': str(link.baud),
-                'firmware': (f'{stats.hello.firmware} {stats.hello.fw_version}'
-                             if stats.hello else '-'),
-                'device ceiling at handshake [Pa]': (str(stats.hello.ceiling_pa) if stats.hello
-                                                     else '-'),
-                'device limit [Pa]': str(stats.hello.limit_pa) if stats.hello else '-',
                 'sample rate [Hz]': f'{self._rate_hz:.1f}',
                 'samples published': str(self._published),
                 # matched readers, as this writer sees them: "is anyone listening?"
                 'state subscribers': str(pubs[0].get_subscription_count() if pubs else 0),
-                'samples decoded': str(stats.samples),
                 'samples while inactive': str(self._unpublished),
-                'samples before handshake': str(stats.ignored_before_hello),
-                'frames': str(stats.frames),
-                'bad frames': str(stats.dropped_total),
-                **{f'bad frames ({reason})': str(n) for reason, n in
-                   sorted(stats.dropped.items())},
-                'sequence gaps': str(stats.gap_events),
-                'lost samples': str(stats.lost_samples),
-                'connects': str(stats.connects),
-                'disconnects': str(stats.disconnects),
-                'ACK': str(stats.acks), 'NAK': str(stats.naks),
-                'command timeouts': str(stats.command_timeouts),
-                'last NAK': stats.last_nak or '-',
-                'last error': stats.last_error or '-',
+                'sweep running': 'yes' if self._control.sweep_running else 'no',
                 'last fault': (f'{self._last_fault[0]} at {self._last_fault[1]} s'
                                if self._last_fault[0] else '-'),
                 'clock offset [s]': f'{self._clock_sync.offset_s:.6f}',
@@ -837,22 +383,6 @@ class PmaDriver(Node):
             })
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         return status
-
-    def _link_level(self, stats) -> tuple[bytes, str]:
-        state = stats.state
-        if state is LinkState.STREAMING:
-            latest = self._latest
-            if latest is not None and latest.status & FAULT_BITS:
-                return (DiagnosticStatus.ERROR,
-                        f'device fault: {protocol.status_text(latest.status & FAULT_BITS)}')
-            if latest is not None and latest.status & protocol.STATUS_ECHO_TIMEOUT:
-                return DiagnosticStatus.WARN, 'streaming; ultrasonic echo timeout'
-            return DiagnosticStatus.OK, 'streaming'
-        if state in (LinkState.HANDSHAKE, LinkState.STALLED):
-            return DiagnosticStatus.WARN, stats.state_detail or state.value
-        if state is LinkState.DISCONNECTED and stats.connects:
-            return DiagnosticStatus.ERROR, f'disconnected, reconnecting: {stats.state_detail}'
-        return DiagnosticStatus.ERROR, stats.state_detail or state.value
 
 
 def main(args=None) -> int:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import serial
 
+from pma_common.sequence import SequenceStats, SequenceTracker
 from pma_driver import protocol
 from pma_driver.protocol import Ack, Command, Hello, Nak, Sample
 
@@ -83,8 +84,7 @@ class LinkStats:
     frames: int
     samples: int
     dropped: dict[str, int]
-    lost_samples: int        # samples missing from the sequence numbers
-    gap_events: int          # how many times the sequence jumped
+    sequence: SequenceStats  # samples lost, late, repeated or stray, by their `seq`
     acks: int
     naks: int
     command_timeouts: int
@@ -146,10 +146,10 @@ class SerialLink:
         self._state = LinkState.STOPPED
         self._state_detail = ''
         self._hello: Hello | None = None
-        self._last_seq: int | None = None
+        # What is missing, told apart from late, repeated and stray numbers: counting how far
+        # the number jumped made one corrupt-but-valid seq thousands of "lost" samples.
+        self._sequence = SequenceTracker()
         self._samples = 0
-        self._lost = 0
-        self._gap_events = 0
         self._acks = 0
         self._naks = 0
         self._timeouts = 0
@@ -249,8 +249,8 @@ class SerialLink:
             return LinkStats(
                 state=self._state, state_detail=self._state_detail, hello=self._hello,
                 frames=self._decoder.frames, samples=self._samples,
-                dropped=dict(self._decoder.dropped), lost_samples=self._lost,
-                gap_events=self._gap_events, acks=self._acks, naks=self._naks,
+                dropped=dict(self._decoder.dropped), sequence=self._sequence.stats(),
+                acks=self._acks, naks=self._naks,
                 command_timeouts=self._timeouts, connects=self._connects,
                 disconnects=self._disconnects, last_error=self._last_error,
                 last_nak=self._last_nak, ignored_before_hello=self._ignored)
@@ -303,7 +303,8 @@ class SerialLink:
             self._serial.reset_input_buffer()
         except (serial.SerialException, OSError):
             pass
-        self._last_seq = None
+        with self._lock:
+            self._sequence.reset()      # a reopened port may be a rebooted device
         now = time.monotonic()
         self._handshake_deadline = now + self.handshake_timeout_s
         self._next_hello = now
@@ -342,12 +343,8 @@ class SerialLink:
                     self._ignored += 1
                 return
             with self._lock:
-                gap = protocol.seq_gap(self._last_seq, frame.seq)
                 self._samples += 1
-                if gap:
-                    self._lost += gap
-                    self._gap_events += 1
-            self._last_seq = frame.seq
+                self._sequence.add(frame.seq)
             if self.on_sample is not None:
                 self.on_sample(frame, received_ns)
         elif isinstance(frame, Hello):
@@ -370,7 +367,7 @@ class SerialLink:
         with self._lock:
             self._hello = hello
             self._connects += 1
-        self._last_seq = None
+            self._sequence.reset()      # the device (re)started: its seq counts from 0 again
         self._last_sample_at = time.monotonic()
         self._set_state(LinkState.STREAMING, '')
         self._event(logging.INFO if not restarted else logging.WARNING,

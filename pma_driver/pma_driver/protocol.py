@@ -333,16 +333,3 @@ class FrameDecoder:
         self.dropped[error.reason] += 1
         self.last_error = error
 
-
-def seq_gap(previous: int | None, current: int) -> int:
-    """Samples lost between two sequence numbers (0 when consecutive), wrap-aware.
-
-    A counter that went backwards (device reset) counts as no gap: the caller
-    handles a restart separately.
-    """
-    if previous is None:
-        return 0
-    delta = (current - previous) % U32
-    if delta == 0 or delta > U32 // 2:
-        return 0
-    return delta - 1

@@ -44,24 +44,56 @@ class SweepPlan:
         return min(1.0, max(0.0, fraction))
 
 
+def _first_step(start_pa: float, step_pa: float, rising: bool) -> int:
+    """Grid index of the first step after `start_pa` (excluded) in the direction of travel."""
+    if rising:
+        return math.floor(start_pa / step_pa + 1e-9) + 1
+    return math.ceil(start_pa / step_pa - 1e-9) - 1
+
+
+def _grid_steps(start_pa: float, stop_pa: float, step_pa: float) -> tuple[int, int]:
+    """(first index, count) of the grid points strictly between start and stop, by arithmetic.
+
+    The estimate is corrected against the very comparison `staircase` makes, so both agree
+    to the last float rounding.
+    """
+    eps = 1e-9 * step_pa
+    rising = stop_pa > start_pa
+    first = _first_step(start_pa, step_pa, rising)
+    if rising:
+        def inside(k: int) -> bool:
+            return k * step_pa < stop_pa - eps
+        last = math.ceil((stop_pa - eps) / step_pa) - 1
+        while inside(last + 1):
+            last += 1
+        while last >= first and not inside(last):
+            last -= 1
+        return first, max(0, last - first + 1)
+
+    def inside(k: int) -> bool:
+        return k * step_pa > stop_pa + eps
+    last = math.floor((stop_pa + eps) / step_pa) + 1
+    while inside(last - 1):
+        last -= 1
+    while last <= first and not inside(last):
+        last += 1
+    return first, max(0, first - last + 1)
+
+
+def staircase_length(start_pa: float, stop_pa: float, step_pa: float) -> int:
+    """len(staircase(start_pa, stop_pa, step_pa)), without building it."""
+    if stop_pa == start_pa:
+        return 0
+    return _grid_steps(start_pa, stop_pa, step_pa)[1] + 1
+
+
 def staircase(start_pa: float, stop_pa: float, step_pa: float) -> list[float]:
     """Steps from `start_pa` (excluded) to `stop_pa` (included) on the grid of `step_pa`."""
-    eps = 1e-9 * step_pa
-    out: list[float] = []
-    if stop_pa > start_pa:
-        k = math.floor(start_pa / step_pa + 1e-9) + 1
-        while k * step_pa < stop_pa - eps:
-            out.append(k * step_pa)
-            k += 1
-    elif stop_pa < start_pa:
-        k = math.ceil(start_pa / step_pa - 1e-9) - 1
-        while k * step_pa > stop_pa + eps:
-            out.append(k * step_pa)
-            k -= 1
-    else:
+    if stop_pa == start_pa:
         return []
-    out.append(stop_pa)
-    return out
+    first, count = _grid_steps(start_pa, stop_pa, step_pa)
+    direction = 1 if stop_pa > start_pa else -1
+    return [(first + direction * i) * step_pa for i in range(count)] + [stop_pa]
 
 
 def _check_finite(name: str, value: float) -> None:
@@ -88,6 +120,9 @@ def plan_sweep(max_gauge_pressure_pa: float, step_pa: float, hold_s: float, cycl
         raise SweepError(f'hold_s must be >= 0 s, got {hold_s}')
     if cycles < 1:
         raise SweepError(f'cycles must be >= 1, got {cycles}')
+    if len(reversal_pressures_pa) >= max_steps:
+        raise SweepError(f'{len(reversal_pressures_pa)} reversal pressures make more than '
+                         f'{max_steps} steps')
     reversals = [float(r) for r in reversal_pressures_pa]
     for i, value in enumerate(reversals):
         _check_finite(f'reversal_pressures_pa[{i}]', value)
@@ -105,11 +140,13 @@ def plan_sweep(max_gauge_pressure_pa: float, step_pa: float, hold_s: float, cycl
                 'reversal pressures must alternate up and down, starting up from 0 and ending '
                 f'with a fall to 0 (turning points {[round(t) for t in turning]} Pa do not); '
                 'e.g. [300000, 150000] before the top, or [500000, 100000, 250000] after it')
+    # Counted by arithmetic before anything is built: a tiny step_pa must cost nothing.
+    per_cycle = sum(staircase_length(a, b, step_pa) for a, b in itertools.pairwise(turning))
+    count = 1 + per_cycle * cycles
+    if count > max_steps:
+        raise SweepError(f'the plan has {count} steps (more than {max_steps}): is step_pa '
+                         f'{step_pa:g} Pa too small?')
     one_cycle: list[float] = []
     for start, stop in itertools.pairwise(turning):
         one_cycle += staircase(start, stop, step_pa)
-    count = 1 + len(one_cycle) * cycles
-    if count > max_steps:
-        raise SweepError(f'the plan has {count} steps (more than {max_steps}): is step_pa '
-                         f'{step_pa} Pa too small?')
     return SweepPlan(tuple([0.0, *one_cycle * cycles]), float(hold_s), int(cycles))

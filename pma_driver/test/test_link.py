@@ -33,7 +33,7 @@ class PtyDevice:
         self.mute_commands = mute_commands
         self.commands: list[protocol.HostCommand] = []
         self.streaming = True      # samples flow (False = stalled device)
-        self.seq_step = 1
+        self.lose_every = 0        # > 0: every this many samples, two are lost on the way
         self.seq = 0
         self.t0 = time.monotonic()
         self._lock = threading.Lock()
@@ -92,7 +92,9 @@ class PtyDevice:
                 adc = 102 + self.seq % 5
                 self.write(protocol.encode_sample(
                     protocol.Sample(self.seq, t_ms, adc, 583, 0, 0, 0)))
-                self.seq = (self.seq + self.seq_step) % protocol.U32
+                self.seq = (self.seq + 1) % protocol.U32
+                if self.lose_every and self.seq % self.lose_every == 0:
+                    self.seq += 2
             elif not self.streaming:
                 next_sample = time.monotonic() + 0.02
 
@@ -174,7 +176,7 @@ def test_handshake_then_samples_then_startup_commands(device, make_link):
     assert [(c.command, c.args) for c in device.commands if c.command in ('RATE', 'MAX')] == [
         ('RATE', (50,)), ('MAX', (400_000,))]
     stats = link.stats()
-    assert stats.connects == 1 and stats.dropped_total == 0 and stats.lost_samples == 0
+    assert stats.connects == 1 and stats.dropped_total == 0 and stats.sequence.lost == 0
     stamps = [t for _, t in seen.samples]
     assert stamps == sorted(stamps)
 
@@ -255,10 +257,10 @@ def test_sequence_gaps_are_counted(device, make_link):
     link = make_link(device.link_path, **seen.kwargs())
     link.start()
     wait_until(lambda: len(seen.samples) >= 3, 3.0, 'samples')
-    device.seq_step = 3                                 # two samples lost each time
-    wait_until(lambda: link.stats().gap_events >= 4, 2.0, 'gaps')
-    stats = link.stats()
-    assert stats.lost_samples == 2 * stats.gap_events
+    device.lose_every = 5                               # two samples lost each time
+    wait_until(lambda: link.stats().sequence.gaps >= 4, 2.0, 'gaps')
+    sequence = link.stats().sequence
+    assert sequence.lost == 2 * sequence.gaps
 
 
 def test_heartbeats_flow_at_the_configured_period(device, make_link):
@@ -326,7 +328,7 @@ def test_device_restart_is_a_new_handshake(device, make_link):
     device.seq = 0
     device.write(protocol.encode_hello(device.hello()))  # unsolicited banner = reboot
     wait_until(lambda: len(seen.hellos) == 2, 1.0, 'second HELLO')
-    assert link.stats().lost_samples == 0
+    assert link.stats().sequence.lost == 0
 
 
 def test_stop_with_vent_tells_the_device(device, make_link):
@@ -358,3 +360,35 @@ def test_permission_denied_names_the_port_and_the_fix():
     assert 'sudo usermod -aG dialout $USER' in message
     assert 'log out and back in' in message
     assert not error.value.missing
+
+
+def write_samples(device: PtyDevice, seqs) -> None:
+    for seq in seqs:
+        device.write(protocol.encode_sample(protocol.Sample(seq, seq * 20, 102, 583, 0, 0, 0)))
+
+
+def test_out_of_order_and_repeated_sequence_numbers_lose_nothing(device, make_link):
+    # One corrupt-but-valid number between 9 and 10 used to count as 65,535 lost samples.
+    device.streaming = False
+    link = make_link(device.link_path)
+    link.start()
+    wait_until(lambda: link.connected, 3.0, 'handshake')
+    sent = [*range(10), 65546, *range(10, 20), 21, 20, 22, 22, 23, 25, 26, 24, 27, 30, 31]
+    write_samples(device, sent)
+    wait_until(lambda: link.stats().samples == len(sent), 3.0, 'every sample decoded')
+    sequence = link.stats().sequence
+    assert (sequence.lost, sequence.gaps) == (2, 1)          # 28 and 29, nothing else
+    assert (sequence.stray, sequence.late, sequence.duplicates) == (1, 1, 1)
+
+
+def test_a_device_restart_resets_the_sequence_accounting(device, make_link):
+    device.streaming = False
+    link = make_link(device.link_path)
+    link.start()
+    wait_until(lambda: link.connected, 3.0, 'handshake')
+    write_samples(device, range(5000, 5010))
+    device.write(protocol.encode_hello(device.hello()))      # rebooted: counting from 0 again
+    write_samples(device, range(0, 10))
+    wait_until(lambda: link.stats().samples == 20, 3.0, 'every sample decoded')
+    sequence = link.stats().sequence
+    assert (sequence.lost, sequence.gaps, sequence.duplicates, sequence.restarts) == (0, 0, 0, 0)

@@ -150,14 +150,6 @@ def test_host_parser_classifies_what_the_device_answers():
         assert info.value.reason == reason
 
 
-def test_seq_gap_counts_lost_samples_across_the_wrap():
-    assert protocol.seq_gap(None, 5) == 0
-    assert protocol.seq_gap(5, 6) == 0
-    assert protocol.seq_gap(5, 9) == 3
-    assert protocol.seq_gap(U32 - 2, 1) == 2
-    assert protocol.seq_gap(100, 3) == 0       # restart, not a gap
-
-
 def test_a_split_line_is_whole_again():
     decoder = FrameDecoder()
     line = protocol.encode_sample(Sample(1, 2, 3, 4, 0, 5, 0))

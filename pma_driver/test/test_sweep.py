@@ -2,12 +2,13 @@
 
 import itertools
 import math
+import tracemalloc
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pma_driver.sweep import SweepError, plan_sweep, staircase
+from pma_driver.sweep import SweepError, plan_sweep, staircase, staircase_length
 
 CEILING = 500_000.0
 
@@ -97,3 +98,37 @@ def test_staircase_edges():
     assert staircase(0.0, 0.0, 1.0) == []
     assert staircase(100.0, 0.0, 100.0) == [0.0]
     assert staircase(50.0, 250.0, 100.0) == [100.0, 200.0, 250.0]
+
+
+@pytest.mark.parametrize('step_pa', [1.0, 0.1, 0.01, 1e-9])
+def test_a_plan_over_the_step_cap_is_refused_before_it_is_built(step_pa):
+    # step_pa 0.1 used to build a 10-million-step staircase (450 MB, 2 s) before counting it.
+    tracemalloc.start()
+    try:
+        with pytest.raises(SweepError, match='too small'):
+            plan_sweep(500_000.0, step_pa, 1.0, 1, [300_000.0, 100_000.0], ceiling_pa=CEILING)
+        with pytest.raises(SweepError, match='more than 10000'):
+            plan_sweep(500_000.0, 100_000.0, 1.0, 2**32 - 1, ceiling_pa=CEILING)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 100_000, f'{peak} bytes allocated to refuse the plan'
+
+
+def test_too_many_reversals_are_refused_before_planning():
+    reversals = [300_000.0, 100_000.0] * 6_000
+    with pytest.raises(SweepError, match='more than 10000'):
+        plan_sweep(400_000.0, 100_000.0, 1.0, 1, reversals, ceiling_pa=CEILING)
+
+
+@given(start=st.floats(0.0, CEILING), stop=st.floats(0.0, CEILING),
+       step=st.floats(1.0, 200_000.0))
+def test_the_step_count_is_the_length_of_the_staircase(start, stop, step):
+    assert staircase_length(start, stop, step) == len(staircase(start, stop, step))
+
+
+@pytest.mark.parametrize(('start', 'stop', 'step'), [
+    (0.0, 50_000.0, 0.1), (0.0, 0.3, 0.1), (0.3, 0.0, 0.1), (0.7, 0.1, 0.2),
+    (100_000.0, 100_000.0, 7.0), (1e-9, 1e-6, 1e-9 / 3)])
+def test_the_step_count_matches_on_float_grid_edges(start, stop, step):
+    assert staircase_length(start, stop, step) == len(staircase(start, stop, step))

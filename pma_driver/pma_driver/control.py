@@ -1,0 +1,189 @@
+"""The one gate for commands that move air: setpoints, sweep steps, tare and vent.
+
+Plain Python, no ROS: the driver node and the SweepRunner share it, and its unit tests run
+it against the simulated device. One lock is held from "may this pressure be commanded?" to
+"sent", and by `deactivate` around "inactive + VENT", so no SET can overtake the VENT of a
+deactivation. Nothing is ever sent above `ceiling_pa()`: the `max_gauge_pressure_pa`
+parameter, never above the limit the device reported in its HELLO.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from typing import Protocol
+
+from pma_driver.link import LinkError, LinkState, Reply
+from pma_driver.parameters import device_ceiling_pa
+from pma_driver.protocol import Ack, Command, Hello, Nak, Sample
+
+_log = logging.getLogger('pma_driver.control')
+
+
+class Link(Protocol):
+    """What DeviceControl needs of link.SerialLink (a test may put the simulated device here)."""
+
+    @property
+    def state(self) -> LinkState: ...
+
+    @property
+    def hello(self) -> Hello | None: ...
+
+    @property
+    def connected(self) -> bool: ...
+
+    def send(self, command: Command, *args: int, timeout: float | None = None) -> Ack | Nak: ...
+
+    def send_async(self, command: Command, *args: int,
+                   on_reply: Callable[[Reply], None] | None = None) -> None: ...
+
+
+class DeviceControl:
+    """Who may command what, right now; and the latest reading to judge it by."""
+
+    def __init__(self, max_gauge_pressure_pa: float,
+                 on_event: Callable[[int, str], None] = _log.log):
+        self.lock = threading.RLock()
+        self.link: Link | None = None            # set at configure, None after cleanup
+        self.active = False                      # the lifecycle node is active
+        self.max_gauge_pressure_pa = max_gauge_pressure_pa
+        self.latest: Sample | None = None
+        self.latest_gauge_pa = math.nan
+        self.on_event = on_event
+        self._sweep_lock = threading.Lock()
+        self._sweep_running = False
+
+    # -- state ---------------------------------------------------------------------------
+
+    def ceiling_pa(self) -> int:
+        """The most any command may ask for now (the parameter may be lowered at any time)."""
+        link = self.link
+        return device_ceiling_pa(self.max_gauge_pressure_pa,
+                                 link.hello if link is not None else None)
+
+    def note_sample(self, sample: Sample, gauge_pa: float) -> None:
+        self.latest = sample
+        self.latest_gauge_pa = gauge_pa
+
+    def streaming(self) -> bool:
+        """Commands need a streaming link: a stalled one too means nobody can watch them."""
+        link = self.link
+        return link is not None and link.state is LinkState.STREAMING
+
+    def link_text(self) -> str:
+        link = self.link
+        return f'link {link.state.value}' if link is not None else 'link closed'
+
+    def not_commandable(self) -> tuple[str, str]:
+        """(kind, reason) why nothing may be commanded now; ('', '') when it may."""
+        if not self.active:
+            return 'inactive', 'driver not active'
+        if not self.streaming():
+            return 'link', self.link_text()
+        return '', ''
+
+    @property
+    def sweep_running(self) -> bool:
+        return self._sweep_running
+
+    def claim_sweep(self) -> bool:
+        """Take the device for one sweep (False: another one has it)."""
+        with self._sweep_lock:
+            if self._sweep_running:
+                return False
+            self._sweep_running = True
+            return True
+
+    def release_sweep(self) -> None:
+        with self._sweep_lock:
+            self._sweep_running = False
+
+    # -- commands ------------------------------------------------------------------------
+
+    def setpoint_refusal(self, gauge_pa: float) -> tuple[str, str]:
+        """(kind, reason) why this setpoint must not reach the device; ('', '') when it may."""
+        limit = self.ceiling_pa()
+        if not math.isfinite(gauge_pa):
+            return 'non-finite', f'setpoint {gauge_pa} is not a finite number'
+        if gauge_pa < 0:
+            return 'negative', f'setpoint {gauge_pa:.0f} Pa is negative (gauge pressure)'
+        if gauge_pa > limit:
+            return 'too high', (f'setpoint {gauge_pa:.0f} Pa is above max_gauge_pressure_pa '
+                                f'{limit} Pa')
+        kind, reason = self.not_commandable()
+        if reason:
+            return kind, reason
+        if self._sweep_running:
+            return 'sweep', 'a sweep is running'
+        return '', ''
+
+    def command_setpoint(self, gauge_pa: float) -> tuple[str, str]:
+        """Send SET unless refused; (kind, reason) of the refusal, ('', '') when sent."""
+        with self.lock:
+            kind, reason = self.setpoint_refusal(gauge_pa)
+            if not reason:
+                self.send(Command.SET, round(gauge_pa))
+        return kind, reason
+
+    def send(self, command: Command, *args: int) -> bool:
+        """Send without blocking; a NAK, a lost reply or an unsendable command is reported."""
+        link = self.link
+        if link is None or not link.connected:
+            self.on_event(logging.WARNING, f'{command.value} {args} not sent: '
+                          f'{self.link_text()}')
+            return False
+
+        def on_reply(reply: Reply) -> None:
+            if not isinstance(reply, Ack):
+                what = 'no reply' if reply is None else f'NAK {reply.reason}'
+                self.on_event(logging.ERROR, f'device refused {command.value} {args}: {what}')
+
+        try:
+            link.send_async(command, *args, on_reply=on_reply)
+        except LinkError as error:
+            self.on_event(logging.WARNING, str(error))
+            return False
+        return True
+
+    def send_and_wait(self, command: Command, *args: int) -> Ack | Nak:
+        """Send and wait for the ACK or NAK (LinkError: none, or no link)."""
+        link = self.link
+        if link is None:
+            raise LinkError(f'{command.value} not sent: link closed')
+        return link.send(command, *args)
+
+    def vent(self, why: str) -> bool:
+        link = self.link
+        if link is not None and link.connected and self.send(Command.VENT):
+            self.on_event(logging.INFO, f'vented ({why})')
+            return True
+        return False
+
+    def deactivate(self, why: str = 'deactivated') -> None:
+        """Stop taking commands and vent, with no SET in between."""
+        with self.lock:
+            self.active = False
+            self.vent(why)
+
+    def tare(self) -> tuple[int | None, str]:
+        """Zero the reading at rest: (the ADC count the device took as 0 Pa, '') or (None, why)."""
+        with self.lock:
+            _, reason = self.not_commandable()
+            if reason:
+                return None, f'{reason}: nothing to tare'
+            if self._sweep_running:
+                return None, 'a sweep is running'
+            latest = self.latest
+            if latest is None or latest.setpoint_pa != 0:
+                return None, ('the muscle is not vented: send setpoint 0.0 first and let the '
+                              'pressure settle')
+            try:
+                reply = self.send_and_wait(Command.TARE)   # held: cleanup takes the lock too
+            except LinkError as error:
+                return None, str(error)
+        if not isinstance(reply, Ack) or reply.value is None:
+            return None, (f'device refused TARE: {getattr(reply, "reason", reply)} (the reading '
+                          'is not within 25 kPa of zero or outside the sensor span)')
+        return reply.value, ''

@@ -1,0 +1,100 @@
+"""The SweepRunner's Recorder as calls to a running recorder node (pma_bag record).
+
+The recorder serves `~/start` (pma_interfaces/srv/StartRecording) and `~/stop`
+(StopRecording). The clients are made once, with the node, so they are matched long before
+the first goal (a client made just before its call can lose the answer while the server's
+reply writer is still matching it). Called from the sweep's own thread, never from the
+executor thread that must deliver the answer.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Mapping
+
+from diagnostic_msgs.msg import KeyValue
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.client import Client
+from rclpy.node import Node
+
+from pma_driver.sweep_runner import RecorderError, RecordingSummary
+from pma_interfaces.srv import StartRecording, StopRecording
+
+DEFAULT_NAME = 'recorder'
+
+
+def how_to_start(start_service: str) -> str:
+    """How to start the recorder whose `~/start` is this (fully qualified) service."""
+    namespace, name, _ = start_service.rsplit('/', 2)
+    run = 'ros2 run pma_bag record --idle'
+    launch = 'ros2 launch pma_bringup bringup.launch.py record:=true'
+    remaps = ''
+    if namespace:
+        remaps += f' -r __ns:={namespace}'
+        launch += f' namespace:={namespace.lstrip("/")}'
+    if name != DEFAULT_NAME:
+        remaps += f' -r __node:={name}'
+    if remaps:
+        run += f' --ros-args{remaps}'
+    return f'start one: `{run}`, or the bring-up launch with a recorder (`{launch}`)'
+
+
+class RecorderClient:
+    def __init__(self, node: Node, recorder: str, timeout_s: float):
+        self._node = node
+        self.recorder = recorder
+        self.timeout_s = timeout_s
+        group = MutuallyExclusiveCallbackGroup()   # answers come while the sweep thread waits
+        self.start_service = node.resolve_service_name(f'{recorder}/start')
+        self.stop_service = node.resolve_service_name(f'{recorder}/stop')
+        self._start = node.create_client(StartRecording, self.start_service,
+                                         callback_group=group)
+        self._stop = node.create_client(StopRecording, self.stop_service,
+                                        callback_group=group)
+
+    def destroy(self) -> None:
+        self._node.destroy_client(self._start)
+        self._node.destroy_client(self._stop)
+
+    def start(self, bag_path: str, custom_data: Mapping[str, str]) -> str:
+        request = StartRecording.Request(
+            bag_path=bag_path,
+            custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()])
+        response = self._call(self._start, request)
+        if response is None:
+            # It may have started after all: leave it idle rather than recording forever.
+            self._call(self._stop, StopRecording.Request(), quiet=True)
+            raise RecorderError(f'no answer from {self.start_service} within '
+                                f'{self.timeout_s:g} s')
+        if not response.success:
+            raise RecorderError(f'the recorder refused to start: {response.message}')
+        return response.bag_path
+
+    def stop(self) -> RecordingSummary:
+        response = self._call(self._stop, StopRecording.Request())
+        if response is None:
+            raise RecorderError(f'no answer from {self.stop_service} within '
+                                f'{self.timeout_s:g} s')
+        if not response.success:
+            raise RecorderError(f'the recorder could not finish the bag: {response.message}')
+        return RecordingSummary(response.bag_path, response.message_count,
+                                response.lost_message_count)
+
+    def _call(self, client: Client, request, quiet: bool = False):
+        """The answer, or None when none came within the timeout; RecorderError: no recorder."""
+        deadline = time.monotonic() + self.timeout_s
+        if not client.wait_for_service(timeout_sec=self.timeout_s):
+            if quiet:
+                return None
+            raise RecorderError(
+                f'no recorder answers at {client.service_name} (parameter sweep.recorder = '
+                f'{self.recorder!r}) within {self.timeout_s:g} s: '
+                + how_to_start(self.start_service))
+        done = threading.Event()
+        future = client.call_async(request)
+        future.add_done_callback(lambda _: done.set())
+        if not done.wait(max(0.0, deadline - time.monotonic())):
+            client.remove_pending_request(future)
+            return None
+        return future.result()

@@ -1,0 +1,61 @@
+"""DeviceControl against the simulated device: who may command what, and tare."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from sim_link import SimClock, SimLink
+
+from pma_driver.calibration import PressureCalibration
+from pma_driver.control import DeviceControl
+from pma_driver.sim.device import DeviceConfig, SimDevice
+
+SENSOR = PressureCalibration()
+
+
+@pytest.fixture
+def control():
+    device = SimDevice(DeviceConfig(rate_hz=50, seed=4))
+    control = DeviceControl(400_000.0)
+    link = SimLink(device, on_sample=lambda s: control.note_sample(s, SENSOR.adc_to_pa(s.adc)))
+    control.link, control.active = link, True
+    SimClock(link).sleep(0.2)       # some samples: a latest reading
+    return control
+
+
+@pytest.mark.parametrize(('value', 'kind', 'words'), [
+    (math.nan, 'non-finite', 'setpoint nan is not a finite number'),
+    (math.inf, 'non-finite', 'setpoint inf is not a finite number'),
+    (-1.0, 'negative', 'setpoint -1 Pa is negative'),
+    (400_001.0, 'too high', 'setpoint 400001 Pa is above max_gauge_pressure_pa 400000 Pa'),
+])
+def test_bad_setpoints_never_reach_the_device(control, value, kind, words):
+    assert control.command_setpoint(value) == (kind, words + (' (gauge pressure)'
+                                                              if kind == 'negative' else ''))
+    assert control.link.commands('SET') == []
+
+
+def test_the_ceiling_is_the_lower_of_the_parameter_and_the_device_limit(control):
+    assert control.ceiling_pa() == 400_000
+    control.max_gauge_pressure_pa = 900_000.0
+    assert control.ceiling_pa() == 500_000          # HELLO's limit_pa
+
+
+def test_nothing_is_commanded_while_inactive_or_with_the_link_closed(control):
+    link = control.link
+    control.deactivate()
+    assert control.command_setpoint(100_000.0) == ('inactive', 'driver not active')
+    assert link.commands('VENT') == [()]
+    control.active, control.link = True, None
+    assert control.command_setpoint(100_000.0) == ('link', 'link closed')
+    assert link.commands('SET') == []
+
+
+def test_tare_at_rest_returns_the_count_the_device_took_as_zero(control):
+    adc, reason = control.tare()
+    assert reason == '' and adc == control.link.device.tare_adc
+    control.command_setpoint(150_000.0)
+    SimClock(control.link).sleep(2.0)
+    assert control.tare() == (None, 'the muscle is not vented: send setpoint 0.0 first and let '
+                                    'the pressure settle')

@@ -1,0 +1,325 @@
+"""SweepRunner against the simulated device, in simulated time (no ROS, no threads).
+
+The device is the real SimDevice (firmware rules, valves, sensor noise) behind an in-memory
+link (sim_link.py); the clock is the device's, so a timeout is exact and a minute-long
+sweep runs in well under a second.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+from sim_link import SimClock, SimLink
+
+from pma_driver.calibration import PressureCalibration
+from pma_driver.control import DeviceControl
+from pma_driver.protocol import Command
+from pma_driver.sim.device import DeviceConfig, SimDevice
+from pma_driver.sim.pneumatics import PneumaticParams
+from pma_driver.sweep_runner import (
+    Outcome,
+    RecorderError,
+    RecordingSummary,
+    SweepGoal,
+    SweepProgress,
+    SweepRunner,
+    SweepSettings,
+)
+
+SENSOR = PressureCalibration()
+SETTINGS = SweepSettings(tolerance_pa=10_000.0, step_timeout_s=5.0)
+CALIBRATION = {'calibration.volts_at_zero': 0.5, 'calibration.volts_at_full': 4.5}
+
+
+class ListRecorder:
+    """Keeps what the runner asked of it, with the device time and the commands sent so far."""
+
+    def __init__(self, rig: Rig, fail_start: str = '', fail_stop: str = ''):
+        self.rig = rig
+        self.fail_start = fail_start
+        self.fail_stop = fail_stop
+        self.calls: list[tuple[str, int, int, object]] = []
+
+    def _note(self, call: str, detail) -> None:
+        self.calls.append((call, self.rig.device.t_ms, len(self.rig.link.sent), detail))
+
+    def start(self, bag_path, custom_data):
+        self._note('start', (bag_path, dict(custom_data)))
+        if self.fail_start:
+            raise RecorderError(self.fail_start)
+        return f'/bags/{bag_path or "auto"}'
+
+    def stop(self):
+        self._note('stop', None)
+        if self.fail_stop:
+            raise RecorderError(self.fail_stop)
+        return RecordingSummary(f'/bags/{self.calls[0][3][0] or "auto"}', 1234, 0)
+
+
+class Rig:
+    def __init__(self, **config):
+        self.device = SimDevice(DeviceConfig(rate_hz=50, seed=3, **config))
+        self.events: list[tuple[int, str]] = []
+        self.samples = 0
+        self.control = DeviceControl(500_000.0, on_event=self._event)
+        self.link = SimLink(self.device, on_sample=self._on_sample)
+        self.control.link = self.link
+        self.control.active = True
+        self.clock = SimClock(self.link)
+        self.feedback: list[SweepProgress] = []
+        self.on_feedback = None     # a test's hook into the run
+        self.cancel_at_s = None
+        self.recorder = None
+
+    def _event(self, level: int, message: str) -> None:
+        self.events.append((level, message))
+
+    def _on_sample(self, sample) -> None:
+        self.samples += 1
+        self.control.note_sample(sample, SENSOR.adc_to_pa(sample.adc))
+
+    def _on_feedback(self, progress: SweepProgress) -> None:
+        self.feedback.append(progress)
+        if self.on_feedback is not None:
+            self.on_feedback(progress)
+
+    def run(self, settings: SweepSettings = SETTINGS, **goal):
+        goal = {'max_gauge_pressure_pa': 200_000.0, 'step_pa': 100_000.0, 'hold_s': 1.0,
+                'cycles': 1, **goal}
+        runner = SweepRunner(self.control, recorder=self.recorder,
+                             sample_count=lambda: self.samples, clock=self.clock,
+                             sleep=self.clock.sleep, on_event=self._event)
+        self.runner = runner
+        return runner.run(
+            SweepGoal(**goal), settings, feedback=self._on_feedback, calibration=CALIBRATION,
+            cancel_requested=lambda: self.cancel_at_s is not None
+            and self.clock() >= self.cancel_at_s)
+
+    def sets(self) -> list[int]:
+        return [args[0] for args in self.link.commands('SET')]
+
+    def settle(self, seconds: float = 5.0) -> None:
+        self.clock.sleep(seconds)
+
+    def warnings(self) -> list[str]:
+        return [m for level, m in self.events if level >= logging.WARNING]
+
+
+@pytest.fixture
+def rig():
+    return Rig()
+
+
+def test_a_sweep_steps_through_its_plan_and_holds_each_step(rig):
+    report = rig.run()
+    assert report.outcome is Outcome.SUCCEEDED and report.success, report.message
+    assert report.message.startswith('5 steps done')
+    assert rig.sets() == [0, 100_000, 200_000, 100_000, 0]
+    assert not rig.link.commands('VENT') and not rig.warnings()
+    assert {f.step_index for f in rig.feedback} == set(range(5))
+    progress = [f.progress for f in rig.feedback]
+    assert progress == sorted(progress) and progress[-1] == 1.0
+    # Each hold starts once the step is reached: 5 holds of 1 s, plus the filling and venting.
+    assert 5.0 < rig.clock() < 5.0 + 4.0
+    # 50 Hz throughout, and counted from the first step on.
+    assert report.sample_count == pytest.approx(50 * rig.clock(), abs=2)
+
+
+def test_every_hold_is_at_its_setpoint(rig):
+    held: dict[int, list[float]] = {}
+    rig.on_feedback = lambda f: held.setdefault(f.step_index, []).append(
+        rig.control.latest_gauge_pa - f.gauge_setpoint_pa)
+    rig.run(hold_s=2.0)
+    errors = [e for step in held.values() for e in step[1:]]     # [0]: the step was just sent
+    assert errors and max(abs(e) for e in errors) < SETTINGS.tolerance_pa
+
+
+def test_a_lost_set_reply_is_sent_once_more_and_the_sweep_goes_on(rig):
+    rig.on_feedback = lambda f: f.step_index == 1 and f.progress < 0.3 and setattr(
+        rig.link, 'lost_replies', 1)
+    report = rig.run()
+    assert report.success, report.message
+    assert rig.sets() == [0, 100_000, 200_000, 200_000, 100_000, 0]
+
+
+def test_two_lost_replies_abort_and_vent(rig):
+    def lose_the_next_two(f: SweepProgress) -> None:
+        if f.step_index == 1 and rig.link.lost_replies == 0 and 200_000 not in rig.sets():
+            rig.link.lost_replies = 2
+    rig.on_feedback = lose_the_next_two
+    report = rig.run()
+    assert report.outcome is Outcome.ABORTED and report.vented
+    assert report.message == ('SET 200000 Pa failed: no reply to SET within 0.5 s; vented')
+    assert rig.sets() == [0, 100_000, 200_000, 200_000]
+    assert len(rig.link.commands('VENT')) == 1
+    rig.settle()
+    assert rig.device.setpoint_pa == 0 and rig.device.rig.pressure_pa < 5_000
+
+
+def test_a_refused_step_aborts_and_vents(rig):
+    # Another host lowers the device's ceiling mid-run: the next step is NAKed.
+    rig.on_feedback = lambda f: f.step_index == 1 and rig.link.send(Command.MAX, 150_000)
+    report = rig.run()
+    assert report.outcome is Outcome.ABORTED and report.vented
+    assert report.message == 'device refused SET 200000 Pa: NAK RANGE; vented'
+    rig.settle()
+    assert rig.device.setpoint_pa == 0 and rig.device.rig.pressure_pa < 5_000
+
+
+def test_cancel_vents(rig):
+    rig.cancel_at_s = 2.5
+    report = rig.run(max_gauge_pressure_pa=400_000.0, hold_s=5.0)
+    assert report.outcome is Outcome.CANCELED and report.message == 'canceled; vented'
+    assert rig.clock() == pytest.approx(2.5, abs=0.05)
+    assert rig.link.commands('VENT')
+    rig.settle()
+    assert rig.device.setpoint_pa == 0 and rig.device.rig.pressure_pa < 5_000
+
+
+def test_a_deactivation_vents_and_no_set_follows_it(rig):
+    rig.clock.on_tick = lambda t: t >= 2.5 and rig.control.active and rig.control.deactivate()
+    report = rig.run(max_gauge_pressure_pa=400_000.0)
+    assert report.outcome is Outcome.ABORTED
+    assert report.message.startswith('driver deactivated; vented')
+    first_vent = next(i for i, (_, name, _) in enumerate(rig.link.sent) if name == 'VENT')
+    assert all(name != 'SET' for _, name, _ in rig.link.sent[first_vent:])
+    rig.settle()
+    assert rig.device.setpoint_pa == 0
+
+
+def test_a_ceiling_lowered_mid_sweep_is_never_exceeded(rig):
+    def lower(f: SweepProgress) -> None:
+        if f.step_index == 1:
+            rig.control.max_gauge_pressure_pa = 150_000.0
+    rig.on_feedback = lower
+    report = rig.run(max_gauge_pressure_pa=400_000.0)
+    assert report.outcome is Outcome.ABORTED and report.vented
+    assert 'step 200000 Pa is above max_gauge_pressure_pa 150000 Pa' in report.message
+    assert max(rig.sets()) == 100_000
+
+
+def test_a_step_the_supply_cannot_reach_times_out_and_the_hold_starts_anyway():
+    rig = Rig(pneumatics=PneumaticParams(supply_pa=250_000.0))
+    settings = SweepSettings(tolerance_pa=10_000.0, step_timeout_s=2.0)
+    starts: dict[int, float] = {}
+    rig.on_feedback = lambda f: starts.setdefault(f.step_index, rig.clock())
+    report = rig.run(settings, max_gauge_pressure_pa=400_000.0, step_pa=200_000.0)
+    assert report.success, report.message
+    [warning] = rig.warnings()
+    assert warning.startswith('sweep step 2: 400000 Pa not reached within 2 s (at 2')
+    # Step 3 starts after the timeout (2 s), the 1 s hold and one poll.
+    assert starts[3] - starts[2] == pytest.approx(3.0, abs=0.05)
+
+
+@pytest.mark.parametrize(('goal', 'words'), [
+    ({'step_pa': 0.01}, 'goal refused: the plan has 40000001 steps'),
+    ({'max_gauge_pressure_pa': 600_000.0}, 'goal refused: max_gauge_pressure_pa 600000 Pa is '
+                                           'above the driver ceiling 500000 Pa'),
+    ({'cycles': 0}, 'goal refused: cycles must be >= 1'),
+])
+def test_a_bad_goal_aborts_at_once_with_the_reason_and_commands_nothing(rig, goal, words):
+    rig.link.send(Command.SET, 50_000)          # a manual setpoint: a refused goal leaves it
+    sent = len(rig.link.sent)
+    report = rig.run(**goal)
+    assert report.outcome is Outcome.ABORTED and not report.vented
+    assert report.message.startswith(words), report.message
+    assert rig.link.sent[sent:] == [] and rig.clock() == 0.0
+    assert rig.device.setpoint_pa == 50_000
+
+
+def test_an_inactive_driver_commands_nothing(rig):
+    rig.control.active = False
+    report = rig.run()
+    assert report.outcome is Outcome.ABORTED
+    assert report.message == 'not started: driver not active'
+    assert rig.link.sent == []
+
+
+def test_a_second_sweep_while_one_runs_is_aborted_at_once(rig):
+    second = []
+
+    def start_another(f: SweepProgress) -> None:
+        if f.step_index == 1 and not second:
+            sent = len(rig.link.sent)
+            second.append(rig.runner.run(SweepGoal(100_000.0, 50_000.0, 0.0, 1), SETTINGS))
+            second.append(rig.link.sent[sent:])
+    rig.on_feedback = start_another
+    report = rig.run()
+    assert report.success
+    assert second[0].outcome is Outcome.ABORTED and 'another sweep is running' in \
+        second[0].message
+    assert second[1] == []                        # the running sweep was not disturbed
+    assert not rig.control.sweep_running          # released at the end
+
+
+def test_setpoints_are_refused_while_a_sweep_runs(rig):
+    refusals = []
+    rig.on_feedback = lambda f: refusals.append(rig.control.command_setpoint(300_000.0))
+    rig.run()
+    assert refusals and set(refusals) == {('sweep', 'a sweep is running')}
+    assert 300_000 not in rig.sets()
+    assert rig.control.command_setpoint(300_000.0) == ('', '')
+
+
+# -- recording -----------------------------------------------------------------------------
+
+
+def test_a_recording_sweep_starts_the_bag_before_the_first_step_and_stops_it_after_the_last(
+        rig):
+    rig.recorder = ListRecorder(rig)
+    report = rig.run(record=True, bag_path='major', note='new muscle, 20 degC',
+                     reversal_pressures_pa=[])
+    assert report.success, report.message
+    assert report.bag_path == '/bags/major'
+    assert report.message == '5 steps done; bag /bags/major: 1234 messages, 0 lost'
+    (start, _, sent_before, (bag, data)), (stop, stopped_ms, sent_by_stop, _) = \
+        rig.recorder.calls
+    assert (start, stop, bag) == ('start', 'stop', 'major')
+    assert sent_before == 0 and sent_by_stop == len(rig.link.sent)
+    assert stopped_ms == rig.device.t_ms
+    assert data['note'] == 'new muscle, 20 degC'
+    assert json.loads(data['sweep.setpoints_pa']) == [0, 100_000, 200_000, 100_000, 0]
+    assert (data['sweep.step_pa'], data['sweep.hold_s'], data['sweep.cycles']) == (
+        '100000.0', '1.0', '1')
+    assert (data['device.firmware'], data['device.firmware_version'],
+            data['device.protocol_version']) == ('fake_arduino', '0.1.0', '1')
+    assert data['calibration.volts_at_zero'] == '0.5'
+
+
+def test_without_a_recorder_the_goal_aborts_at_once_and_commands_nothing(rig):
+    rig.recorder = ListRecorder(rig, fail_start='no recorder at /recorder/start: start one')
+    report = rig.run(record=True)
+    assert report.outcome is Outcome.ABORTED and not report.vented
+    assert report.message == 'not started: no recorder at /recorder/start: start one'
+    assert rig.link.sent == [] and [c[0] for c in rig.recorder.calls] == ['start']
+
+
+def test_an_aborted_recording_sweep_vents_before_the_bag_is_closed(rig):
+    rig.recorder = ListRecorder(rig)
+    rig.cancel_at_s = 2.0
+    report = rig.run(record=True)
+    assert report.outcome is Outcome.CANCELED
+    assert report.message == 'canceled; vented; bag /bags/auto: 1234 messages, 0 lost'
+    _, _, sent_by_stop, _ = rig.recorder.calls[1]
+    assert rig.link.sent[sent_by_stop - 1][1] == 'VENT'
+
+
+def test_a_bag_that_could_not_be_finished_fails_the_goal(rig):
+    rig.recorder = ListRecorder(rig, fail_stop='no answer from /recorder/stop within 5 s')
+    report = rig.run(record=True, bag_path='b')
+    assert report.outcome is Outcome.ABORTED
+    assert report.message == ('5 steps done; the bag /bags/b may be incomplete: no answer from '
+                              '/recorder/stop within 5 s')
+
+
+def test_a_failing_recorder_is_an_abort_with_the_error_never_a_raise(rig):
+    class BrokenRecorder(ListRecorder):
+        def start(self, bag_path, custom_data):
+            raise ValueError('not enough values to unpack')
+    rig.recorder = BrokenRecorder(rig)
+    report = rig.run(record=True)
+    assert report.outcome is Outcome.ABORTED
+    assert report.message == "internal error: ValueError('not enough values to unpack')"
+    assert rig.link.sent == [] and not rig.control.sweep_running
