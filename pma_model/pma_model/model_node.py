@@ -110,10 +110,13 @@ class ModelNode(Node):
         self.create_service(PressureForLength, 'pressure_for_length', self._on_pressure_for_length)
         self.create_timer(1.0, self._publish_diagnostics)
 
-        self._params_file_mtime: float | None = None
+        # What the params file looked like when last read (inode, size, mtime), or the
+        # reason it could not be stat'ed; and why its last version was refused (None: loaded).
+        self._params_file_seen: tuple | str | None = None
+        self._params_file_problem: str | None = None
         period = self.get_parameter('params_file_check_period_s').value
         self.create_timer(period, self._check_params_file)
-        self._check_params_file()
+        self._check_params_file(at_start=True)
         self._publish_params()
         self.get_logger().info(
             f'model_node ready: {self._params.branch_form} branches, {self._params.memory} '
@@ -127,12 +130,19 @@ class ModelNode(Node):
         return values
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        """Validate the new set as a whole; no side effects here (rclpy's contract)."""
+        """Validate the new set as a whole; no side effects here (rclpy's contract).
+
+        A new params_file is read and validated here too (on top of the rest of the set), so
+        a missing, unreadable or invalid file is refused to the caller, not only in the log.
+        """
         changes = {p.name: p.value for p in parameters if p.name in self._model_parameter_names}
-        if not changes:
+        params_file = next((p.value for p in parameters if p.name == 'params_file'), '')
+        if not changes and not params_file:
             return SetParametersResult(successful=True)
         try:
-            ModelParams.from_ros_parameters(self._model_parameter_values(changes))
+            params = ModelParams.from_ros_parameters(self._model_parameter_values(changes))
+            if params_file:
+                ModelParams.load_yaml(params_file, base=params)
         except ParamsError as error:
             reason = f'rejected, the model is unchanged: {error}'
             self.get_logger().warning(reason)
@@ -140,11 +150,13 @@ class ModelNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        if any(p.name in self._model_parameter_names for p in parameters):
+            self._apply_model_parameters()
         if any(p.name == 'params_file' for p in parameters):
-            self._params_file_mtime = None
+            self._params_file_seen = self._params_file_problem = None
             self._check_params_file()
-        if not any(p.name in self._model_parameter_names for p in parameters):
-            return
+
+    def _apply_model_parameters(self) -> None:
         params = ModelParams.from_ros_parameters(self._model_parameter_values())
         with self._lock:
             model = params.build_model()
@@ -159,33 +171,50 @@ class ModelNode(Node):
             f'{"on" if params.adaptation.enabled else "off"}')
         self._publish_params()
 
-    def _check_params_file(self) -> None:
-        """Load the params file at start and whenever it changes (hot reload after a refit)."""
+    def _check_params_file(self, at_start: bool = False) -> None:
+        """Load the params file at start and whenever it changes (hot reload after a refit).
+
+        Polled by stat (which never blocks); a version that cannot be read or does not
+        validate is refused once, with a log line and the /diagnostics message, and the
+        model in use stays until a good version appears.
+        """
         path = self.get_parameter('params_file').value
         if not path:
+            self._params_file_problem = None
             return
         try:
-            mtime = os.stat(path).st_mtime
+            info = os.stat(path)
+            seen: tuple | str = (info.st_ino, info.st_size, info.st_mtime_ns)
         except OSError as error:
-            if self._params_file_mtime != -1.0:
-                self.get_logger().error(f'params file {path}: {error.strerror}; keeping the '
-                                        'current model and checking again')
-            self._params_file_mtime = -1.0
+            seen = f'cannot read params file {path}: {error.strerror}'
+        if seen == self._params_file_seen:
             return
-        if mtime == self._params_file_mtime:
+        self._params_file_seen = seen
+        if isinstance(seen, str):
+            self._refuse_params_file(seen, at_start)
             return
-        self._params_file_mtime = mtime
         try:
             loaded = ModelParams.load_yaml(path, base=self._params)
         except ParamsError as error:
-            self.get_logger().error(f'params file not loaded, the model is unchanged: {error}')
+            self._refuse_params_file(str(error), at_start)
             return
         result = self.set_parameters_atomically([
             Parameter(name, value=value) for name, value in loaded.to_ros_parameters().items()])
-        if result.successful:
-            self.get_logger().info(f'loaded model parameters from {path}')
+        if not result.successful:
+            self._refuse_params_file(result.reason, at_start)
+            return
+        self._params_file_problem = None
+        self.get_logger().info(f'loaded model parameters from {path}')
+
+    def _refuse_params_file(self, reason: str, at_start: bool) -> None:
+        self._params_file_problem = reason
+        if at_start:
+            self.get_logger().error(
+                f'params file not loaded, running on the start-up parameters (the defaults '
+                f'and any --ros-args overrides): {reason}; checking the file again')
         else:
-            self.get_logger().error(f'params file {path} rejected: {result.reason}')
+            self.get_logger().error(f'params file not loaded, the model is unchanged: {reason}'
+                                    '; checking the file again')
 
     def _publish_params(self) -> None:
         params = self._params
@@ -302,10 +331,17 @@ class ModelNode(Node):
             status.message = f'{stats["nan_pressure"]} samples with non-finite pressure skipped'
         else:
             status.level, status.message = DiagnosticStatus.OK, 'predicting'
+        problem = self._params_file_problem
+        if problem is not None:
+            status.level = DiagnosticStatus.WARN
+            status.message = f'params file not loaded, model unchanged: {problem}; ' \
+                             f'{status.message}'
         values = {
             'samples': stats['samples'], 'samples_nan_pressure': stats['nan_pressure'],
             'samples_nan_length': stats['nan_length'], 'rms_residual_m': f'{rms:.6f}',
             'branch_form': self._params.branch_form, 'memory': self._params.memory,
+            'params_file': self.get_parameter('params_file').value or '(none)',
+            'params_file_loaded': 'no' if problem is not None else 'yes',
         }
         if adapter is not None:
             values.update(adaptation_offset_m=f'{adapter.offset_m:.6f}',
