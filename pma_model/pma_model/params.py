@@ -276,9 +276,14 @@ def read_params_text(path, max_bytes: int = MAX_PARAMS_FILE_BYTES) -> str:
     try:
         return data.decode('utf-8')
     except UnicodeDecodeError as error:
-        line = data.count(b'\n', 0, error.start) + 1
-        raise ParamsError(f'params file {path} is not UTF-8 text: byte 0x{data[error.start]:02x} '
-                          f'at offset {error.start} (line {line})') from None
+        raise ParamsError(f'params file {path} is not UTF-8 text: '
+                          f'{utf8_error_position(data, error)}') from None
+
+
+def utf8_error_position(data: bytes, error: UnicodeDecodeError) -> str:
+    """Where `data` stops being UTF-8, for a person: 'byte 0xe9 at offset 5 (line 1)'."""
+    line = data.count(b'\n', 0, error.start) + 1
+    return f'byte 0x{data[error.start]:02x} at offset {error.start} (line {line})'
 
 
 def _file_kind(mode: int) -> str:
