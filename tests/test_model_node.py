@@ -330,3 +330,64 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
         probe.node.destroy_client(client)
         probe.node.destroy_client(inverse)
         probe.node.destroy_subscription(sub)
+
+
+@pytest.mark.timeout(180)
+def test_a_burst_of_200_requests_from_4_clients_is_answered_whole(procs, tmp_path):
+    # With the default service queue (10 deep) only 11-20 of 200 were answered, the rest
+    # lost without an error. Answered, not timed: speed is the bench's business.
+    import json
+
+    procs.ros2_run('pma_model', 'model_node').wait_for_line('model_node ready')
+    clients = [procs.python(HELPERS / 'service_burst.py', '--count', '50', '--go-dir',
+                            str(tmp_path), name=f'burst{i}') for i in range(4)]
+    for client in clients:
+        client.wait_for_line('ready', timeout=40)
+    go = tmp_path / '.go-0'
+    go.write_text('pressure_for_length')
+    go.rename(tmp_path / 'go-0')            # all four see it at once, whole
+    answered = 0
+    for client in clients:
+        result = json.loads(client.wait_for_line('"round": 0', timeout=60))
+        assert result['sent'] == 50
+        answered += result['answered']
+    assert answered == 200, f'{200 - answered} of 200 requests were not answered'
+    assert procs.procs[0].alive()
+    (tmp_path / 'stop').touch()
+
+
+@pytest.mark.timeout(120)
+def test_a_half_second_stall_at_1khz_loses_no_state_and_no_prediction(procs, probe):
+    # A loaded machine stalls model_node now and then (up to 0.5 s seen in the 1 kHz soak);
+    # the 200-deep state queue then lost 0.4-5 % of the samples. SIGSTOP makes the stall.
+    import signal
+    import time
+
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from pma_interfaces.msg import PmaPrediction
+
+    count = 3000
+    model = procs.ros2_run('pma_model', 'model_node')
+    model.wait_for_line('model_node ready')
+    latest, diag_sub = _model_diagnostics(probe)
+    predictions, sub = _collect(probe, PmaPrediction, 'pma/prediction',
+                                QoSProfile(depth=count, reliability=ReliabilityPolicy.RELIABLE))
+    try:
+        wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,
+                   'model_node publisher')
+        procs.python(HELPERS / 'bag_state_publisher.py', '--topic', 'pma/state', '--rate',
+                     '1000', '--count', str(count), '--wait-subscribers', '1')
+        wait_until(lambda: len(predictions) >= 300, 30, 'the stream under way')
+        model.signal(signal.SIGSTOP)
+        time.sleep(0.5)
+        model.signal(signal.SIGCONT)
+        wait_until(lambda: len(predictions) >= count, 30, f'{count} predictions')
+        wait_until(lambda: latest() is not None and latest()[2]['samples'] == str(count), 10,
+                   'model_node diagnostics counting every state')
+        assert latest()[2]['states_lost'] == '0'
+        assert model.alive()
+    finally:
+        model.signal(signal.SIGCONT)
+        probe.node.destroy_subscription(sub)
+        probe.node.destroy_subscription(diag_sub)

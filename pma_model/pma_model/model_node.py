@@ -17,9 +17,16 @@ from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParam
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 
 from pma_common.node import ros_context, spin_until_stopped
+from pma_common.sequence import SequenceTracker
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
@@ -36,7 +43,20 @@ _DESCRIPTIONS = {
                    'reversal counts [Pa]',
     'max_gauge_pressure_pa': 'highest gauge pressure the inverse may answer with [Pa]',
 }
-STATE_QUEUE_DEPTH = 200   # 0.2 s of samples at 1 kHz
+# Queues sized in time at the driver's top rate (1 kHz), so that a stall of the node or of a
+# subscriber loses nothing while it lasts less than this. In a 1 kHz soak on a loaded 2-core
+# machine (bench_model_node.py) the executor stalled for up to 0.5 s: the old 200 lost 0.3-5 %
+# of the states, and a reliable writer keeping only 10 predictions could not resend the
+# ones the recorder missed while it stalled (~0.4 %).
+STATE_QUEUE_DEPTH = 2000        # 2 s
+PREDICTION_QUEUE_DEPTH = 1000   # 1 s
+# pressure_for_length queues a burst instead of dropping it: with the services' default
+# (keep last 10), of 200 requests in flight from 4 clients only 11-41 were answered, the rest
+# lost without an error. Keep-last 1000 rather than keep-all: a client that stops reading its
+# responses can never make the reply block the node's only executor thread. A client that
+# bursts needs a queue as deep on its side (its request writer and response reader).
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                         reliability=ReliabilityPolicy.RELIABLE)
 
 _RANGES = {
     'deadband_pa': (0.0, 250_000.0),
@@ -91,6 +111,9 @@ class ModelNode(Node):
         self._latest_state: PmaState | None = None
         self._stats = {'samples': 0, 'nan_pressure': 0, 'nan_length': 0, 'sum_sq_residual': 0.0,
                        'residuals': 0}
+        # States that never reached this node, by the device's PmaState.seq: each is a
+        # prediction that will never be made (the driver's own losses included).
+        self._state_sequence = SequenceTracker()
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -98,16 +121,19 @@ class ModelNode(Node):
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE)
         self._params_pub = self.create_publisher(ModelParamsMsg, 'pma/model_params', latched)
-        self._prediction_pub = self.create_publisher(PmaPrediction, 'pma/prediction', 10)
+        self._prediction_pub = self.create_publisher(PmaPrediction, 'pma/prediction',
+                                                     PREDICTION_QUEUE_DEPTH)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
         # Sensor-data QoS (best effort, REP-2003), but a deeper queue than its 5: at 1 kHz a
         # Python pause of 5 ms would otherwise overwrite samples before they are predicted.
+        # Reliable would not help: a keep-last reader overwrites what it has not taken either.
         state_qos = QoSProfile(depth=STATE_QUEUE_DEPTH,
                                reliability=qos_profile_sensor_data.reliability,
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
         self.create_subscription(PmaState, 'pma/state', self._on_state, state_qos)
-        self.create_service(PressureForLength, 'pressure_for_length', self._on_pressure_for_length)
+        self.create_service(PressureForLength, 'pressure_for_length',
+                            self._on_pressure_for_length, qos_profile=SERVICE_QOS)
         self.create_timer(1.0, self._publish_diagnostics)
 
         # What the params file looked like when last read (inode, size, mtime), or the
@@ -235,6 +261,7 @@ class ModelNode(Node):
         measured = state.length_m
         with self._lock:
             self._stats['samples'] += 1
+            self._state_sequence.add(state.seq)
             if not math.isfinite(pressure):
                 # Still one prediction per sample (NaN), so the two streams line up.
                 self._stats['nan_pressure'] += 1
@@ -318,6 +345,7 @@ class ModelNode(Node):
     def _publish_diagnostics(self) -> None:
         with self._lock:
             stats = dict(self._stats)
+            sequence = self._state_sequence.stats()
             adapter = self._adapter if self._params.adaptation.enabled else None
         status = DiagnosticStatus()
         status.name = f'{self.get_fully_qualified_name()}: hysteresis model'
@@ -339,6 +367,7 @@ class ModelNode(Node):
         values = {
             'samples': stats['samples'], 'samples_nan_pressure': stats['nan_pressure'],
             'samples_nan_length': stats['nan_length'], 'rms_residual_m': f'{rms:.6f}',
+            'states_lost': sequence.lost, 'state_gaps': sequence.gaps,
             'branch_form': self._params.branch_form, 'memory': self._params.memory,
             'params_file': self.get_parameter('params_file').value or '(none)',
             'params_file_loaded': 'no' if problem is not None else 'yes',
