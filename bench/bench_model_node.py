@@ -1,11 +1,15 @@
-"""model_node service round trip, stream latency, drops at 1 kHz and CPU.
+"""model_node service round trip and burst, stream latency, drops at 1 kHz, CPU, and a soak.
 
     . tools/env.sh && python bench/bench_model_node.py [--seconds 10] [--calls 500]
+        [--burst-rounds 5] [--soak-s 120]
 
 * service: sequential calls from this process to model_node's `pressure_for_length`
   (length_m=0.27, branch=1), interleaved with calls to a trivial std_srvs/Trigger server
-  (a minimal rclpy node process started here: the baseline); p50/p99 of both and the ratios
-  model / trigger (target <= 1.5).
+  (a minimal rclpy node process started here, with the same service QoS: the baseline);
+  p50/p99 of both and the ratios model / trigger (target <= 1.5).
+* burst: 4 client processes (tests/helpers/service_burst.py) each send 50 requests at once,
+  200 in flight; every request must be answered (target: all). Rounds alternate between
+  model_node and the Trigger server; p50/p99 from send to answer, and the ratio.
 * stream latency: a publisher process sends PmaState on pma/state at 100 Hz (header stamped
   with its ROS clock, monotonic send time kept per stamp); the PmaPrediction with the same
   header stamp is received here; p50/p99 of publish -> prediction received (target p99 < 5 ms).
@@ -13,12 +17,22 @@
   model_node's own /diagnostics 'samples' count into the best-effort state subscription and
   the reliable prediction topic.
 * model_node CPU (utime + stime from /proc) at 100 Hz and 1 kHz, % of one core.
+* soak (--soak-s, 0 skips it): the real chain at 1 kHz for that long, as on the rig:
+  fake_arduino --rate 1000 -> driver_node (sample_rate_hz 1000) -> a fresh model_node, with
+  `ros2 run pma_bag record` on its default topics. Losses per component: device -> driver
+  (driver's 'lost samples'), states published by driver_node that model_node never received
+  (its 'samples', and by PmaState.seq its 'states_lost'), predictions model_node published
+  that the recorder never received (bag), states the recorder never received (by seq, bag),
+  and the states in the bag without their prediction in the bag; CPU of each process.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
+import os
+import re
 import shutil
 import signal
 import subprocess
@@ -38,11 +52,20 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
+from pma_common.sequence import SequenceTracker
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
+from pma_model.model_node import PREDICTION_QUEUE_DEPTH, SERVICE_QOS
 
 ROOT = Path(__file__).resolve().parents[1]
-MODEL_NODE = ROOT / 'ros2_ws' / 'install' / 'pma_model' / 'lib' / 'pma_model' / 'model_node'
+INSTALL = ROOT / 'ros2_ws' / 'install'
+MODEL_NODE = INSTALL / 'pma_model' / 'lib' / 'pma_model' / 'model_node'
+FAKE_ARDUINO = INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'fake_arduino'
+DRIVER_NODE = INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'driver_node'
+RECORDER = INSTALL / 'pma_bag' / 'lib' / 'pma_bag' / 'record'
+BURST_CLIENT = ROOT / 'tests' / 'helpers' / 'service_burst.py'
+BURST_CLIENTS = 4
+BURST_PER_CLIENT = 50
 TRIGGER_SERVICE = 'bench_trigger'
 WARMUP_CALLS = 50
 SETTLE_S = 1.0        # publishing before the CPU / latency window opens
@@ -60,7 +83,7 @@ def trigger_server_main() -> None:
         response.success = True
         return response
 
-    node.create_service(Trigger, TRIGGER_SERVICE, on_trigger)
+    node.create_service(Trigger, TRIGGER_SERVICE, on_trigger, qos_profile=SERVICE_QOS)
     print('ready', flush=True)
     try:
         rclpy.spin(node)
@@ -131,6 +154,7 @@ class Bench:
         self.spinner: threading.Thread | None = None
         self.predictions: list[tuple[int, int]] = []     # (header stamp ns, receive mono ns)
         self.diagnostics: list[tuple[int, int]] = []     # (receive mono ns, samples)
+        self.node_values: dict[str, dict[str, str]] = {}  # node name -> last diagnostics
         self.pressure_answer = math.nan
 
     def start(self, argv: list[str], name: str, pipe: bool = False) -> subprocess.Popen:
@@ -157,10 +181,13 @@ class Bench:
 
     # service round trip ---------------------------------------------------------------
 
-    def services(self, calls: int) -> dict[str, np.ndarray]:
+    def start_trigger_server(self) -> subprocess.Popen:
         trigger = self.start([sys.executable, __file__, '--trigger-server'], 'trigger_server',
                              pipe=True)
         read_line(trigger, 30, 'trigger server start')
+        return trigger
+
+    def services(self, calls: int) -> dict[str, np.ndarray]:
         node = rclpy.create_node('bench_model_node_client')
         executor = SingleThreadedExecutor()
         executor.add_node(node)
@@ -209,8 +236,143 @@ class Bench:
         executor.remove_node(node)
         executor.shutdown()
         node.destroy_node()
-        stop(trigger)
         return {name: np.array(t) / 1e6 for name, t in times.items()}
+
+    # burst ---------------------------------------------------------------------------
+
+    def burst(self, rounds: int) -> dict[str, dict]:
+        """Bursts of BURST_CLIENTS x BURST_PER_CLIENT requests, model and trigger in turn."""
+        go_dir = self.work / 'burst'
+        go_dir.mkdir()
+        clients = [self.start([sys.executable, str(BURST_CLIENT), '--count',
+                               str(BURST_PER_CLIENT), '--go-dir', str(go_dir), '--services',
+                               f'pressure_for_length,{TRIGGER_SERVICE}'], f'burst_client{i}',
+                              pipe=True) for i in range(BURST_CLIENTS)]
+        for i, client in enumerate(clients):
+            line = read_line(client, 60, 'burst client start')
+            if line != 'ready':
+                raise RuntimeError(f'burst client: {line} {self.log_tail(f"burst_client{i}")}')
+        results = {name: {'sent': 0, 'answered': 0, 'latency_ms': []}
+                   for name in ('model', 'trigger')}
+        services = {'model': 'pressure_for_length', 'trigger': TRIGGER_SERVICE}
+        order = ['model', 'trigger']
+        for round_ in range(2 * rounds):
+            name = order[round_ % 2] if (round_ // 2) % 2 == 0 else order[1 - round_ % 2]
+            go = go_dir / f'.go-{round_}'
+            go.write_text(services[name])
+            go.rename(go_dir / f'go-{round_}')      # every client sees it at once, whole
+            for client in clients:
+                result = json.loads(read_line(client, 90, f'burst round {round_}'))
+                results[name]['sent'] += result['sent']
+                results[name]['answered'] += result['answered']
+                results[name]['latency_ms'] += result['latency_ms']
+        (go_dir / 'stop').touch()
+        for client in clients:
+            stop(client)
+        return results
+
+    # soak ------------------------------------------------------------------------------
+
+    def latest_values(self, node_name: str) -> dict[str, str]:
+        """The last /diagnostics values of a node (its status name starts with /node_name:)."""
+        return dict(self.node_values.get(node_name, {}))
+
+    def settled(self, node_name: str, keys: tuple[str, ...], timeout: float) -> dict[str, str]:
+        """A node's diagnostics values once two reports in a row agree on `keys`."""
+        deadline = time.monotonic() + timeout
+        previous = None
+        while time.monotonic() < deadline:
+            time.sleep(1.1)
+            values = self.latest_values(node_name)
+            current = tuple(values.get(key) for key in keys)
+            if None not in current and current == previous:
+                return values
+            previous = current
+        raise TimeoutError(f'{node_name} /diagnostics {keys} did not settle in {timeout:.0f} s')
+
+    def soak(self, seconds: float) -> Soak:
+        work = self.work / 'soak'
+        work.mkdir()
+        port, bag = work / 'ttyPMA', work / 'bag'
+        fake = self.start([str(FAKE_ARDUINO), '--link', str(port), '--rate', '1000'],
+                          'soak_fake_arduino')
+        deadline = time.monotonic() + 30
+        while not port.exists():
+            if time.monotonic() > deadline or fake.poll() is not None:
+                raise RuntimeError(f'fake_arduino: {self.log_tail("soak_fake_arduino")}')
+            time.sleep(0.05)
+        model = self.start([str(MODEL_NODE), '--ros-args', '--log-level', 'warn'],
+                           'soak_model_node')
+        self.samples_settled(time.monotonic_ns(), 30)     # model_node is up and reporting
+        recorder = self.start([str(RECORDER), '-o', str(bag)], 'soak_recorder')
+        # Subscribed to model_node's three topics (up already) before the first state exists.
+        self.wait_for(lambda: any(int(n) >= 3 for n in re.findall(
+            r'recording (\d+) topics', self.log_tail('soak_recorder'))), 30, 'recorder start')
+        driver = self.start([str(DRIVER_NODE), '--ros-args', '-p', f'port:={port}',
+                             '-p', 'sample_rate_hz:=1000.0', '--log-level', 'warn'],
+                            'soak_driver_node')
+        self.wait_for(lambda: int(self.latest_values('driver_node').get(
+            'samples published', 0)) > 1000, 30, 'driver_node publishing')
+        procs = {'fake_arduino': fake, 'driver_node': driver, 'model_node': model,
+                 'recorder': recorder}
+        cpu0 = {name: cpu_seconds(proc.pid) for name, proc in procs.items()}
+        start = time.monotonic()
+        time.sleep(seconds)
+        elapsed = time.monotonic() - start
+        cpu = {name: (cpu_seconds(proc.pid) - cpu0[name]) / elapsed * 100.0
+               for name, proc in procs.items()}
+        load = os.getloadavg()[0]
+        # The stream ends with driver_node deactivated, its publisher still there: a
+        # backlog in model_node's queue is then still predicted (stopping the device or the
+        # driver instead would end the soak on a loss of its own).
+        self.deactivate('driver_node')
+        driver_values = self.settled('driver_node', ('samples published',), 30)
+        model_values = self.settled('model_node', ('samples', 'states_lost'), 30)
+        stop(recorder)                               # closes the bag
+        for proc in (driver, fake, model):
+            stop(proc)
+        states, predictions = read_soak_bag(bag)
+        tracker = SequenceTracker()
+        for seq in states.values():
+            tracker.add(seq)
+        return Soak(seconds=elapsed, published=int(driver_values['samples published']),
+                    device_lost=int(driver_values['lost samples']),
+                    model_samples=int(model_values['samples']),
+                    model_states_lost=int(model_values['states_lost']),
+                    model_state_gaps=int(model_values['state_gaps']),
+                    bag_states=len(states), bag_states_lost=tracker.stats().lost,
+                    bag_predictions=len(predictions),
+                    bag_states_without_prediction=len(set(states) - predictions),
+                    cpu_percent=cpu, load=load)
+
+    def deactivate(self, lifecycle_node: str) -> None:
+        from lifecycle_msgs.msg import Transition
+        from lifecycle_msgs.srv import ChangeState
+
+        node = rclpy.create_node('bench_model_node_lifecycle')
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            client = node.create_client(ChangeState, f'{lifecycle_node}/change_state')
+            if not client.wait_for_service(timeout_sec=10):
+                raise TimeoutError(f'{lifecycle_node}/change_state not available')
+            future = client.call_async(ChangeState.Request(
+                transition=Transition(id=Transition.TRANSITION_DEACTIVATE)))
+            deadline = time.monotonic() + 10
+            while not future.done() and time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.1)
+            if not future.done() or not future.result().success:
+                raise RuntimeError(f'{lifecycle_node} did not deactivate')
+        finally:
+            executor.shutdown()
+            node.destroy_node()
+
+    def wait_for(self, predicate, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'{what}: not within {timeout:.0f} s')
+            time.sleep(0.1)
 
     # stream --------------------------------------------------------------------------
 
@@ -225,7 +387,9 @@ class Bench:
         def on_diagnostics(msg: DiagnosticArray) -> None:
             now = time.monotonic_ns()
             for status in msg.status:
-                if 'model_node' not in status.name:
+                node_name = status.name.split(':', 1)[0].rsplit('/', 1)[-1]
+                self.node_values[node_name] = {kv.key: kv.value for kv in status.values}
+                if node_name != 'model_node':
                     continue
                 for kv in status.values:
                     if kv.key == 'samples':
@@ -296,6 +460,45 @@ class Bench:
                          window_published=int(np.sum(in_window)))
 
 
+def read_soak_bag(bag: Path) -> tuple[dict[int, int], set[int]]:
+    """({state header stamp ns: seq}, {prediction header stamp ns}) of a recorded bag."""
+    from rclpy.serialization import deserialize_message
+
+    from pma_bag import BagReader
+
+    states: dict[int, int] = {}
+    predictions: set[int] = set()
+    with BagReader(bag) as reader:
+        topics = {name: info.type_name for name, info in reader.topics.items()}
+        wanted = [name for name, kind in topics.items()
+                  if kind in ('pma_interfaces/msg/PmaState', 'pma_interfaces/msg/PmaPrediction')]
+        for message in reader.messages(wanted):
+            if topics[message.topic] == 'pma_interfaces/msg/PmaState':
+                state = deserialize_message(message.data, PmaState)
+                stamp = state.header.stamp
+                states[stamp.sec * 1_000_000_000 + stamp.nanosec] = state.seq
+            else:
+                stamp = deserialize_message(message.data, PmaPrediction).header.stamp
+                predictions.add(stamp.sec * 1_000_000_000 + stamp.nanosec)
+    return states, predictions
+
+
+@dataclass
+class Soak:
+    seconds: float
+    published: int              # PmaState published by driver_node ('samples published')
+    device_lost: int            # device -> driver_node, by the device's seq
+    model_samples: int          # states model_node received
+    model_states_lost: int      # by seq, as model_node counted (device losses included)
+    model_state_gaps: int
+    bag_states: int             # distinct states in the bag
+    bag_states_lost: int        # by seq, inside the recorded span (device losses included)
+    bag_predictions: int
+    bag_states_without_prediction: int
+    cpu_percent: dict[str, float]
+    load: float
+
+
 def longest_run(mask: np.ndarray) -> int:
     """Longest stretch of consecutive True values."""
     best = current = 0
@@ -327,7 +530,10 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
         model = bench.start([str(MODEL_NODE), '--ros-args', '--log-level', 'warn'], 'model_node')
+        trigger = bench.start_trigger_server()
         times = bench.services(args.calls)
+        bursts = bench.burst(args.burst_rounds) if args.burst_rounds else None
+        stop(trigger)
         p50 = {name: float(np.percentile(t, 50)) for name, t in times.items()}
         p99 = {name: float(np.percentile(t, 99)) for name, t in times.items()}
         rows.append(('service pressure_for_length p50 [ms]', f'{p50["model"]:.3f}',
@@ -341,6 +547,24 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
             ratio = values['model'] / values['trigger']
             rows.append((f'  ratio model / trigger {q}', f'{ratio:.2f}',
                          check(ratio <= 1.5, '<= 1.5')))
+
+        if bursts is not None:
+            model_burst, trigger_burst = bursts['model'], bursts['trigger']
+            answered = model_burst['answered']
+            rows.append((f'burst: {BURST_CLIENTS} clients x {BURST_PER_CLIENT} requests in '
+                         'flight, answered', f'{answered}',
+                         check(answered == model_burst['sent'],
+                               f'all {model_burst["sent"]} ({args.burst_rounds} bursts)')))
+            b50, b99 = percentiles(np.array(model_burst['latency_ms']))
+            t50, t99 = percentiles(np.array(trigger_burst['latency_ms']))
+            rows.append(('  burst send -> answer p50 / p99 [ms]', f'{b50:.2f}', f'/ {b99:.2f}'))
+            rows.append(('  baseline Trigger burst p50 / p99 [ms]', f'{t50:.2f}',
+                         f'/ {t99:.2f} ({trigger_burst["answered"]} of '
+                         f'{trigger_burst["sent"]} answered)'))
+            # No latency target: a burst waits in the queue, so its p99 is the time to serve
+            # all 200, and says how much more each request costs model_node than a bare node.
+            rows.append(('  ratio model / trigger burst p50 / p99',
+                         f'{b50 / t50:.2f}', f'/ {b99 / t99:.2f}'))
 
         bench.start_listener()
         slow = bench.stream(model, 100.0, args.seconds)
@@ -361,7 +585,7 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
         rows.append(('1 kHz: dropped', f'{dropped}', check(dropped == 0, '0')))
         rows.append(('  of which state -> model_node (best effort)',
                      f'{fast.published - fast.model_samples}', "(model_node 'samples')"))
-        rows.append(('  of which prediction -> here (reliable, depth 10)',
+        rows.append((f'  of which prediction -> here (reliable, depth {PREDICTION_QUEUE_DEPTH})',
                      f'{fast.model_samples - fast.received}', ''))
         before, inside, after = fast.missing_by_part
         rows.append(('  dropped in the steady window', f'{inside}',
@@ -375,6 +599,9 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
         rows.append(('  latency at 1 kHz p50 / p99 [ms]', f'{f50:.2f}', f'/ {f99:.2f}'))
         rows.append(('model_node CPU at 100 Hz [% core]', f'{slow.cpu_percent:.1f}', ''))
         rows.append(('model_node CPU at 1 kHz [% core]', f'{fast.cpu_percent:.1f}', ''))
+        if args.soak_s > 0:
+            stop(model)
+            rows += soak_rows(bench.soak(args.soak_s))
     finally:
         bench.close()
         rclpy.try_shutdown()
@@ -382,11 +609,46 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
     return rows
 
 
+def soak_rows(soak: Soak) -> list[tuple[str, str, str]]:
+    # By seq, inside the stream each subscriber saw, less what the device itself lost; the
+    # rest of `published - samples` went out before the subscription had matched the new
+    # publisher (discovery at start-up: a volatile topic does not keep them).
+    model_lost = max(soak.model_states_lost - soak.device_lost, 0)
+    before_match = soak.published - soak.model_samples - model_lost
+    recorder_lost = max(soak.bag_states_lost - soak.device_lost, 0)
+    not_recorded = soak.model_samples - soak.bag_predictions
+    percent = 100.0 * soak.bag_states_without_prediction / max(soak.bag_states, 1)
+    cpu = ', '.join(f'{name} {value:.0f}' for name, value in soak.cpu_percent.items())
+    return [
+        (f'soak 1 kHz, {soak.seconds:.0f} s: PmaState published by driver_node',
+         f'{soak.published}', '(fake_arduino -> driver_node -> model_node, recorder)'),
+        ('  device -> driver_node lost (serial)', f'{soak.device_lost}', ''),
+        ('  states model_node never received (by seq)', f'{model_lost}',
+         check(model_lost == 0, '0') + f' ({soak.model_state_gaps} gaps; '
+         f'{soak.model_samples} received, {before_match} sent before it matched)'),
+        ('  predictions the recorder never received', f'{not_recorded}',
+         check(not_recorded == 0, '0') + f' ({soak.bag_predictions} of '
+         f'{soak.model_samples} in the bag)'),
+        ('  states the recorder never received (by seq)', f'{recorder_lost}',
+         f'({soak.bag_states} in the bag)'),
+        ('  states in the bag without their prediction', f'{soak.bag_states_without_prediction}',
+         f'({percent:.3f} %)'),
+        ('  CPU [% core]', f'{sum(soak.cpu_percent.values()):.0f}',
+         f'({cpu}; load average {soak.load:.1f})'),
+    ]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seconds', type=float, default=10.0,
                         help='measuring window of each stream rate [s]')
     parser.add_argument('--calls', type=int, default=500, help='service calls per server')
+    parser.add_argument('--burst-rounds', type=int, default=5,
+                        help=f'bursts of {BURST_CLIENTS} x {BURST_PER_CLIENT} requests per '
+                             'server (0 skips)')
+    parser.add_argument('--soak-s', type=float, default=120.0,
+                        help='length of the 1 kHz soak through driver, model and recorder '
+                             '[s] (0 skips it)')
     parser.add_argument('--trigger-server', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--publish', nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -199,3 +200,194 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
     finally:
         probe.node.destroy_client(client)
         probe.node.destroy_subscription(sub)
+
+
+def _model_diagnostics(probe):
+    """The latest model_node /diagnostics status, as (level, message, {key: value})."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    received, sub = _collect(probe, DiagnosticArray, '/diagnostics')
+
+    def latest():
+        for array in reversed(list(received)):
+            for status in array.status:
+                if status.name.startswith('/model_node:'):
+                    return (status.level, status.message,
+                            {kv.key: kv.value for kv in status.values})
+        return None
+
+    return latest, sub
+
+
+@pytest.mark.timeout(120)
+def test_a_bad_params_file_at_start_leaves_the_node_running_on_the_defaults(procs, probe,
+                                                                             tmp_path):
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+
+    from pma_interfaces.msg import ModelParams
+
+    # A refit's output with one Latin-1 byte in a comment, given at start-up.
+    params_file = tmp_path / 'refit.yaml'
+    hill = replace(default_params(), branch_form='hill')
+    params_file.write_bytes(b'# written by caf\xe9 refit\n' + hill.to_yaml().encode())
+    latest, diag_sub = _model_diagnostics(probe)
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    published, sub = _collect(probe, ModelParams, 'pma/model_params', latched)
+    node = procs.ros2_run('pma_model', 'model_node',
+                          ros_args=['-p', f'params_file:={params_file}'])
+    try:
+        node.wait_for_line('model_node ready')
+        line = node.wait_for_line('params file not loaded')
+        assert 'running on the start-up parameters' in line
+        assert 'not UTF-8 text: byte 0xe9 at offset 16' in line
+        wait_until(lambda: latest() is not None, 20, 'model_node diagnostics')
+        level, message, values = latest()
+        assert level == DiagnosticStatus.WARN and 'byte 0xe9' in message
+        assert values['params_file_loaded'] == 'no'
+        wait_until(lambda: published, 20, 'latched model parameters')
+        assert published[-1].form == 'sigmoid'       # the defaults, not half a file
+
+        # The file fixed in place: the hot reload picks it up and the warning clears.
+        params_file.write_text(hill.to_yaml())
+        wait_until(lambda: published[-1].form == 'hill', 10, 'params file reload')
+        wait_until(lambda: latest()[2]['params_file_loaded'] == 'yes', 10,
+                   'diagnostics saying the file is loaded')
+        assert node.alive()
+    finally:
+        probe.node.destroy_subscription(sub)
+        probe.node.destroy_subscription(diag_sub)
+
+
+@pytest.mark.timeout(180)
+def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, probe,
+                                                                        tmp_path):
+    import os
+
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+
+    from pma_interfaces.msg import ModelParams
+    from pma_interfaces.srv import PressureForLength
+
+    node = procs.ros2_run('pma_model', 'model_node')
+    node.wait_for_line('model_node ready')
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    published, sub = _collect(probe, ModelParams, 'pma/model_params', latched)
+    client = probe.node.create_client(SetParameters, 'model_node/set_parameters')
+    inverse = probe.node.create_client(PressureForLength, 'pressure_for_length')
+    fifo = tmp_path / 'params.fifo'
+    os.mkfifo(fifo)
+    bad_units = tmp_path / 'kpa.yaml'
+    bad_units.write_text('/**:\n  ros__parameters:\n    increasing:\n      sigmoid:\n'
+                         '        b_per_pa: 0.011333\n')
+    latin1 = tmp_path / 'latin1.yaml'
+    latin1.write_bytes(b'/**:\n  ros__parameters:\n    memory: switch  # \xb5\n')
+    broken = tmp_path / 'broken.yaml'
+    broken.write_text('/**:\n  ros__parameters: [1, 2\n')
+    refused = [
+        (fifo, 'is a FIFO, not a regular file'),           # would block the executor
+        ('/dev/zero', 'is a character device'),           # would be read until MemoryError
+        (tmp_path, 'is a directory'),
+        (tmp_path / 'absent.yaml', 'No such file or directory'),
+        (latin1, 'not UTF-8 text: byte 0xb5 at offset 46 (line 3)'),
+        (broken, 'not valid YAML'),
+        (bad_units, 'increasing.sigmoid.b_per_pa must be <='),
+    ]
+    try:
+        wait_until(lambda: published, 20, 'latched model parameters')
+        assert client.wait_for_service(timeout_sec=20)
+        assert inverse.wait_for_service(timeout_sec=20)
+        request = PressureForLength.Request(length_m=0.27, branch=1)
+        answer = _call(probe, inverse, request).gauge_pressure_pa
+
+        def set_params_file(path):
+            request = SetParameters.Request(parameters=[
+                Parameter('params_file', value=str(path)).to_parameter_msg()])
+            (result,) = _call(probe, client, request).results
+            return result
+
+        for path, words in refused:
+            result = set_params_file(path)
+            assert not result.successful, path
+            assert words in result.reason and 'model is unchanged' in result.reason, \
+                result.reason
+            # Still serving, with the same model.
+            assert _call(probe, inverse, request).gauge_pressure_pa == answer
+        assert len(published) == 1, 'a refused file must not republish the model'
+        assert node.alive()
+
+        good = tmp_path / 'refit.yaml'
+        replace(default_params(), memory='switch', branch_form='hill').save_yaml(
+            good, only=('branch_form', 'memory'))
+        result = set_params_file(good)
+        assert result.successful, result.reason
+        wait_until(lambda: published[-1].form == 'hill', 10, 'the file loaded')
+        assert published[-1].memory == 'switch'
+        assert _call(probe, inverse, request).gauge_pressure_pa != answer
+    finally:
+        probe.node.destroy_client(client)
+        probe.node.destroy_client(inverse)
+        probe.node.destroy_subscription(sub)
+
+
+@pytest.mark.timeout(180)
+def test_a_burst_of_200_requests_from_4_clients_is_answered_whole(procs, tmp_path):
+    # With the default service queue (10 deep) only 11-20 of 200 were answered, the rest
+    # lost without an error. Answered, not timed: speed is the bench's business.
+    import json
+
+    procs.ros2_run('pma_model', 'model_node').wait_for_line('model_node ready')
+    clients = [procs.python(HELPERS / 'service_burst.py', '--count', '50', '--go-dir',
+                            str(tmp_path), name=f'burst{i}') for i in range(4)]
+    for client in clients:
+        client.wait_for_line('ready', timeout=40)
+    go = tmp_path / '.go-0'
+    go.write_text('pressure_for_length')
+    go.rename(tmp_path / 'go-0')            # all four see it at once, whole
+    answered = 0
+    for client in clients:
+        result = json.loads(client.wait_for_line('"round": 0', timeout=60))
+        assert result['sent'] == 50
+        answered += result['answered']
+    assert answered == 200, f'{200 - answered} of 200 requests were not answered'
+    assert procs.procs[0].alive()
+    (tmp_path / 'stop').touch()
+
+
+@pytest.mark.timeout(120)
+def test_a_half_second_stall_at_1khz_loses_no_state_and_no_prediction(procs, probe):
+    # A loaded machine stalls model_node now and then (up to 0.5 s seen in the 1 kHz soak);
+    # the 200-deep state queue then lost 0.4-5 % of the samples. SIGSTOP makes the stall.
+    import signal
+    import time
+
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from pma_interfaces.msg import PmaPrediction
+
+    count = 3000
+    model = procs.ros2_run('pma_model', 'model_node')
+    model.wait_for_line('model_node ready')
+    latest, diag_sub = _model_diagnostics(probe)
+    predictions, sub = _collect(probe, PmaPrediction, 'pma/prediction',
+                                QoSProfile(depth=count, reliability=ReliabilityPolicy.RELIABLE))
+    try:
+        wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,
+                   'model_node publisher')
+        procs.python(HELPERS / 'bag_state_publisher.py', '--topic', 'pma/state', '--rate',
+                     '1000', '--count', str(count), '--wait-subscribers', '1')
+        wait_until(lambda: len(predictions) >= 300, 30, 'the stream under way')
+        model.signal(signal.SIGSTOP)
+        time.sleep(0.5)
+        model.signal(signal.SIGCONT)
+        wait_until(lambda: len(predictions) >= count, 30, f'{count} predictions')
+        wait_until(lambda: latest() is not None and latest()[2]['samples'] == str(count), 10,
+                   'model_node diagnostics counting every state')
+        assert latest()[2]['states_lost'] == '0'
+        assert model.alive()
+    finally:
+        model.signal(signal.SIGCONT)
+        probe.node.destroy_subscription(sub)
+        probe.node.destroy_subscription(diag_sub)

@@ -17,9 +17,16 @@ from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParam
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 
 from pma_common.node import ros_context, spin_until_stopped
+from pma_common.sequence import SequenceTracker
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
@@ -36,7 +43,20 @@ _DESCRIPTIONS = {
                    'reversal counts [Pa]',
     'max_gauge_pressure_pa': 'highest gauge pressure the inverse may answer with [Pa]',
 }
-STATE_QUEUE_DEPTH = 200   # 0.2 s of samples at 1 kHz
+# Queues sized in time at the driver's top rate (1 kHz), so that a stall of the node or of a
+# subscriber loses nothing while it lasts less than this. In a 1 kHz soak on a loaded 2-core
+# machine (bench_model_node.py) the executor stalled for up to 0.5 s: the old 200 lost 0.3-5 %
+# of the states, and a reliable writer keeping only 10 predictions could not resend the
+# ones the recorder missed while it stalled (~0.4 %).
+STATE_QUEUE_DEPTH = 2000        # 2 s
+PREDICTION_QUEUE_DEPTH = 1000   # 1 s
+# pressure_for_length queues a burst instead of dropping it: with the services' default
+# (keep last 10), of 200 requests in flight from 4 clients only 11-41 were answered, the rest
+# lost without an error. Keep-last 1000 rather than keep-all: a client that stops reading its
+# responses can never make the reply block the node's only executor thread. A client that
+# bursts needs a queue as deep on its side (its request writer and response reader).
+SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                         reliability=ReliabilityPolicy.RELIABLE)
 
 _RANGES = {
     'deadband_pa': (0.0, 250_000.0),
@@ -91,6 +111,9 @@ class ModelNode(Node):
         self._latest_state: PmaState | None = None
         self._stats = {'samples': 0, 'nan_pressure': 0, 'nan_length': 0, 'sum_sq_residual': 0.0,
                        'residuals': 0}
+        # States that never reached this node, by the device's PmaState.seq: each is a
+        # prediction that will never be made (the driver's own losses included).
+        self._state_sequence = SequenceTracker()
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -98,22 +121,28 @@ class ModelNode(Node):
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE)
         self._params_pub = self.create_publisher(ModelParamsMsg, 'pma/model_params', latched)
-        self._prediction_pub = self.create_publisher(PmaPrediction, 'pma/prediction', 10)
+        self._prediction_pub = self.create_publisher(PmaPrediction, 'pma/prediction',
+                                                     PREDICTION_QUEUE_DEPTH)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
         # Sensor-data QoS (best effort, REP-2003), but a deeper queue than its 5: at 1 kHz a
         # Python pause of 5 ms would otherwise overwrite samples before they are predicted.
+        # Reliable would not help: a keep-last reader overwrites what it has not taken either.
         state_qos = QoSProfile(depth=STATE_QUEUE_DEPTH,
                                reliability=qos_profile_sensor_data.reliability,
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
         self.create_subscription(PmaState, 'pma/state', self._on_state, state_qos)
-        self.create_service(PressureForLength, 'pressure_for_length', self._on_pressure_for_length)
+        self.create_service(PressureForLength, 'pressure_for_length',
+                            self._on_pressure_for_length, qos_profile=SERVICE_QOS)
         self.create_timer(1.0, self._publish_diagnostics)
 
-        self._params_file_mtime: float | None = None
+        # What the params file looked like when last read (inode, size, mtime), or the
+        # reason it could not be stat'ed; and why its last version was refused (None: loaded).
+        self._params_file_seen: tuple | str | None = None
+        self._params_file_problem: str | None = None
         period = self.get_parameter('params_file_check_period_s').value
         self.create_timer(period, self._check_params_file)
-        self._check_params_file()
+        self._check_params_file(at_start=True)
         self._publish_params()
         self.get_logger().info(
             f'model_node ready: {self._params.branch_form} branches, {self._params.memory} '
@@ -127,12 +156,19 @@ class ModelNode(Node):
         return values
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        """Validate the new set as a whole; no side effects here (rclpy's contract)."""
+        """Validate the new set as a whole; no side effects here (rclpy's contract).
+
+        A new params_file is read and validated here too (on top of the rest of the set), so
+        a missing, unreadable or invalid file is refused to the caller, not only in the log.
+        """
         changes = {p.name: p.value for p in parameters if p.name in self._model_parameter_names}
-        if not changes:
+        params_file = next((p.value for p in parameters if p.name == 'params_file'), '')
+        if not changes and not params_file:
             return SetParametersResult(successful=True)
         try:
-            ModelParams.from_ros_parameters(self._model_parameter_values(changes))
+            params = ModelParams.from_ros_parameters(self._model_parameter_values(changes))
+            if params_file:
+                ModelParams.load_yaml(params_file, base=params)
         except ParamsError as error:
             reason = f'rejected, the model is unchanged: {error}'
             self.get_logger().warning(reason)
@@ -140,11 +176,13 @@ class ModelNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        if any(p.name in self._model_parameter_names for p in parameters):
+            self._apply_model_parameters()
         if any(p.name == 'params_file' for p in parameters):
-            self._params_file_mtime = None
+            self._params_file_seen = self._params_file_problem = None
             self._check_params_file()
-        if not any(p.name in self._model_parameter_names for p in parameters):
-            return
+
+    def _apply_model_parameters(self) -> None:
         params = ModelParams.from_ros_parameters(self._model_parameter_values())
         with self._lock:
             model = params.build_model()
@@ -159,33 +197,50 @@ class ModelNode(Node):
             f'{"on" if params.adaptation.enabled else "off"}')
         self._publish_params()
 
-    def _check_params_file(self) -> None:
-        """Load the params file at start and whenever it changes (hot reload after a refit)."""
+    def _check_params_file(self, at_start: bool = False) -> None:
+        """Load the params file at start and whenever it changes (hot reload after a refit).
+
+        Polled by stat (which never blocks); a version that cannot be read or does not
+        validate is refused once, with a log line and the /diagnostics message, and the
+        model in use stays until a good version appears.
+        """
         path = self.get_parameter('params_file').value
         if not path:
+            self._params_file_problem = None
             return
         try:
-            mtime = os.stat(path).st_mtime
+            info = os.stat(path)
+            seen: tuple | str = (info.st_ino, info.st_size, info.st_mtime_ns)
         except OSError as error:
-            if self._params_file_mtime != -1.0:
-                self.get_logger().error(f'params file {path}: {error.strerror}; keeping the '
-                                        'current model and checking again')
-            self._params_file_mtime = -1.0
+            seen = f'cannot read params file {path}: {error.strerror}'
+        if seen == self._params_file_seen:
             return
-        if mtime == self._params_file_mtime:
+        self._params_file_seen = seen
+        if isinstance(seen, str):
+            self._refuse_params_file(seen, at_start)
             return
-        self._params_file_mtime = mtime
         try:
             loaded = ModelParams.load_yaml(path, base=self._params)
         except ParamsError as error:
-            self.get_logger().error(f'params file not loaded, the model is unchanged: {error}')
+            self._refuse_params_file(str(error), at_start)
             return
         result = self.set_parameters_atomically([
             Parameter(name, value=value) for name, value in loaded.to_ros_parameters().items()])
-        if result.successful:
-            self.get_logger().info(f'loaded model parameters from {path}')
+        if not result.successful:
+            self._refuse_params_file(result.reason, at_start)
+            return
+        self._params_file_problem = None
+        self.get_logger().info(f'loaded model parameters from {path}')
+
+    def _refuse_params_file(self, reason: str, at_start: bool) -> None:
+        self._params_file_problem = reason
+        if at_start:
+            self.get_logger().error(
+                f'params file not loaded, running on the start-up parameters (the defaults '
+                f'and any --ros-args overrides): {reason}; checking the file again')
         else:
-            self.get_logger().error(f'params file {path} rejected: {result.reason}')
+            self.get_logger().error(f'params file not loaded, the model is unchanged: {reason}'
+                                    '; checking the file again')
 
     def _publish_params(self) -> None:
         params = self._params
@@ -206,6 +261,7 @@ class ModelNode(Node):
         measured = state.length_m
         with self._lock:
             self._stats['samples'] += 1
+            self._state_sequence.add(state.seq)
             if not math.isfinite(pressure):
                 # Still one prediction per sample (NaN), so the two streams line up.
                 self._stats['nan_pressure'] += 1
@@ -289,6 +345,7 @@ class ModelNode(Node):
     def _publish_diagnostics(self) -> None:
         with self._lock:
             stats = dict(self._stats)
+            sequence = self._state_sequence.stats()
             adapter = self._adapter if self._params.adaptation.enabled else None
         status = DiagnosticStatus()
         status.name = f'{self.get_fully_qualified_name()}: hysteresis model'
@@ -302,10 +359,18 @@ class ModelNode(Node):
             status.message = f'{stats["nan_pressure"]} samples with non-finite pressure skipped'
         else:
             status.level, status.message = DiagnosticStatus.OK, 'predicting'
+        problem = self._params_file_problem
+        if problem is not None:
+            status.level = DiagnosticStatus.WARN
+            status.message = f'params file not loaded, model unchanged: {problem}; ' \
+                             f'{status.message}'
         values = {
             'samples': stats['samples'], 'samples_nan_pressure': stats['nan_pressure'],
             'samples_nan_length': stats['nan_length'], 'rms_residual_m': f'{rms:.6f}',
+            'states_lost': sequence.lost, 'state_gaps': sequence.gaps,
             'branch_form': self._params.branch_form, 'memory': self._params.memory,
+            'params_file': self.get_parameter('params_file').value or '(none)',
+            'params_file_loaded': 'no' if problem is not None else 'yes',
         }
         if adapter is not None:
             values.update(adaptation_offset_m=f'{adapter.offset_m:.6f}',

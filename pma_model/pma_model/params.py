@@ -10,9 +10,11 @@ data/default_params.yaml (the paper's increasing fit and our least-squares fits 
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import math
 import os
+import stat
 from dataclasses import dataclass, fields, replace
 from importlib import resources
 from pathlib import Path
@@ -39,6 +41,8 @@ DIRECTIONS = ('increasing', 'decreasing')
 
 # Sanity range that catches unit mix-ups (kPa for Pa); the branch ones live in branches.py.
 MAX_GAUGE_PRESSURE_RANGE_PA = (10_000.0, 1_000_000.0)
+# A params file is a few kB; anything past this is not one (and /dev/zero never ends).
+MAX_PARAMS_FILE_BYTES = 1024 * 1024
 
 
 class ParamsError(ValueError):
@@ -222,14 +226,71 @@ class ModelParams:
 
     @classmethod
     def load_yaml(cls, path, base: ModelParams | None = None) -> ModelParams:
-        try:
-            text = Path(path).read_text()
-        except OSError as error:
-            raise ParamsError(f'cannot read params file {path}: {error}') from None
+        """From a params file; never blocks or reads without bound (see read_params_text)."""
+        text = read_params_text(path)
         try:
             return cls.from_yaml(text, base)
         except ParamsError as error:
             raise ParamsError(f'{path}: {error}') from None
+
+
+def read_params_text(path, max_bytes: int = MAX_PARAMS_FILE_BYTES) -> str:
+    """The text of a params file, or ParamsError saying why not, in one line.
+
+    model_node reads this on its only executor thread, so the read must neither block nor
+    run on without end: the file is opened non-blocking (a FIFO without a writer opens at
+    once) and must be a regular file (not a FIFO, device or directory: /dev/zero would be
+    read until memory runs out), of at most `max_bytes`, in UTF-8.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOCTTY)
+    except OSError as error:
+        raise ParamsError(f'cannot read params file {path}: {error.strerror}') from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ParamsError(f'params file {path} is {_file_kind(info.st_mode)}, not a regular '
+                              'file')
+        if info.st_size > max_bytes:
+            raise ParamsError(f'params file {path} is {info.st_size} bytes, more than the '
+                              f'{max_bytes} a params file may have')
+        chunks, size = [], 0
+        while size <= max_bytes:         # the file may grow after fstat: still stop
+            try:
+                chunk = os.read(fd, max_bytes + 1 - size)
+            except OSError as error:
+                if error.errno == errno.EAGAIN:
+                    raise ParamsError(f'params file {path} has no data to read now') from None
+                raise ParamsError(f'cannot read params file {path}: {error.strerror}') \
+                    from None
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        if size > max_bytes:
+            raise ParamsError(f'params file {path} has more than the {max_bytes} bytes a params '
+                              'file may have')
+    finally:
+        os.close(fd)
+    data = b''.join(chunks)
+    try:
+        return data.decode('utf-8')
+    except UnicodeDecodeError as error:
+        raise ParamsError(f'params file {path} is not UTF-8 text: '
+                          f'{utf8_error_position(data, error)}') from None
+
+
+def utf8_error_position(data: bytes, error: UnicodeDecodeError) -> str:
+    """Where `data` stops being UTF-8, for a person: 'byte 0xe9 at offset 5 (line 1)'."""
+    line = data.count(b'\n', 0, error.start) + 1
+    return f'byte 0x{data[error.start]:02x} at offset {error.start} (line {line})'
+
+
+def _file_kind(mode: int) -> str:
+    kinds = ((stat.S_ISFIFO, 'a FIFO'), (stat.S_ISDIR, 'a directory'),
+             (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device'),
+             (stat.S_ISSOCK, 'a socket'))
+    return next((name for test, name in kinds if test(mode)), 'a special file')
 
 
 def _check_units(prefix: str, branch: Branch) -> None:

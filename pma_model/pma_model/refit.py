@@ -2,7 +2,10 @@
 
 Prints the paper-style table (kPa, cm) on stdout; --json writes the full report, --params-out
 the params file model_node loads (the best-AICc branch form it supports, or --model), --plots
-the paper's Figs. 6-8. Bad input gives one line on stderr and exit code 2.
+the paper's Figs. 6-8. Bad input gives one line on stderr and exit code 2. A model that does
+not converge is reported as failed (table and JSON) and the others stand; the exit code is 2
+only when the model asked for with --model, or every branch model --params-out could use,
+failed. A truncated bag is refitted on what it holds before the damage, with a warning line.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from pma_model.report import (
     BRANCH_MODEL_FORMS,
     MODEL_NAMES,
     build_report,
+    failed_models,
     format_table,
     memory_check,
 )
@@ -61,16 +65,17 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return args
 
 
-def choose_params_model(report: dict, requested: str | None) -> str:
+def choose_params_model(report: dict, requested: str | None) -> str | None:
+    """The requested model, else the fitted branch model of best loop AICc (None: none)."""
     if requested:
         return requested
-    loop = report['loop']['models']
-    scored = [(loop[name]['metrics']['aicc'], name) for name in BRANCH_MODEL_FORMS
-              if name in loop and loop[name]['metrics']['aicc'] is not None]
+    loop = {name: entry for name, entry in report['loop']['models'].items()
+            if name in BRANCH_MODEL_FORMS and 'error' not in entry}
+    scored = [(entry['metrics']['aicc'], name) for name, entry in loop.items()
+              if entry['metrics']['aicc'] is not None]
     if not scored:  # AICc needs n > k + 1; fall back on AIC
-        scored = [(loop[name]['metrics']['aic'], name) for name in BRANCH_MODEL_FORMS
-                  if name in loop]
-    return min(scored)[1]
+        scored = [(entry['metrics']['aic'], name) for name, entry in loop.items()]
+    return min(scored)[1] if scored else None
 
 
 def write_params(path: Path, fitted, name: str, source: str, memory: str | None = None) -> None:
@@ -141,9 +146,18 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def warn_if_truncated(what) -> None:
+    """One line for a bag cut short (Samples or BranchData), instead of a Python warning."""
+    if what.truncated:
+        print(f'refit: warning: {what.source} is truncated ({what.truncated}); using the '
+              'samples recorded before the damage (a closed copy: ros2 run pma_bag recover '
+              f'{what.source})', file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         data = load_branch_data(args.input, args.deadband_pa, args.steady_state, args.topic)
+        warn_if_truncated(data)
         check_data(data)
 
         def announce(name):
@@ -156,8 +170,9 @@ def run(args: argparse.Namespace) -> int:
             report['custom_data'] = experiment   # the bag's metadata.yaml custom_data
         if args.memory_check:
             announce(f'the memory rules along {args.memory_check}')
-            report['memory_check'] = memory_check(
-                load_samples(args.memory_check, args.topic), fitted, args.deadband_pa)
+            path = load_samples(args.memory_check, args.topic)
+            warn_if_truncated(path)
+            report['memory_check'] = memory_check(path, fitted, args.deadband_pa)
     except SamplesError as error:
         print(f'refit: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -165,13 +180,24 @@ def run(args: argparse.Namespace) -> int:
         print(f'refit: the fit did not converge: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
     print(format_table(report))
+    failed = failed_models(report)
+    name = choose_params_model(report, args.model) if args.params_out or args.model else None
+    refusal = None
+    if len(failed) == len(MODEL_NAMES):
+        refusal = 'no model converged: ' + '; '.join(f'{n}: {e}' for n, e in failed.items())
+    elif name is None and args.params_out:
+        refusal = (f'no branch model converged ({", ".join(sorted(BRANCH_MODEL_FORMS))}); '
+                   f'{args.params_out} not written')
+    elif name in failed:
+        refusal = (f'{name}, the model asked for with --model, did not converge: '
+                   f'{failed[name]}' + (f'; {args.params_out} not written'
+                                        if args.params_out else ''))
     try:
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(report, indent=2, allow_nan=False) + '\n')
             print(f'wrote {args.json}')
-        if args.params_out:
-            name = choose_params_model(report, args.model)
+        if args.params_out and refusal is None:
             memory = report.get('memory_check', {}).get('best_memory', {}).get(name)
             write_params(args.params_out, fitted, name, str(args.input), memory)
             print(f'wrote {args.params_out} ({name}, branch_form '
@@ -183,6 +209,9 @@ def run(args: argparse.Namespace) -> int:
                 print(f'wrote {path}')
     except (OSError, ValueError) as error:
         print(f'refit: cannot write output: {error}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if refusal:
+        print(f'refit: {refusal}', file=sys.stderr)
         return EXIT_BAD_INPUT
     return 0
 

@@ -243,7 +243,8 @@ def build_report(data: BranchData, models: tuple[str, ...] = MODEL_NAMES,
         'data': {'n_increasing': int(data.inc_pressure_pa.size),
                  'n_decreasing': int(data.dec_pressure_pa.size),
                  'samples_used': data.samples_used, 'dropped_nan_lengths': data.dropped_nan,
-                 'steady_state': data.steady_state, 'stroke_cm': stroke_cm,
+                 'steady_state': data.steady_state, 'truncated': data.truncated or None,
+                 'stroke_cm': stroke_cm,
                  'rest_length_cm': float(units.m_to_cm(data.rest_length_m)),
                  'max_pressure_kpa': float(units.pa_to_kpa(p_loop.max()))},
         'conventions': {'aic': 'n ln(MSE) + 2k', 'aicc': 'AIC + 2k(k+1)/(n-k-1)',
@@ -262,7 +263,17 @@ def build_report(data: BranchData, models: tuple[str, ...] = MODEL_NAMES,
     for name in models:
         if on_model is not None:
             on_model(name)
-        model = fit_model(name, data)
+        try:
+            model = fit_model(name, data)
+        except (ValueError, RuntimeError) as error:
+            # One model that does not converge (Bouc-Wen on a short sweep) is that model's
+            # result, not the report's: the others stand, and the caller decides.
+            failure = {'error': str(error)}
+            for direction in DIRECTIONS:
+                report['branches'][direction]['models'][name] = dict(failure)
+            report['loop']['models'][name] = dict(failure)
+            report['warnings'].append(f'{name}: not fitted: {error}')
+            continue
         fitted[name] = model
         predicted = model.predict(p_loop, rising)
         for direction, mask in zip(DIRECTIONS, (rising, ~rising), strict=True):
@@ -287,6 +298,12 @@ def build_report(data: BranchData, models: tuple[str, ...] = MODEL_NAMES,
     if holdout:
         report['holdout'] = holdout_report(data, fitted, stroke_cm)
     return _clean(report), fitted
+
+
+def failed_models(report: dict) -> dict[str, str]:
+    """{model: why it was not fitted} for the models of a report that did not converge."""
+    return {name: entry['error'] for name, entry in report['loop']['models'].items()
+            if 'error' in entry}
 
 
 def memory_check(samples: Samples, fitted: dict[str, FittedModel],
@@ -375,6 +392,9 @@ def format_table(report: dict) -> str:
     lines = [f"Refit of {report['source']}: {report['data']['n_increasing']} increasing + "
              f"{report['data']['n_decreasing']} decreasing points, stroke "
              f"{report['data']['stroke_cm']:.3f} cm, L0 {report['data']['rest_length_cm']:.3f} cm"]
+    if report['data'].get('truncated'):
+        lines.append(f"  only the samples before the damage: the bag is truncated "
+                     f"({report['data']['truncated']})")
     header = (f"{'model':<22}{'k':>3}{'MAE cm':>9}{'MSE cm2':>10}{'RMSE cm':>9}{'max cm':>8}"
               f"{'R2':>8}{'r':>8}{'AIC':>9}{'AICc':>9}{'BIC':>9}")
 
@@ -387,22 +407,25 @@ def format_table(report: dict) -> str:
                 f"{f('rmse_cm', '9.4f')}{f('max_cm', '8.3f')}{f('r2', '8.4f')}{f('r', '8.4f')}"
                 f"{f('aic', '9.3f')}{f('aicc', '9.3f')}{f('bic', '9.3f')}")
 
+    def failed(name, entry):
+        return f"{name:<22}failed: {entry['error']}"
+
     for direction in DIRECTIONS:
         lines += ['', f'{direction} branch', header]
         for name, entry in report['branches'][direction]['models'].items():
-            lines.append(row(name, entry['metrics']))
+            lines.append(failed(name, entry) if 'error' in entry else row(name, entry['metrics']))
         for name, values in report['paper_table2'][direction].items():
             paper = {'mae_cm': values['mae'], 'mse_cm2': values['mse'], 'r2': values['r2'],
                      'aic': values['aic'], 'bic': values['bic'], 'k': ''}
             lines.append(row(f'paper Table 2 {name}', paper))
         for name, entry in report['branches'][direction]['models'].items():
-            if name in BRANCH_MODEL_FORMS:
+            if name in BRANCH_MODEL_FORMS and 'error' not in entry:
                 shown = ', '.join(_with_ci(key, value, entry)
                                   for key, value in entry['params'].items())
                 lines.append(f'  {name}: {shown}')
     lines += ['', 'whole loop', header]
     for name, entry in report['loop']['models'].items():
-        lines.append(row(name, entry['metrics']))
+        lines.append(failed(name, entry) if 'error' in entry else row(name, entry['metrics']))
         if 'drift' in entry:
             drift = entry['drift']
             lines.append(f"  {name}: drift {drift['drift_cm']:+.3f} cm at {drift['low_kpa']:.0f}"

@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import copy
 import csv
+import io
 import math
 import struct
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +31,7 @@ import numpy as np
 
 from pma_model import units
 from pma_model.detector import BRANCH_INCREASING, DEFAULT_DEADBAND_PA, detect_branches
+from pma_model.params import utf8_error_position
 
 STATE_TOPIC = 'pma/state'
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
@@ -55,6 +58,7 @@ class Samples:
     setpoint_pa: np.ndarray | None = None
     dropped_nan: int = 0
     source: str = ''
+    truncated: str = ''     # a bag cut short: what is damaged ('' = complete input)
 
 
 @dataclass
@@ -69,6 +73,7 @@ class BranchData:
     samples_used: int = 0
     dropped_nan: int = 0
     steady_state: bool = False
+    truncated: str = ''     # as Samples.truncated
 
     @property
     def rest_length_m(self) -> float:
@@ -131,14 +136,22 @@ def state_topic_in(topics: dict, topic: str = STATE_TOPIC) -> str:
 
 
 def read_bag(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
-    """PmaState samples of a bag, by header.stamp; rows with NaN length are dropped."""
+    """PmaState samples of a bag, by header.stamp; rows with NaN length are dropped.
+
+    A bag its recorder did not close (a crash) is read up to the damage; `truncated` on
+    the result says what is missing, for the caller to tell the user in its own words.
+    """
     from pma_bag import BagError, BagReader
+    from pma_bag.reader import TruncatedBagWarning
     from pma_interfaces.msg import PmaState
 
     try:
-        reader = BagReader(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', TruncatedBagWarning)
+            reader = BagReader(path)
     except BagError as error:
         raise SamplesError(str(error)) from None
+    truncated = '; '.join(f'{f.path.name}: {f.damage}' for f in reader.files if f.truncated)
     with reader:
         try:
             wanted = {state_topic_in(reader.topics, topic)}
@@ -157,7 +170,9 @@ def read_bag(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
         if report is not None:
             report(total)
     stamp, pressure, length, setpoint = _decode_states(payloads, PmaState)
-    return _finish(stamp, pressure, length, setpoint, str(path))
+    samples = _finish(stamp, pressure, length, setpoint, str(path))
+    samples.truncated = truncated
+    return samples
 
 
 # Fields read from each PmaState, with a sentinel each that cannot occur by accident.
@@ -241,10 +256,16 @@ def _finish(stamp, pressure, length, setpoint, source) -> Samples:
 
 def _csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     try:
-        with open(path, newline='', encoding='utf-8') as stream:
-            rows = [row for row in csv.reader(stream) if row and not row[0].startswith('#')]
-    except (OSError, UnicodeDecodeError) as error:
-        raise SamplesError(f'cannot read {path}: {error}') from None
+        data = path.read_bytes()
+    except OSError as error:
+        raise SamplesError(f'cannot read {path}: {error.strerror}') from None
+    try:
+        text = data.decode('utf-8')
+    except UnicodeDecodeError as error:
+        raise SamplesError(f'{path} is neither an MCAP bag nor a UTF-8 CSV file: '
+                           f'{utf8_error_position(data, error)}') from None
+    rows = [row for row in csv.reader(io.StringIO(text, newline=''))
+            if row and not row[0].startswith('#')]
     if not rows:
         raise SamplesError(f'{path} is empty')
     return [name.strip() for name in rows[0]], rows[1:]
@@ -358,18 +379,41 @@ def load_branch_data(path, deadband_pa: float = DEFAULT_DEADBAND_PA,
                      progress: bool = True) -> BranchData:
     """Whatever the input is (bag, sample log, branch table), its fit data per branch."""
     path = Path(path)
-    if path.exists() and path.is_file() and is_branch_table(path):
+    if not is_bag(path) and is_branch_table(path):
         return read_branch_table(path)
-    return split_branches(load_samples(path, topic, progress), deadband_pa, steady_state)
+    samples = load_samples(path, topic, progress)
+    data = split_branches(samples, deadband_pa, steady_state)
+    data.truncated = samples.truncated
+    return data
 
 
 def load_samples(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
     """The sample path of a bag or a sample-log CSV, in time order (no branch split)."""
     path = Path(path)
-    if not path.exists():
-        raise SamplesError(f'{path}: no such file or directory')
-    if path.is_dir() or path.suffix == '.mcap':
+    if is_bag(path):
         return read_bag(path, topic, progress=progress)
     if is_branch_table(path):
         raise SamplesError(f'{path} is a branch table: it has no pressure path to follow')
     return read_sample_log(path)
+
+
+def is_bag(path: Path) -> bool:
+    """A bag directory, or a file that starts with the MCAP magic or is named .mcap.
+
+    Decided by content, so a bare .mcap is never read as text first; a file named .mcap
+    without the magic goes to the bag reader too, which says it is not an MCAP file.
+    """
+    from pma_bag.reader import MAGIC
+
+    if not path.exists():
+        raise SamplesError(f'{path}: no such file or directory')
+    if path.is_dir():
+        return True
+    if not path.is_file():
+        raise SamplesError(f'{path} is not a regular file (refit reads bags and CSV files)')
+    try:
+        with open(path, 'rb') as stream:
+            head = stream.read(len(MAGIC))
+    except OSError as error:
+        raise SamplesError(f'cannot read {path}: {error.strerror}') from None
+    return head == MAGIC or path.suffix.lower() == '.mcap'

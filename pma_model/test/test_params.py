@@ -1,5 +1,6 @@
 """Parameters: stored defaults are real fits, params files round-trip, bad input is named."""
 
+import os
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -11,7 +12,13 @@ import yaml
 from pma_model import units
 from pma_model.branches import HillBranch, SigmoidBranch, fit_branch
 from pma_model.memory import HysteresisModel
-from pma_model.params import ModelParams, ParamsError, default_params, paper_table1
+from pma_model.params import (
+    MAX_PARAMS_FILE_BYTES,
+    ModelParams,
+    ParamsError,
+    default_params,
+    paper_table1,
+)
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'model_node.yaml'
 SHARED_TABLE = Path(__file__).resolve().parents[2].parent / 'shared' / 'data' / \
@@ -136,6 +143,39 @@ def test_bad_files_are_refused_with_the_path(tmp_path):
     wrong.write_text('branch_form: hill\n')
     with pytest.raises(ParamsError, match='ros__parameters'):
         ModelParams.load_yaml(wrong)
+
+
+def test_a_non_utf8_byte_is_refused_with_its_offset(defaults, tmp_path):
+    # Even in a comment: the whole file must be text before YAML sees it.
+    latin1 = tmp_path / 'latin1.yaml'
+    latin1.write_bytes(defaults.to_yaml().encode() + b'# caf\xe9\n')
+    offset = len(defaults.to_yaml().encode()) + 5
+    with pytest.raises(ParamsError, match=rf'latin1\.yaml is not UTF-8 text: byte 0xe9 at '
+                                          rf'offset {offset} \(line \d+\)'):
+        ModelParams.load_yaml(latin1)
+
+
+@pytest.mark.timeout(10)
+def test_files_that_never_end_or_block_are_refused_at_once(tmp_path):
+    # /dev/zero would be read until memory runs out, a FIFO without a writer blocks a
+    # plain open() forever (and model_node has one executor thread): neither is a file.
+    fifo = tmp_path / 'params.fifo'
+    os.mkfifo(fifo)
+    for path, kind in (('/dev/zero', 'a character device'), (fifo, 'a FIFO'),
+                       (tmp_path, 'a directory')):
+        with pytest.raises(ParamsError, match=f'is {kind}, not a regular file'):
+            ModelParams.load_yaml(path)
+
+
+def test_a_file_larger_than_any_params_file_is_refused(defaults, tmp_path):
+    big = tmp_path / 'big.yaml'
+    big.write_text(defaults.to_yaml() + '#' * MAX_PARAMS_FILE_BYTES + '\n')
+    with pytest.raises(ParamsError, match=f'more than the {MAX_PARAMS_FILE_BYTES}'):
+        ModelParams.load_yaml(big)
+    # A params file of ordinary size, with comments, still loads.
+    fine = tmp_path / 'fine.yaml'
+    fine.write_text('# refit output\n' + defaults.to_yaml())
+    assert ModelParams.load_yaml(fine) == defaults
 
 
 def test_build_model_and_adapter_use_the_selected_form(defaults):

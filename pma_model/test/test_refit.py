@@ -128,7 +128,8 @@ def test_sweep_bag_recovers_the_loop(procs, tmp_path):
 def assert_clean_error(code, output, text):
     assert code == 2, output
     assert 'Traceback' not in output
-    errors = [line for line in output.splitlines() if line.startswith('refit:')]
+    errors = [line for line in output.splitlines()
+              if line.startswith('refit:') and not line.startswith('refit: warning:')]
     assert len(errors) == 1 and text in errors[0], output
 
 
@@ -203,3 +204,100 @@ def test_holdout_levels_survive_the_scatter_of_measured_holds():
     assert (train.dec_pressure_pa.size, test.dec_pressure_pa.size) == (5, 5)
     assert np.all(np.abs(np.round(train.dec_pressure_pa / 100e3) * 100e3
                          - train.dec_pressure_pa) < 6e3)
+
+
+def test_a_bare_mcap_file_is_read_as_a_bag(procs, tmp_path):
+    # Documented as supported, yet the CSV sniffing read it as text first ('utf-8' codec
+    # can't decode byte 0x89).
+    t, pressure, setpoint, length = staircase()
+    bag = write_state_bag(tmp_path / 'sweep', t, pressure, setpoint, length)
+    bare = bag / 'sweep_0.mcap'
+    named_csv = tmp_path / 'sweep.csv'              # content decides, not the name
+    named_csv.write_bytes(bare.read_bytes())
+    for path in (bare, named_csv):
+        code, output = run_refit(procs, path, '--no-holdout', '--json', tmp_path / 'r.json')
+        assert code == 0, output
+        report = json.loads((tmp_path / 'r.json').read_text())
+        assert report['data']['n_increasing'] >= 10 and report['data']['truncated'] is None
+
+
+def test_bytes_that_are_neither_bag_nor_text_get_the_bag_readers_answer(procs, tmp_path):
+    noise = np.random.default_rng(7).bytes(4096)
+    (tmp_path / 'x.mcap').write_bytes(b'\x89' + noise)
+    assert_clean_error(*run_refit(procs, tmp_path / 'x.mcap'), 'not an MCAP file')
+    (tmp_path / 'x.csv').write_bytes(b'time_s,gauge_pressure_pa,length_m\n0,1,0.3\n\xff' + noise)
+    assert_clean_error(*run_refit(procs, tmp_path / 'x.csv'),
+                       'neither an MCAP bag nor a UTF-8 CSV file: byte 0xff at offset 42 '
+                       '(line 3)')
+
+
+def test_a_truncated_bag_is_refitted_on_what_it_holds_with_one_line_saying_so(procs,
+                                                                              tmp_path):
+    t, pressure, setpoint, length = staircase()
+    bag = write_state_bag(tmp_path / 'crashed', t, pressure, setpoint, length)
+    mcap = bag / 'crashed_0.mcap'
+    mcap.write_bytes(mcap.read_bytes()[:int(mcap.stat().st_size * 0.75)])  # no summary
+    code, output = run_refit(procs, bag, '--no-holdout', '--json', tmp_path / 'r.json')
+    assert code == 0, output
+    warnings = [line for line in output.splitlines() if 'is truncated (' in line]
+    assert len(warnings) == 2, output   # the one stderr line, and the table saying so
+    assert warnings[0].startswith('refit: warning:')
+    assert f'ros2 run pma_bag recover {bag}' in warnings[0]
+    assert 'TruncatedBagWarning' not in output and 'warnings.warn' not in output
+    report = json.loads((tmp_path / 'r.json').read_text())
+    assert 'cut off' in report['data']['truncated']
+    assert report['data']['samples_used'] < t.size
+
+
+# Two short tables (6 levels) on which one model does not converge: Bouc-Wen with the Hill
+# backbone on a 30 kPa sweep, the Hill branch on the 200 kPa one.
+BOUC_WEN_FAILS = """pressure_kpa,length_increasing_cm,length_decreasing_cm
+0,29.9893,29.9527
+6,29.9588,29.9002
+12,29.9764,29.9035
+18,29.9251,29.9564
+24,29.8644,29.9391
+30,29.8762,
+"""
+HILL_FAILS = """pressure_kpa,length_increasing_cm,length_decreasing_cm
+0,30.0851,29.9952
+40,29.6645,29.9150
+80,29.3904,29.1550
+120,28.6576,28.3209
+160,27.8143,27.2397
+200,26.9669,
+"""
+
+
+def test_one_model_failing_is_reported_for_that_model_only(procs, tmp_path):
+    table = tmp_path / 'short.csv'
+    table.write_text(BOUC_WEN_FAILS)
+    code, output = run_refit(procs, table, '--no-holdout', '--json', tmp_path / 'r.json',
+                             '--params-out', tmp_path / 'p.yaml')
+    assert code == 0, output
+    report = json.loads((tmp_path / 'r.json').read_text())
+    failed = report['loop']['models']['bouc_wen_nonlinear']
+    assert 'did not converge' in failed['error'] and 'metrics' not in failed
+    for name in MODELS - {'bouc_wen_nonlinear'}:
+        assert 'metrics' in report['loop']['models'][name], name
+    assert any(w.startswith('bouc_wen_nonlinear: not fitted') for w in report['warnings'])
+    rows = [line for line in output.splitlines() if line.startswith('bouc_wen_nonlinear')]
+    assert len(rows) == 3 and all('failed: the fit of' in row for row in rows), output
+    assert ModelParams.load_yaml(tmp_path / 'p.yaml').branch_form in ('sigmoid', 'hill')
+
+
+def test_the_model_asked_for_failing_fails_the_refit(procs, tmp_path):
+    table = tmp_path / 'short.csv'
+    table.write_text(HILL_FAILS)
+    code, output = run_refit(procs, table, '--no-holdout', '--json', tmp_path / 'r.json',
+                             '--params-out', tmp_path / 'p.yaml', '--model', 'hill')
+    assert_clean_error(code, output, 'hill, the model asked for with --model, did not '
+                                     'converge')
+    assert not (tmp_path / 'p.yaml').exists()
+    report = json.loads((tmp_path / 'r.json').read_text())   # the rest is still reported
+    assert 'error' in report['loop']['models']['hill']
+    assert 'metrics' in report['loop']['models']['sigmoid_fixed_c']
+    # Without --model the params file takes the best branch model that did converge.
+    code, output = run_refit(procs, table, '--no-holdout', '--params-out', tmp_path / 'p.yaml')
+    assert code == 0, output
+    assert ModelParams.load_yaml(tmp_path / 'p.yaml').branch_form == 'sigmoid'
