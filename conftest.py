@@ -1,7 +1,7 @@
 """Test session setup shared by every test directory.
 
-Each pytest session gets its own random ROS_DOMAIN_ID and localhost-only
-discovery, so parallel runs on one machine never see each other's graphs. The
+Each pytest session, and each test module in it, gets its own random ROS_DOMAIN_ID and
+localhost-only discovery, so parallel runs on one machine never see each other's graphs. The
 environment must come from `tools/env.sh` (the Makefile does this).
 """
 
@@ -39,6 +39,24 @@ _DOMAIN_KEY = pytest.StashKey[int]()
 def pytest_report_header(config):
     mode = os.environ.get('PMA_ROS_MODE', 'unknown (run through tools/env.sh)')
     return f'ROS_DOMAIN_ID={config.stash[_DOMAIN_KEY]} localhost-only; ROS mode: {mode}'
+
+
+@pytest.fixture(autouse=True, scope='module')
+def ros_domain_per_module():
+    """A fresh ROS_DOMAIN_ID for every test module.
+
+    Processes of one module cannot then see another module's: not its lingering nodes, nor
+    the endpoints of a process it killed, which DDS keeps announcing until their lease ends
+    (a recorder adapts its QoS to such ghosts). The in-process rclpy context follows: it is
+    shut down at the end of the module, and the next module's probe starts it again.
+    """
+    previous = os.environ['ROS_DOMAIN_ID']
+    choices = [d for d in range(1, 102) if str(d) != previous]
+    os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().choice(choices))
+    yield
+    import rclpy
+    if rclpy.ok():
+        rclpy.shutdown()
 
 
 @pytest.fixture

@@ -101,6 +101,8 @@ def swept(module_procs, probe, tmp_path_factory):
     fake.wait_for_line('fake_arduino: device at', 20)
     model = module_procs.ros2_run('pma_model', 'model_node')
     model.wait_for_line('model_node ready', 30)
+    recorder = module_procs.ros2_run('pma_bag', 'record', '--idle')   # the Sweep records here
+    recorder.wait_for_line('recorder: idle', 30)
     live = Stream(probe.node)
     driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[
         '-p', f'port:={port}', '-p', f'sample_rate_hz:={float(RATE_HZ)}'])

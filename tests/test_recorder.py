@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from diagnostic_msgs.msg import KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.highlevel import AnyReader
@@ -55,6 +55,22 @@ class Probe:
         with self._lock:
             self.first.setdefault(topic, seq)
             self.newest[topic] = seq
+
+    def wait_heard(self, topic: str, recorder: str = '/recorder', timeout: float = 30.0):
+        """Until the recorder's /diagnostics says its reader of `topic` matched a publisher."""
+        heard: list[str] = []
+
+        def on_diagnostics(array: DiagnosticArray) -> None:
+            for status in array.status:
+                if status.name == f'{recorder}: bag recorder':
+                    heard.extend(v.value for v in status.values if v.key == 'topics heard')
+
+        sub = self.node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+        try:
+            wait_until(lambda: any(topic in h.split() for h in heard), timeout,
+                       f'the recorder hearing {topic}')
+        finally:
+            self.node.destroy_subscription(sub)
 
     def call(self, srv_type, name: str, request=None, timeout: float = 20.0):
         client = self.node.create_client(srv_type, name)
@@ -121,7 +137,7 @@ def test_services_drive_split_compressed_bags_with_custom_data(procs, probe, tmp
     watch = probe()
     source = publisher(procs, rate=200, count=200 * 60)
     wait_until(lambda: '/pma/state' in watch.newest, 30, 'the publisher streaming')
-    time.sleep(0.5)              # the recorder subscribes while idle; its bag has not started
+    watch.wait_heard('/pma/state')   # the recorder hears it while idle; no bag has started
     request = StartRecording.Request(bag_path='sweep1', custom_data=[
         KeyValue(key='note', value='services test'), KeyValue(key='muscle', value='m2')])
     response = watch.call(StartRecording, '/recorder/start', request)
@@ -202,6 +218,7 @@ def test_start_of_a_new_bag_on_a_running_recorder_misses_nothing(procs, probe, t
     watch = probe()
     publisher(procs, rate=200, count=200 * 30)
     wait_until(lambda: '/pma/state' in watch.newest, 30, 'the publisher streaming')
+    watch.wait_heard('/pma/state')
     response = watch.call(StartRecording, '/recorder/start',
                           StartRecording.Request(bag_path='next'))
     start_returned = time.time_ns()

@@ -388,17 +388,30 @@ class Recorder(Node):
         if entry.type_name == STATE_TYPE:
             bag.state_trackers.setdefault(entry.topic, SequenceTracker())
 
-    def matched(self, topics: list[str]) -> list[str]:
-        """Those of `topics` whose reader has matched every publisher the graph shows."""
-        done = []
-        for topic in topics:
-            entry = self.subscribed.get(topic)
-            if entry is None:
-                continue
-            publishers = len(self.get_publishers_info_by_topic(topic))
-            if entry.subscription.get_publisher_count() >= max(publishers, 1):
-                done.append(topic)
-        return done
+    def wait_for_matches(self, bag: Bag) -> tuple[list[str], list[str]]:
+        """(matched, not yet) topics of `bag`, after waiting a moment for the rest.
+
+        A topic whose publishers the graph shows gets up to START_MATCH_TIMEOUT_S for its
+        reader to match them all. A publisher that discovery has not shown yet (it takes
+        0.2-3 s after a publisher starts) cannot be waited for: /diagnostics' 'topics heard'
+        says when the recorder hears a topic.
+        """
+        start = time.monotonic()
+        while True:
+            matched, waiting = [], []
+            for topic in bag.topics:
+                entry = self.subscribed.get(topic)
+                if entry is None:
+                    continue
+                known = len(self.get_publishers_info_by_topic(topic))
+                count = entry.subscription.get_publisher_count()
+                if count >= max(known, 1):
+                    matched.append(topic)
+                elif known:
+                    waiting.append(topic)
+            if not waiting or time.monotonic() - start >= START_MATCH_TIMEOUT_S:
+                return matched, sorted(waiting)
+            time.sleep(0.01)
 
     # -- messages --------------------------------------------------------------------------
 
@@ -479,7 +492,7 @@ class Recorder(Node):
     # -- services --------------------------------------------------------------------------
 
     def on_start(self, request, response):
-        """Open a bag; return once its topics' readers match every publisher (<= 3 s).
+        """Open a bag; return once its topics' readers match their publishers (see below).
 
         Matching happens in the middleware's own threads, so this waits without the
         executor: messages queue in the readers meanwhile (reliable ones in full) and are
@@ -497,15 +510,7 @@ class Recorder(Node):
             response.success, response.message = False, str(exc)
             self.fail(None, str(exc))
             return response
-        deadline = time.monotonic() + START_MATCH_TIMEOUT_S
-        while True:
-            published = [t for t in bag.topics
-                         if t in self.subscribed and self.get_publishers_info_by_topic(t)]
-            matched = self.matched(published)
-            if len(matched) == len(published) or time.monotonic() >= deadline:
-                break
-            time.sleep(0.01)
-        late = sorted(set(published) - set(matched))
+        matched, late = self.wait_for_matches(bag)
         response.success = True
         response.bag_path = str(bag.path)
         response.topics = matched
@@ -588,7 +593,11 @@ class Recorder(Node):
             status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: bag recorder',
                                       hardware_id=str(self.target or ''))
             values = {'state': 'idle' if bag is None else
-                      ('paused' if self.paused else 'recording')}
+                      ('paused' if self.paused else 'recording'),
+                      # readers matched to at least one publisher: what a new bag would get
+                      'topics heard': ' '.join(sorted(
+                          topic for topic, entry in self.subscribed.items()
+                          if entry.subscription.get_publisher_count() > 0)) or '-'}
             if bag is not None:
                 loss = bag.loss()
                 topics = sum(1 for t in bag.topics if t in self.subscribed)

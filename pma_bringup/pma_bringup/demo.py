@@ -188,7 +188,6 @@ def main(argv: list[str] | None = None) -> int:
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
 
-    bag_dir = run_dir / 'bag'                    # the recorder: everything, start to end
     major_bag = run_dir / 'major_loop'            # the Sweep action's own bags, one per run
     minor_bag = run_dir / 'minor_loops'
     params_out = run_dir / 'refit_params.yaml'
@@ -205,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
             '-p', f'port:={port}', '-p', f'sample_rate_hz:={args.rate_hz}'])
         procs.start('model_node', 'pma_model', 'model_node', ros_args=[
             '-p', f'params_file:={params_out}'])
-        procs.start('recorder', 'pma_bag', 'record', '-o', str(bag_dir))
+        # Idle until the Sweep action asks it for a bag (the driver calls its ~/start).
+        procs.start('recorder', 'pma_bag', 'record', '--idle', '--compression', 'zstd')
 
         rclpy.init()
         node = Node('pma_demo')
@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         first = states[-1]
         say(f'   streaming: {first.gauge_pressure_pa / 1e3:.1f} kPa, '
             f'{first.length_m * 100:.2f} cm at rest')
-        procs.wait_for_log('recorder', 'recording', 20)
+        procs.wait_for_log('recorder', 'idle', 20)
 
         say("3/7 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
         run_sweep(node, 'major loop', Sweep.Goal(
@@ -257,9 +257,8 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 print(f'      {length_m * 100:6.2f} cm  {name:17s}  refused: {answer.message}')
 
-        say("6/7 stopping the recorder; refitting the model from the major loop's bag and "
-            "scoring the memory rules along the minor loops' bag")
-        procs.stop('recorder')
+        say("6/7 refitting the model from the major loop's bag and scoring the memory rules "
+            "along the minor loops' bag")
         loaded_before = len(model_params)  # model_node may reload while refit still plots
         refit = subprocess.run(
             [str(executable('pma_model', 'refit')), str(major_bag),
@@ -285,8 +284,7 @@ def main(argv: list[str] | None = None) -> int:
 
         elapsed = time.monotonic() - started
         say(f'done in {elapsed:.0f} s. Outputs:')
-        for label, path in (('bag of the whole run (rosbag2 MCAP)', bag_dir),
-                            ("the Sweep action's bags: major loop", major_bag),
+        for label, path in (("the Sweep action's bags: major loop", major_bag),
                             ('                         minor loops', minor_bag),
                             ('refit report (JSON)', run_dir / 'refit.json'),
                             ('refit parameters (model_node params file)', params_out),

@@ -77,7 +77,8 @@ class PmaDriver(Node):
         self._refusal_logged: dict[str, float] = {}
 
         self._recorder = RecorderClient(self, values['sweep.recorder'],
-                                        values['sweep.recorder_timeout_s'])
+                                        values['sweep.recorder_timeout_s'],
+                                        publishers=lambda: self._pubs or ())
         self._sweeps = SweepRunner(self._control, recorder=self._recorder,
                                    sample_count=lambda: self._published, on_event=self._log)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)

@@ -75,7 +75,8 @@ PARAMETERS: dict[str, tuple[Any, str, dict]] = {
                   {'read_only': True}),
     'qos_reliability': ('reliable', "'reliable' (REP-2003 system default) or 'best_effort'",
                         {'read_only': True}),
-    'qos_depth': (10, 'History depth of the data topics',
+    'qos_depth': (1000, 'History depth of the data topics: what a reliable reader that '
+                  'stalls (a busy recorder) can still get; 1000 = 1 s at 1 kHz',
                   {'read_only': True, 'integer_range': _ints(1, 10_000)}),
     'sweep.tolerance_pa': (10_000.0, 'A sweep step is reached within this of its setpoint [Pa]',
                            {'floating_point_range': _floats(100.0, 100_000.0)}),

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 from diagnostic_msgs.msg import KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.client import Client
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 
 from pma_driver.sweep_runner import RecorderError, RecordingSummary
 from pma_interfaces.srv import StartRecording, StopRecording
@@ -41,10 +42,12 @@ def how_to_start(start_service: str) -> str:
 
 
 class RecorderClient:
-    def __init__(self, node: Node, recorder: str, timeout_s: float):
+    def __init__(self, node: Node, recorder: str, timeout_s: float,
+                 publishers: Callable[[], Sequence[Publisher]] = tuple):
         self._node = node
         self.recorder = recorder
         self.timeout_s = timeout_s
+        self._publishers = publishers       # ours, whose samples the bag must not miss
         group = MutuallyExclusiveCallbackGroup()   # answers come while the sweep thread waits
         self.start_service = node.resolve_service_name(f'{recorder}/start')
         self.stop_service = node.resolve_service_name(f'{recorder}/stop')
@@ -69,7 +72,22 @@ class RecorderClient:
                                 f'{self.timeout_s:g} s')
         if not response.success:
             raise RecorderError(f'the recorder refused to start: {response.message}')
+        self._wait_until_heard()
         return response.bag_path
+
+    def _wait_until_heard(self) -> None:
+        """Until each of our publishers counts every reader the graph shows (<= timeout).
+
+        The recorder's readers may have matched our writers before our writers know of them,
+        and a writer sends only to readers it knows: without this the bag can miss the
+        sweep's first samples.
+        """
+        deadline = time.monotonic() + self.timeout_s
+        for publisher in self._publishers():
+            readers = len(self._node.get_subscriptions_info_by_topic(publisher.topic_name))
+            while publisher.get_subscription_count() < readers \
+                    and time.monotonic() < deadline:
+                time.sleep(0.01)
 
     def stop(self) -> RecordingSummary:
         response = self._call(self._stop, StopRecording.Request())
