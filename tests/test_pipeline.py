@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import subprocess
 import threading
 import time
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from rosbags.highlevel import AnyReader
 from pma_bag import BagReader
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import ModelParams, PmaPrediction, PmaState
+from support.procs import INSTALL
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -101,7 +103,9 @@ def swept(module_procs, probe, tmp_path_factory):
     fake.wait_for_line('fake_arduino: device at', 20)
     model = module_procs.ros2_run('pma_model', 'model_node')
     model.wait_for_line('model_node ready', 30)
-    recorder = module_procs.ros2_run('pma_bag', 'record', '--idle')   # the Sweep records here
+    # The Sweep records here: zstd chunks, a new file every 8 s, as a long experiment would.
+    recorder = module_procs.ros2_run('pma_bag', 'record', '--idle', '--compression', 'zstd',
+                                     '--max-bag-duration', '8')
     recorder.wait_for_line('recorder: idle', 30)
     live = Stream(probe.node)
     driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[
@@ -113,7 +117,7 @@ def swept(module_procs, probe, tmp_path_factory):
     assert client.wait_for_server(timeout_sec=20)
     bag = work / 'sweep_bag'
     goal = Sweep.Goal(max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=1.0, cycles=1,
-                      record=True, bag_path=str(bag))
+                      record=True, bag_path=str(bag), note='pipeline test, muscle m1')
     with live.lock:
         first_state = len(live.states)
     sent = client.send_goal_async(goal)
@@ -206,30 +210,45 @@ def test_live_predictions_follow_the_measured_length_on_both_branches(swept):
     assert len(stamps - predicted) <= 2, 'predictions missing for live samples'
 
 
-def test_the_sweep_bag_opens_in_three_readers(swept):
+def test_the_sweep_bag_opens_in_four_readers(swept):
+    """Split into several zstd-compressed files with the run's metadata, and read as one bag,
+    every message once, by our reader, rosbags, mcap + mcap_ros2 and `pma_bag info`."""
     bag = swept['bag']
-    assert (bag / 'metadata.yaml').is_file() and (bag / f'{bag.name}_0.mcap').is_file()
+    metadata = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    files = [bag / name for name in metadata['relative_file_paths']]
+    assert len(files) >= 2 and all(f.is_file() for f in files), files
+    custom = metadata['custom_data']
+    assert custom['note'] == 'pipeline test, muscle m1'
+    assert custom['sweep.step_pa'] == '50000.0' and custom['device.firmware'] == 'fake_arduino'
+    assert custom['lost_messages'] == '0'
     with BagReader(bag) as reader:
         ours = [deserialize_message(m.data, PmaState).seq
                 for m in reader.messages(['/pma/state'])]
         topics = set(reader.topics)
+        assert reader.compressions == {'zstd'}
     assert {'/pma/state', '/pma/pressure', '/pma/range', '/pma/prediction',
             '/pma/model_params', '/diagnostics'} <= topics
     assert len(ours) >= swept['result'].sample_count * 0.9
-    assert ours == sorted(ours) and len(set(ours)) == len(ours)
+    assert ours == list(range(ours[0], ours[0] + len(ours))), 'every sample once, none missing'
     with AnyReader([bag]) as reader:
         connections = [c for c in reader.connections if c.topic == '/pma/state']
         theirs = [reader.deserialize(raw, STATE).seq for _, _, raw in
                   reader.messages(connections)]
     assert theirs == ours
-    with open(bag / f'{bag.name}_0.mcap', 'rb') as stream:
-        decoded = make_reader(stream, decoder_factories=[DecoderFactory()])
-        mcaps = [m.seq for _, _, _, m in decoded.iter_decoded_messages(topics=['/pma/state'])]
+    mcaps = []
+    for path in files:
+        with open(path, 'rb') as stream:
+            decoded = make_reader(stream, decoder_factories=[DecoderFactory()])
+            mcaps += [m.seq for _, _, _, m in
+                      decoded.iter_decoded_messages(topics=['/pma/state'])]
     assert mcaps == ours
-    metadata = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     counts = {t['topic_metadata']['name']: t['message_count']
               for t in metadata['topics_with_message_count']}
     assert counts['/pma/state'] == len(ours)
+    info = subprocess.run([str(INSTALL / 'pma_bag' / 'lib' / 'pma_bag' / 'info'), str(bag)],
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert info.returncode == 0, info.stderr
+    assert 'pipeline test, muscle m1' in info.stdout and 'zstd' in info.stdout
 
 
 @pytest.fixture(scope='module')

@@ -164,8 +164,8 @@ class Recorder(Node):
     """Subscribes the wanted topics as their publishers appear and writes the open bag."""
 
     def __init__(self, options: RecordOptions, topics: list[str] | None = None,
-                 graph_period_s: float = GRAPH_PERIOD_S):
-        super().__init__('recorder')
+                 graph_period_s: float = GRAPH_PERIOD_S, **node_kwargs):
+        super().__init__('recorder', **node_kwargs)
         self.options = options
         wanted = self.declare_parameter('topics', topics or DEFAULT_TOPICS).value
         self.default_topics = self.resolve_topics(wanted)
