@@ -11,9 +11,9 @@ up) it must bring the error back to the drift-free level within two minutes.
 from __future__ import annotations
 
 import pytest
-from support.muscle_families import Config, Scenario, score
 
 from pma_driver.sim.families import FAMILY_NAMES
+from support.muscle_families import Config, Scenario, score
 
 pytestmark = pytest.mark.slow
 

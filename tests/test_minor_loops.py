@@ -14,6 +14,15 @@ import itertools
 
 import numpy as np
 import pytest
+
+from pma_driver import protocol
+from pma_driver.calibration import PressureCalibration
+from pma_driver.sim.device import DeviceConfig, SimDevice
+from pma_driver.sim.families import FAMILY_NAMES, muscle_family
+from pma_driver.sweep import plan_sweep
+from pma_model.identification import run_online
+from pma_model.memory import HysteresisModel
+from pma_model.params import default_params
 from support.muscle_families import (
     IDENTIFY,
     LEARNED_RULES,
@@ -24,15 +33,6 @@ from support.muscle_families import (
     Scenario,
     score,
 )
-
-from pma_driver import protocol
-from pma_driver.calibration import PressureCalibration
-from pma_driver.sim.device import DeviceConfig, SimDevice
-from pma_driver.sim.families import FAMILY_NAMES, muscle_family
-from pma_driver.sweep import plan_sweep
-from pma_model.identification import run_online
-from pma_model.memory import HysteresisModel
-from pma_model.params import default_params
 
 pytestmark = pytest.mark.slow
 

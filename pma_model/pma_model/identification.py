@@ -10,21 +10,25 @@ its state (docs/model.md, "Online identification"):
   so each is a scalar recursive least-squares estimate, clamped to 0..1: a continuous
   memory parameter between the two rules, whose regret against the best fixed share
   grows only logarithmically. It learns only where the shapes differ: after reversals.
-- the branch shape: a correction delta(P), the same for both branches, piecewise linear on
-  knots every 50 kPa (CORRECTION_KNOTS_PA), added inside the branches (CorrectedBranch) so
-  every memory rule uses it and keeps its continuity and return-point memory.
+- the branch shape: a correction delta(P) given at knots every 50 kPa (CORRECTION_KNOTS_PA),
+  the same for both branches, added inside them (CorrectedBranch) so every memory rule uses
+  it and keeps its continuity and return-point memory. Between knots it follows the branch's
+  own length, so it can flatten the sigmoid's dead zone and still invert in closed form. (A
+  correction per branch learned worse: on a scanning curve a residual cannot be told to one
+  branch.)
 - creep: length = static + sum_j k_j (lag_j(static) - static), the model's static length
   through first-order lags of CREEP_TIME_CONSTANTS_S: a share of each change arriving late,
   which vanishes in a hold (so the inverse, a steady-state answer, ignores it).
 - drift (adaptation.enabled): rest-length shift and stroke gain (adaptation.Drift).
 
 delta, the creep gains and the drift are one Kalman filter (random walks: delta and creep
-nearly static, drift moving over adaptation.time_constant_s). Its measurement noise is the
-sensor's, divided by a confidence that is 1 on the major branches and falls as the two
-memory shapes disagree: a residual the memory could explain is not learned as shape or
-drift. The learned numbers are applied to the memory model when they have moved enough to
-matter (COMMIT_M, COMMIT_SHARE), by replaying the remembered turning points, so the
-prediction moves by at most about COMMIT_M at a time.
+nearly static, drift moving over adaptation.time_constant_s; with drift on, delta is kept
+out of the two directions drift moves the knots in, so they cannot trade off). Its
+measurement noise is the sensor's, divided by a confidence that is 1 on the major branches
+and falls as the two memory shapes disagree: a residual the memory could explain is not
+learned as shape or drift. The learned numbers are applied to the memory model when they have
+moved enough to matter (COMMIT_M, COMMIT_SHARE), by replaying the remembered turning points:
+the state stays a function of the pressure history and the learned numbers.
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ COMMIT_M = 2e-5              # apply learned branch changes once they move 0.02 
 COMMIT_SHARE = 0.01          # or a share by this much
 MAX_STEP_S = 1.0             # a longer gap between samples counts as this (a pause)
 GAIN_WALK_LENGTH_M = 0.03    # the gain may move as fast as the shift does at this |L - L_ref|
+SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth nothing)
 
 # Kalman filter priors (standard deviations) and random-walk rates (per second).
 _PRIOR = {'correction': 0.004, 'creep': 0.5, 'shift': 0.003, 'gain': 0.1, 'share': 1.0}
@@ -475,7 +480,7 @@ class OnlineModel:
         covariance = state.covariance
         covariance[np.diag_indices_from(covariance)] += walk
         spread = covariance @ regressor
-        innovation = noise / max(confidence, 1e-3) + float(regressor @ spread)
+        innovation = noise / max(confidence, SPREAD_FLOOR) + float(regressor @ spread)
         kalman_gain = spread / innovation
         mean = state.mean + kalman_gain * residual
         covariance = covariance - np.outer(kalman_gain, spread)
@@ -510,8 +515,9 @@ class OnlineModel:
     def _correction_regressor(self) -> np.ndarray:
         """d length / d knots at the current pressure, along the current direction's branch
         (exact on a major branch; on a scanning curve a shift of the correction there moves
-        the length by about as much)."""
-        return correction_weights(self.model.pressure_pa, self.model.major(self.model.rising))
+        the length by about as much). The direction is the stack's ('switch' has none)."""
+        tracker = self._shapes if self._shapes is not None else self.model
+        return correction_weights(tracker.pressure_pa, tracker.major(tracker.rising))
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
         """Scalar RLS on the current direction's play share (prediction linear in it)."""

@@ -4,7 +4,7 @@ Four rules (docs/model.md has the full story and their errors on minor loops):
 
 - 'switch' (the paper): the length is the major branch of the detected direction, so it
   jumps by the loop width at every reversal.
-- 'madelung' (default): a stack of turning points with wiping-out. Each scanning curve is
+- 'madelung': a stack of turning points with wiping-out. Each scanning curve is
   the current direction's major branch B rescaled through the last reversal O and the
   previous opposite reversal T:
       L(P) = L_T + (L_O - L_T) * (B(P) - B(P_T)) / (B(P_O) - B(P_T))
@@ -20,7 +20,7 @@ Four rules (docs/model.md has the full story and their errors on minor loops):
   branches: Coulomb friction in the braid, no parameter beyond the branches, no jump,
   quiet under noise narrower than the band, and a closed-form inverse.
 
-- 'identify' (default): the Madelung stack, with scanning curves that mix two shapes from
+- 'identify' (the default): the Madelung stack, with scanning curves that mix two shapes from
   the same two points O and T: Madelung's rescaled branch and a play-like curve that holds
   at L_O and then runs parallel to the (rescaled) branch into T. With s = (B(P) - B(P_T)) /
   (B(P_O) - B(P_T)), q = min(1, (L_O - L_T) / (B(P_O) - B(P_T))) and w the play share of

@@ -219,3 +219,42 @@ def test_identification_off_is_the_memory_model_alone():
     model = params.build_online()
     assert np.array_equal(run_online(model, pressure, plain + 0.003, time_s), plain)
     assert isinstance(model, OnlineModel) and model.samples_learned == 0
+
+
+def test_a_noisy_hold_neither_moves_the_prediction_nor_teaches_nonsense():
+    # A long hold in miniature: 250 kPa above the last turn, read through the 10-bit sensor
+    # (611 Pa steps, 1.25 kPa noise), the HC-SR04's 1.7 mm noise on the length. Every noise
+    # reversal enters the memory and closes again; the reported branch does not flip (the
+    # deadband), learning adds next to nothing to the jitter and learns no nonsense.
+    rng = np.random.default_rng(11)
+    time_s, pressure = random_path(12, turns=6)
+    truth = truth_with().predict(pressure)
+    level = pressure[-1] + 250e3
+    hold = 611.0 * np.round((level + rng.normal(0.0, 1.25e3, 3000)) / 611.0)
+    path = np.concatenate([np.linspace(pressure[-1], level, 50), hold])
+    times = time_s[-1] + (1 + np.arange(path.size)) / RATE_HZ
+    expected = truth_with().predict(np.concatenate([pressure, path]))[pressure.size:]
+    jitter = {}
+    for learn in (True, False):
+        model = online(enabled=learn).build_online()
+        run_online(model, pressure, truth + rng.normal(0.0, 1.7e-3, truth.size), time_s)
+        measured = expected + rng.normal(0.0, 1.7e-3, path.size)
+        steps = [model.step(*sample) for sample in zip(path[:100], measured[:100], times[:100],
+                                                       strict=True)]
+        before = model.learned()    # the ramp taught what it could; now only noise
+        steps += [model.step(*sample) for sample in zip(path[100:], measured[100:],
+                                                        times[100:], strict=True)]
+        predicted = [step.length_m for step in steps]
+        branches = {step.branch for step in steps[100:]}
+        jitter[learn] = float(np.ptp(predicted[550:]))
+        assert len(branches) == 1 and len(model.model.turning_points) < 40
+        after = model.learned()
+        # A hold on a scanning curve still says something about the share (the truth's is
+        # 0.5): it may move toward it, not away; the correction stays where it was.
+        for name in ('play_share_rising', 'play_share_falling'):
+            assert abs(getattr(after, name) - 0.5) <= abs(getattr(before, name) - 0.5) + 0.05
+        assert np.max(np.abs(np.subtract(after.branch_correction_m,
+                                         before.branch_correction_m))) < 1e-3
+    print(f'\njitter over the hold: {jitter[False] * 1e3:.2f} mm frozen, '
+          f'{jitter[True] * 1e3:.2f} mm learning')
+    assert jitter[True] < jitter[False] + 2e-4

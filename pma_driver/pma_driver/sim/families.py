@@ -234,12 +234,11 @@ class CreepParams:
     time_constant_s: float
 
 
-class CreepMuscle:
-    """`inner`'s length, part of it lagged: length = static + share * (lagged - static)."""
+class _Wrapped:
+    """A muscle that changes what `inner` does (creep, drift); `inner` keeps the rest length."""
 
-    def __init__(self, inner: Muscle, params: CreepParams):
+    def __init__(self, inner: Muscle):
         self.inner = inner
-        self.params = params
         self.reset()
 
     @property
@@ -248,7 +247,22 @@ class CreepMuscle:
 
     def reset(self) -> None:
         self.inner.reset()
-        self._static = self._lagged = self.length_m = self.inner.length_m
+        self.length_m = self.inner.length_m
+        self._restart()
+
+    def _restart(self) -> None:
+        """Reset the wrapper's own state (the inner muscle is already relaxed)."""
+
+
+class CreepMuscle(_Wrapped):
+    """`inner`'s length, part of it lagged: length = static + share * (lagged - static)."""
+
+    def __init__(self, inner: Muscle, params: CreepParams):
+        self.params = params
+        super().__init__(inner)
+
+    def _restart(self) -> None:
+        self._static = self._lagged = self.length_m
         self._time = None
 
     def update(self, pressure_pa: float, t_s: float = 0.0) -> float:
@@ -299,21 +313,12 @@ class DriftSpec:
         return -math.expm1(-(t_s - self.start_s) / self.time_constant_s)
 
 
-class DriftingMuscle:
+class DriftingMuscle(_Wrapped):
     """`inner` with its rest length shifted and its stroke scaled as DriftSpec says."""
 
     def __init__(self, inner: Muscle, drift: DriftSpec):
-        self.inner = inner
         self.drift = drift
-        self.reset()
-
-    @property
-    def rest_length_m(self) -> float:
-        return self.inner.rest_length_m
-
-    def reset(self) -> None:
-        self.inner.reset()
-        self.length_m = self.inner.length_m
+        super().__init__(inner)
 
     def update(self, pressure_pa: float, t_s: float = 0.0) -> float:
         inner = self.inner.update(pressure_pa, t_s)
