@@ -333,7 +333,7 @@ def test_constructor_validates():
         HysteresisModel(increasing, decreasing, max_gauge_pressure_pa=math.nan)
 
 
-@pytest.mark.parametrize('memory', ['madelung', 'switch', 'play'])
+@pytest.mark.parametrize('memory', ['identify', 'madelung', 'switch', 'play'])
 def test_resume_from_rebuilds_the_state_with_new_branches(memory):
     path = ramp(0, 400, 150, 300, 220)
     old = model_of('sigmoid', memory=memory)
