@@ -558,8 +558,12 @@ class OnlineModel:
         result = self.model.pressure_for_length(target, branch)
         if self._drifting and math.isfinite(result.min_length_m):
             low, high = drift.correct([result.min_length_m, result.max_length_m])
-            result = replace(result, min_length_m=float(min(low, high)),
-                             max_length_m=float(max(low, high)))
+            low, high = float(min(low, high)), float(max(low, high))
+            message = result.message
+            if not result.success:
+                message += (f' (lengths without the drift correction; with it: reachable '
+                            f'[{low:.6g}, {high:.6g}] m)')
+            result = replace(result, message=message, min_length_m=low, max_length_m=high)
         return result
 
     # --- run-time parameter changes -------------------------------------------------
