@@ -45,7 +45,7 @@ def main() -> None:
     models = {form: replace(params, branch_form=form).build_model()
               for form in ('sigmoid', 'hill')}
     memories = {memory: replace(params, memory=memory).build_model()
-                for memory in ('play', 'madelung', 'switch')}
+                for memory in ('identify', 'play', 'madelung', 'switch')}
     sigmoid = models['sigmoid']
 
     rows = []
@@ -60,7 +60,7 @@ def main() -> None:
         rows.append((f'{memory} predict, smooth', n,
                      best_time(lambda m=model: m.predict(smooth), repeats)))
     noisy_n = min(n, 100_000)
-    for memory in ('play', 'madelung'):
+    for memory in ('identify', 'play', 'madelung'):
         rows.append((f'{memory} predict, noisy (+/-10 kPa)', noisy_n,
                      best_time(lambda m=memories[memory]: m.predict(noisy[:noisy_n]), 1)))
 
@@ -85,6 +85,18 @@ def main() -> None:
     for memory, model in memories.items():
         per_call[f'model.update (online, {memory})'] = best_time(
             lambda m=model: [m.update(p) for p in online_path], repeats)
+    # The node's whole per-sample work: predict, then learn (identification, adaptation),
+    # on a noisy measured length; fresh models each repeat, so learning starts each time.
+    measured = sigmoid.predict(online_path) + rng.normal(0.0, 1.7e-3, calls)
+    times = np.arange(calls) / 100.0
+    for label, learning in (('identify + learning', replace(params, adaptation=replace(
+            params.adaptation, enabled=True))),
+                            ('identify, learning off', replace(params, identification=replace(
+                                params.identification, enabled=False)))):
+        per_call[f'online.step ({label})'] = best_time(
+            lambda p=learning: [online.step(*sample) for online in [p.build_online()]
+                                for sample in zip(online_path, measured, times, strict=True)],
+            repeats)
     call_baseline = per_call['baseline: np.polyval on a float'] / calls
     print(f'\n{"per call":34s} {"us/call":>9s} {"x baseline":>11s}')
     for name, seconds in per_call.items():

@@ -1,16 +1,16 @@
-"""The memory rules on minor loops, measured against the simulated rig (docs/model.md, §3).
+"""Minor loops on every simulated muscle family: the issue's acceptance (docs/model.md §3).
 
-The truth is the rig's Preisach muscle (pma_driver.sim), a family the model does not
-contain; each model is fitted to the major loop only (the shipped defaults, from Table 1)
-and must predict the minor loops. Two runs: the Sweep action's staircase with reversals,
-through the simulated device (valves, 10-bit sensor with its noise), and a dense path with
-26 nested reversals on the muscle alone. Errors are in % of the stroke.
+Each family (pma_driver.sim.families) reproduces Table 1, so the major loop cannot tell them
+apart; they differ after reversals. The model starts from the shipped defaults (sigmoid
+branches fitted to Table 1, no memory data) and runs online along nested and random
+reversal paths of three minutes, seeing the sensors' readings; scores count from the third
+reversal on, against the true length (tests/support/muscle_families.py).
+`bench/bench_memory_families.py` prints the full table (both branch forms, two seeds).
 """
 
 from __future__ import annotations
 
 import itertools
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,25 +18,108 @@ import pytest
 from pma_driver import protocol
 from pma_driver.calibration import PressureCalibration
 from pma_driver.sim.device import DeviceConfig, SimDevice
-from pma_driver.sim.muscle import PreisachMuscle
+from pma_driver.sim.families import FAMILY_NAMES, muscle_family
 from pma_driver.sweep import plan_sweep
+from pma_model.identification import run_online
+from pma_model.memory import HysteresisModel
 from pma_model.params import default_params
+from support.muscle_families import (
+    IDENTIFY,
+    LEARNED_RULES,
+    PAPER,
+    PATH_KINDS,
+    STATIC_RULES,
+    Config,
+    Scenario,
+    score,
+)
 
-MEMORIES = ('switch', 'madelung', 'play')
-FORMS = ('sigmoid', 'hill')
-# 0 -> 350 -> 150 -> 300 -> 200 -> 500 -> 100 -> 250 -> 0 kPa: loops on both branches
-REVERSALS_PA = (350e3, 150e3, 300e3, 200e3, 500e3, 100e3, 250e3)
+pytestmark = pytest.mark.slow
+
 NESTED_TURNS_KPA = (0, 350, 150, 300, 200, 250, 0, 500, 100, 400, 250, 500, 0, 200, 50, 450,
                     300, 350, 0, 250, 150, 220, 180, 500, 380, 460, 420, 0)
+REVERSALS_PA = (350e3, 150e3, 300e3, 200e3, 500e3, 100e3, 250e3)
 
 
-def staircase_through_the_device(hold_ms: int = 1000, step_pa: float = 50e3):
-    """(measured gauge pressure, true length) per 50 Hz sample of a staircase sweep."""
-    device = SimDevice(DeviceConfig(rate_hz=50, seed=5))
-    decoder = protocol.FrameDecoder()
-    sensor = PressureCalibration()
+def scores(family: str, config: Config) -> dict[str, object]:
+    return {kind: score(Scenario(family, kind), config) for kind in PATH_KINDS}
+
+
+@pytest.fixture(scope='module', autouse=True)
+def table():
+    """Print what the tests below judge (so a failure shows the whole picture)."""
+    lines = ['\nRMSE / max error, % of stroke, from the third reversal on (sigmoid branches)']
+    for family, config in itertools.product(FAMILY_NAMES, (PAPER, *STATIC_RULES,
+                                                           *LEARNED_RULES, IDENTIFY)):
+        cells = '   '.join(f'{kind} {s.rmse_pct:5.2f} / {s.max_pct:5.2f}'
+                           for kind, s in scores(family, config).items())
+        lines.append(f'  {family:10s} {config.label:22s} {cells}')
+    print('\n'.join(lines))
+
+
+@pytest.mark.parametrize('family', FAMILY_NAMES)
+def test_identify_beats_the_papers_switch_in_rmse(family):
+    ours, paper = scores(family, IDENTIFY), scores(family, PAPER)
+    for kind in PATH_KINDS:
+        assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind
+
+
+@pytest.mark.parametrize('family', [
+    *(name for name in FAMILY_NAMES if name != 'asymmetric'),
+    pytest.param('asymmetric', marks=pytest.mark.xfail(
+        strict=True, reason='not met: 0.81x the switch on the nested path (docs/model.md §3):'
+        ' on falling scans this Duhem muscle approaches its envelope exponentially, a shape '
+        'no mix of Madelung and play-like curves follows'))])
+def test_identify_max_error_is_at_most_0_7_of_the_switch(family):
+    ours, paper = scores(family, IDENTIFY), scores(family, PAPER)
+    for kind in PATH_KINDS:
+        assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
+
+
+@pytest.mark.parametrize('family', FAMILY_NAMES)
+def test_identify_is_never_much_worse_than_the_best_fixed_rule(family):
+    ours = scores(family, IDENTIFY)
+    for kind in PATH_KINDS:
+        best = min(scores(family, config)[kind].rmse_m
+                   for config in (PAPER, *STATIC_RULES, *LEARNED_RULES))
+        assert ours[kind].rmse_m <= 1.1 * best, kind
+
+
+@pytest.mark.parametrize('family', FAMILY_NAMES)
+def test_the_moonshot_minor_loop_rmse_within_1_5_percent_of_stroke(family):
+    for kind, result in scores(family, IDENTIFY).items():
+        assert result.rmse_pct <= 1.5, kind
+
+
+def nested_path(step_pa: float = 1e3) -> np.ndarray:
+    turns = np.array(NESTED_TURNS_KPA) * 1e3
+    return np.concatenate([[turns[0]]] + [
+        np.linspace(a, b, max(1, round(abs(b - a) / step_pa)) + 1)[1:]
+        for a, b in itertools.pairwise(turns)])
+
+
+def test_the_memory_removes_the_jump_at_reversals():
+    # The paper's switch jumps by the loop width (~5 mm) when the detector flips; the
+    # identify rule's scanning curves start where the length is, so one 1 kPa step moves
+    # it by at most the branches' slope (~0.25 mm), whatever the shares.
+    path = nested_path()
+    branches = default_params().branches()
+    jumps = {}
+    for memory, shares in (('switch', (0.5, 0.5)), ('identify', (0.0, 1.0)),
+                           ('identify', (1.0, 0.0)), ('identify', (0.5, 0.5))):
+        model = HysteresisModel(*branches, memory=memory, play_shares=shares)
+        jumps[memory, shares] = float(np.max(np.abs(np.diff(model.predict(path)))))
+    assert jumps.pop(('switch', (0.5, 0.5))) > 4e-3
+    assert max(jumps.values()) < 3e-4
+
+
+def staircase_through_the_device(family: str, hold_ms: int = 1000, step_pa: float = 50e3):
+    """(time, measured pressure, measured length, true length) per 50 Hz sample."""
+    config = DeviceConfig(rate_hz=50, seed=5, muscle=family)
+    device = SimDevice(config)
+    decoder, sensor = protocol.FrameDecoder(), PressureCalibration()
     plan = plan_sweep(500e3, step_pa, hold_ms / 1000, 1, list(REVERSALS_PA), ceiling_pa=500e3)
-    pressures, lengths = [], []
+    rows = []
 
     def run(ms: int) -> None:
         for t in range(ms):
@@ -45,93 +128,27 @@ def staircase_through_the_device(hold_ms: int = 1000, step_pa: float = 50e3):
             device.advance(1)
             for frame in decoder.feed(b''.join(device.take_output())):
                 if isinstance(frame, protocol.Sample):
-                    pressures.append(sensor.adc_to_pa(frame.adc))
-                    lengths.append(device.rig.length_m)
+                    length = device.rig.range_sensor.echo_to_length_m(frame.echo_us)
+                    rows.append((frame.t_ms / 1000.0, sensor.adc_to_pa(frame.adc), length,
+                                 device.rig.length_m))
 
     for setpoint in plan.setpoints_pa:
         device.receive(protocol.encode_command(protocol.Command.SET, round(setpoint)))
-        run(400)          # the valves move the pressure to the step
-        run(hold_ms)
-    return np.array(pressures), np.array(lengths)
+        run(400 + hold_ms)
+    return tuple(np.array(column) for column in zip(*rows, strict=True))
 
 
-def nested_path_on_the_muscle(step_pa: float = 1e3):
-    turns = np.array(NESTED_TURNS_KPA) * 1e3
-    path = np.concatenate([[turns[0]]] + [
-        np.linspace(a, b, max(1, round(abs(b - a) / step_pa)) + 1)[1:]
-        for a, b in itertools.pairwise(turns)])
-    muscle = PreisachMuscle()
-    return path, np.array([muscle.update(p) for p in path])
-
-
-def errors_pct(pressures, truth):
-    """{(form, memory): (rmse %, max %, largest step between samples [mm])}."""
-    stroke = truth.max() - truth.min()
-    table = {}
-    for form, memory in itertools.product(FORMS, MEMORIES):
-        model = replace(default_params(), branch_form=form, memory=memory).build_model()
-        predicted = model.predict(pressures)
-        error = 100 * (predicted - truth) / stroke
-        table[form, memory] = (float(np.sqrt(np.mean(error ** 2))),
-                               float(np.max(np.abs(error))),
-                               float(1000 * np.max(np.abs(np.diff(predicted)))))
-    return table
-
-
-def report(title, table):
-    lines = [f'\n{title}: RMSE / max error in % of stroke, largest jump between samples',
-             *(f'  {form:8s} {memory:9s} {rmse:5.2f} / {worst:5.2f} %   {jump:5.2f} mm'
-               for (form, memory), (rmse, worst, jump) in table.items())]
-    print('\n'.join(lines))
-
-
-@pytest.fixture(scope='module')
-def staircase_table():
-    table = errors_pct(*staircase_through_the_device())
-    report('Sweep staircase with reversals, through the simulated device', table)
-    return table
-
-
-@pytest.fixture(scope='module')
-def nested_table():
-    table = errors_pct(*nested_path_on_the_muscle())
-    report('26 nested reversals at 1 kPa steps, on the muscle', table)
-    return table
-
-
-@pytest.mark.parametrize('form', FORMS)
-def test_memory_rules_remove_the_jump_at_reversals(nested_table, form):
-    # switch jumps by the loop width (about 5 mm) when the detector flips; the others are
-    # continuous: one 1 kPa step moves them by at most the branches' slope (~0.25 mm).
-    assert nested_table[form, 'switch'][2] > 4.0
-    assert nested_table[form, 'madelung'][2] < 0.3
-    assert nested_table[form, 'play'][2] < 0.3
-
-
-@pytest.mark.parametrize('form', FORMS)
-def test_play_is_never_worse_than_the_papers_switch(staircase_table, nested_table, form):
-    # The default memory: the worst error never above switch's, the RMSE no more than a
-    # rounding above it (on 50 kPa staircases both have converged by the hold).
-    for table in (staircase_table, nested_table):
-        switch, play = table[form, 'switch'], table[form, 'play']
-        assert play[1] <= switch[1] + 1e-9 and play[0] < switch[0] + 0.1, (form, switch, play)
-    assert nested_table[form, 'play'][1] < 0.75 * nested_table[form, 'switch'][1]
-
-
-DOCUMENTED = {   # docs/model.md §3: (rmse %, max %) on the staircase and on the nested path
-    ('sigmoid', 'switch'): ((2.99, 6.89), (3.25, 9.82)),
-    ('sigmoid', 'madelung'): ((3.17, 6.97), (3.43, 9.54)),
-    ('sigmoid', 'play'): ((3.04, 6.89), (3.14, 6.82)),
-    ('hill', 'switch'): ((1.71, 6.09), (2.05, 8.49)),
-    ('hill', 'madelung'): ((2.09, 4.45), (2.18, 6.99)),
-    ('hill', 'play'): ((1.74, 4.18), (1.80, 4.01)),
-}
-
-
-def test_figures_stay_where_the_docs_put_them(staircase_table, nested_table):
-    # Within +/-0.3 percentage points, so a change that moves them fails here and gets
-    # docs/model.md updated with it.
-    for key, (staircase, nested) in DOCUMENTED.items():
-        for table, (rmse, worst) in ((staircase_table, staircase), (nested_table, nested)):
-            assert table[key][0] == pytest.approx(rmse, abs=0.3), key
-            assert table[key][1] == pytest.approx(worst, abs=0.3), key
+@pytest.mark.parametrize('family', FAMILY_NAMES)
+def test_through_the_device_identify_beats_the_switch_on_a_sweep_with_reversals(family):
+    # The Sweep action's staircase, valves and 10-bit sensor included: the path a user
+    # records for `refit --memory-check`. Short (about 50 s), so the learning has only begun.
+    time_s, pressure, measured, truth = staircase_through_the_device(family)
+    errors = {}
+    for config in (PAPER, IDENTIFY):
+        online = config.params('sigmoid').build_online()
+        errors[config.label] = run_online(online, pressure, measured, time_s) - truth
+    rmse = {label: float(np.sqrt(np.mean(e ** 2))) for label, e in errors.items()}
+    print(f'\n{family}: staircase through the device, RMSE mm: '
+          + ', '.join(f'{label} {value * 1e3:.2f}' for label, value in rmse.items()))
+    assert rmse[IDENTIFY.label] < rmse[PAPER.label]
+    assert muscle_family(family).rest_length_m == pytest.approx(truth[0], abs=2e-4)

@@ -165,7 +165,7 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
                                       'model_node/set_parameters_atomically')
     try:
         wait_until(lambda: published, 20, 'latched model parameters')
-        assert published[-1].form == 'sigmoid' and published[-1].memory == 'play'
+        assert published[-1].form == 'sigmoid' and published[-1].memory == 'identify'
         assert client.wait_for_service(timeout_sec=20)
 
         def set_atomically(**values):

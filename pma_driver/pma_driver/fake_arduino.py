@@ -37,6 +37,7 @@ from pma_driver.sim.device import (
     Rig,
     SimDevice,
 )
+from pma_driver.sim.families import DEFAULT_FAMILY, DRIFT_SUFFIX, FAMILY_NAMES
 
 log = logging.getLogger('fake_arduino')
 
@@ -66,6 +67,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add('--no-heartbeat-check', action='store_true',
         help='never vent on heartbeat loss (manual play only)')
     add('--seed', type=int, default=0, help='seed for sensor noise and faults (default 0)')
+    add('--muscle', default=DEFAULT_FAMILY, metavar='FAMILY[+drift]',
+        help=f'simulated muscle family: {", ".join(FAMILY_NAMES)} (default {DEFAULT_FAMILY}); '
+        f'append {DRIFT_SUFFIX} for one whose rest length and stroke drift as it warms up '
+        '(docs/simulated-rig.md)')
     add('--echo-timeout-rate', type=float, default=0.0, help='share of samples without echo')
     add('--garbage-rate', type=float, default=0.0, help='share of lines preceded by garbage')
     add('--bad-checksum-rate', type=float, default=0.0, help='share of lines with a bad checksum')
@@ -292,7 +297,7 @@ def configs_from_args(args: argparse.Namespace) -> tuple[DeviceConfig, LinkFault
     device = DeviceConfig(
         rate_hz=args.rate, max_rate_hz=args.max_rate, ceiling_pa=args.ceiling_pa,
         hb_timeout_ms=args.hb_timeout_ms, heartbeat_check=not args.no_heartbeat_check,
-        echo_timeout_rate=args.echo_timeout_rate, seed=args.seed)
+        echo_timeout_rate=args.echo_timeout_rate, seed=args.seed, muscle=args.muscle)
     link = LinkFaultConfig(
         garbage_rate=args.garbage_rate, bad_checksum_rate=args.bad_checksum_rate,
         drop_rate=args.drop_rate, split_rate=args.split_rate)
@@ -318,9 +323,10 @@ def run(args: argparse.Namespace, stop: StopRequest) -> int:
         new = PtyPort()
         link.point_at(new.path)
         print(f'fake_arduino: device at {new.path}', flush=True)
-        log.info('device at %s%s; %d Hz, ceiling %d Pa, heartbeat %s', new.path,
+        log.info('device at %s%s; %d Hz, ceiling %d Pa, heartbeat %s, muscle %s', new.path,
                  f' (link {args.link})' if args.link else '', config.rate_hz, config.ceiling_pa,
-                 f'{config.hb_timeout_ms} ms' if config.heartbeat_check else 'not checked')
+                 f'{config.hb_timeout_ms} ms' if config.heartbeat_check else 'not checked',
+                 config.muscle)
         return new
 
     port = plug_in()

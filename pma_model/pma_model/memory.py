@@ -1,10 +1,10 @@
 """Hysteresis memory: how the two major branches combine into a length for any pressure path.
 
-Three rules (docs/model.md has the full story and their errors on minor loops):
+Four rules (docs/model.md has the full story and their errors on minor loops):
 
 - 'switch' (the paper): the length is the major branch of the detected direction, so it
   jumps by the loop width at every reversal.
-- 'madelung' (default): a stack of turning points with wiping-out. Each scanning curve is
+- 'madelung': a stack of turning points with wiping-out. Each scanning curve is
   the current direction's major branch B rescaled through the last reversal O and the
   previous opposite reversal T:
       L(P) = L_T + (L_O - L_T) * (B(P) - B(P_T)) / (B(P_O) - B(P_T))
@@ -19,6 +19,17 @@ Three rules (docs/model.md has the full story and their errors on minor loops):
   branches, then follows the other branch. The backlash (play) operator between the major
   branches: Coulomb friction in the braid, no parameter beyond the branches, no jump,
   quiet under noise narrower than the band, and a closed-form inverse.
+
+- 'identify' (the default): the Madelung stack, with scanning curves that mix two shapes from
+  the same two points O and T: Madelung's rescaled branch and a play-like curve that holds
+  at L_O and then runs parallel to the (rescaled) branch into T. With s = (B(P) - B(P_T)) /
+  (B(P_O) - B(P_T)), q = min(1, (L_O - L_T) / (B(P_O) - B(P_T))) and w the play share of
+  the current direction (rising or falling):
+      L(P) = L_T + (L_O - L_T) * (w * min(1, s / q) + (1 - w) * s)
+  w = 0 is Madelung, w = 1 hold-then-branch. Every curve passes through O and T, so the
+  rule keeps return-point memory, wiping-out and continuity for any w, and the shape is
+  piecewise linear in s, so the inverse stays closed-form. `identification.OnlineModel`
+  learns the two shares from the measured length.
 
 The Madelung stack follows every reversal of the pressure signal (loops smaller than the
 noise close on themselves and are wiped out); the deadband detector gives the reported
@@ -44,7 +55,9 @@ from pma_model.detector import (
     BranchDetector,
 )
 
-MEMORY_MODES = ('madelung', 'switch', 'play')
+MEMORY_MODES = ('identify', 'madelung', 'switch', 'play')
+# Modes whose state is the Madelung turning-point stack.
+_STACK_MODES = ('identify', 'madelung')
 
 # Nested turning points need distinct pressures, so a 10-bit sensor cannot fill this; the
 # cap only bounds memory for pathological input. Overflow forgets the oldest loop.
@@ -73,15 +86,40 @@ class InverseResult:
 
 @dataclass(frozen=True)
 class _Curve:
-    """A scanning curve through O and T shaped like `major`; O is None for the major itself."""
+    """A scanning curve through O and T shaped like `major`; O is None for the major itself.
+
+    `play_share` mixes the play-like shape into Madelung's (the 'identify' rule; 0 is pure
+    Madelung). The shape is Phi(s) = w * min(1, s / q) + (1 - w) * s in the branch
+    coordinate s (1 at O, 0 at T), piecewise linear, so it inverts in closed form.
+    """
 
     major: Branch
     origin: tuple[float, float] | None = None
     target: tuple[float, float] | None = None
+    play_share: float = 0.0
 
     @functools.cached_property
     def _span(self):
         return float(self.major.length(self.origin[0])), float(self.major.length(self.target[0]))
+
+    @functools.cached_property
+    def _knee(self) -> float:
+        """q: where the play-like shape stops holding (1 when it would not reach T)."""
+        (_, l_origin), (_, l_target) = self.origin, self.target
+        b_origin, b_target = self._span
+        ratio = (l_origin - l_target) / (b_origin - b_target)
+        return ratio if 0.0 < ratio < 1.0 else 1.0
+
+    def _flat(self) -> bool:
+        b_origin, b_target = self._span
+        return abs(b_origin - b_target) < _FLAT_SPAN_M
+
+    def _coordinate(self, shape):
+        b_origin, b_target = self._span
+        s = (shape - b_target) / (b_origin - b_target)
+        if isinstance(s, float):
+            return min(max(s, 0.0), 1.0)
+        return np.clip(s, 0.0, 1.0)
 
     def length(self, p_pa):
         shape = self.major.length(p_pa)
@@ -89,9 +127,29 @@ class _Curve:
             return shape
         (_, l_origin), (_, l_target) = self.origin, self.target
         b_origin, b_target = self._span
-        if abs(b_origin - b_target) < _FLAT_SPAN_M:
+        if self._flat():
             return l_origin + (shape - b_origin)
-        return l_target + (l_origin - l_target) * (shape - b_target) / (b_origin - b_target)
+        if self.play_share == 0.0:
+            return l_target + (l_origin - l_target) * (shape - b_target) / (b_origin - b_target)
+        s = self._coordinate(shape)
+        w = self.play_share
+        knee = self._knee
+        held = min(1.0, s / knee) if isinstance(s, float) else np.minimum(1.0, s / knee)
+        result = l_target + (l_origin - l_target) * (w * held + (1.0 - w) * s)
+        return float(result) if np.ndim(result) == 0 else result
+
+    def shapes_at(self, p_pa: float) -> tuple[float, float]:
+        """(play-like, Madelung) lengths at p_pa: the two shapes the share mixes."""
+        shape = float(self.major.length(p_pa))
+        if self.origin is None:
+            return shape, shape
+        (_, l_origin), (_, l_target) = self.origin, self.target
+        if self._flat():
+            value = l_origin + (shape - self._span[0])
+            return value, value
+        s = float(self._coordinate(shape))
+        return (l_target + (l_origin - l_target) * min(1.0, s / self._knee),
+                l_target + (l_origin - l_target) * s)
 
     def pressure(self, length_m: float) -> float:
         """P with length(P) == length_m, through B^-1 (NaN when the shape has none)."""
@@ -99,14 +157,42 @@ class _Curve:
             return float(self.major.inverse_unchecked(length_m))
         (p_origin, l_origin), (_, l_target) = self.origin, self.target
         b_origin, b_target = self._span
-        if abs(b_origin - b_target) < _FLAT_SPAN_M:
+        if self._flat():
             shape = length_m - l_origin + b_origin
         elif l_origin == l_target:
             return p_origin if length_m == l_origin else math.nan
         else:
-            scale = (b_origin - b_target) / (l_origin - l_target)
-            shape = b_target + (length_m - l_target) * scale
+            mixed = (length_m - l_target) / (l_origin - l_target)
+            s = self._coordinate_for(mixed)
+            if math.isnan(s):
+                return math.nan
+            if s == 1.0:
+                return p_origin   # a held length is reached where it is: at O
+            shape = b_target + s * (b_origin - b_target)
         return float(self.major.inverse_unchecked(shape))
+
+    def _coordinate_for(self, mixed: float) -> float:
+        """s with Phi(s) == mixed (NaN outside 0..1)."""
+        w, knee = self.play_share, self._knee
+        if w == 0.0:
+            return mixed   # Madelung: linear, the caller keeps it within the curve's ends
+        if not -1e-12 <= mixed <= 1.0 + 1e-12:
+            return math.nan
+        at_knee = w + (1.0 - w) * knee
+        if mixed <= at_knee:
+            return mixed / (w / knee + 1.0 - w)
+        if w >= 1.0:
+            return 1.0
+        return min(1.0, (mixed - w) / (1.0 - w))
+
+
+def _checked_shares(shares) -> tuple[float, float]:
+    """(rising, falling) play shares of the 'identify' rule, each within 0..1."""
+    rising, falling = (float(value) for value in shares)
+    for name, value in (('rising', rising), ('falling', falling)):
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f'the {name} play share must be within 0..1, got {value!r}')
+    return rising, falling
 
 
 def _as_float(value) -> float:
@@ -124,7 +210,8 @@ class HysteresisModel:
 
     def __init__(self, increasing: Branch, decreasing: Branch, memory: str = 'madelung',
                  deadband_pa: float = DEFAULT_DEADBAND_PA,
-                 max_gauge_pressure_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+                 max_gauge_pressure_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA, *,
+                 play_shares: tuple[float, float] = (0.5, 0.5)):
         if memory not in MEMORY_MODES:
             raise ValueError(f'memory must be one of {MEMORY_MODES}, got {memory!r}')
         if not (math.isfinite(max_gauge_pressure_pa) and max_gauge_pressure_pa > 0):
@@ -133,6 +220,7 @@ class HysteresisModel:
         self.increasing = increasing
         self.decreasing = decreasing
         self.memory = memory
+        self.play_shares = _checked_shares(play_shares)
         self.max_gauge_pressure_pa = float(max_gauge_pressure_pa)
         self._detector = BranchDetector(deadband_pa)
         self.reset()
@@ -149,6 +237,22 @@ class HysteresisModel:
         self._cached_key = None
         self._cached_curve: _Curve | None = None
 
+    def relearn(self, increasing: Branch, decreasing: Branch,
+                play_shares: tuple[float, float] | None = None) -> None:
+        """New branches (and 'identify' shares) for the same pressure history.
+
+        The state is rebuilt from the remembered turning points (resume_from), so what
+        the model learns applies to the whole memory at once, and a small change of the
+        learned numbers moves the length by a small amount.
+        """
+        old = copy.copy(self)
+        old._stack = list(self._stack)
+        old._detector = copy.copy(self._detector)
+        self.increasing, self.decreasing = increasing, decreasing
+        if play_shares is not None:
+            self.play_shares = _checked_shares(play_shares)
+        self.resume_from(old)
+
     def resume_from(self, other: HysteresisModel) -> None:
         """Take over another model's state, recomputed with this model's branches.
 
@@ -162,7 +266,7 @@ class HysteresisModel:
             self._step_madelung(p_pa)
         self._step_madelung(other.pressure_pa)
         if self.memory == 'switch':
-            self._l = float(self._major(other.branch == BRANCH_INCREASING).length(self._p))
+            self._l = float(self.major(other.branch == BRANCH_INCREASING).length(self._p))
         elif self.memory == 'play':
             # The play state is the length itself: kept, inside the new band at this pressure.
             self._stack = []
@@ -184,6 +288,11 @@ class HysteresisModel:
         return self._l
 
     @property
+    def rising(self) -> bool:
+        """Direction of the current scanning curve: pressure last moved up."""
+        return self._rising
+
+    @property
     def branch(self) -> int:
         """The detector's branch (1 increasing, 2 decreasing), as published."""
         return self._detector.branch
@@ -197,11 +306,12 @@ class HysteresisModel:
         """Madelung stack (pressure_pa, length_m), oldest first."""
         return tuple(self._stack)
 
-    def _major(self, rising: bool) -> Branch:
+    def major(self, rising: bool) -> Branch:
+        """The major branch pressure follows when moving up (True) or down."""
         return self.increasing if rising else self.decreasing
 
     def _curve(self, rising: bool, stack: list[tuple[float, float]]) -> _Curve:
-        major = self._major(rising)
+        major = self.major(rising)
         if not stack:
             return _Curve(major)
         if len(stack) >= 2:
@@ -209,7 +319,20 @@ class HysteresisModel:
         else:
             anchor_pa = self.max_gauge_pressure_pa if rising else 0.0
             target = (anchor_pa, float(major.length(anchor_pa)))
-        return _Curve(major, stack[-1], target)
+        share = self.play_shares[0 if rising else 1] if self.memory == 'identify' else 0.0
+        return _Curve(major, stack[-1], target, share)
+
+    def expert_lengths(self) -> tuple[float, float]:
+        """(play-like, Madelung) lengths at the current pressure on the current curve.
+
+        The two shapes the 'identify' rule mixes, from the same turning points: they agree
+        on a major branch and differ after a reversal, so their difference says how much
+        the minor-loop rule matters here (and is the regressor that learns the share).
+        Other rules have no such pair: both are the current length.
+        """
+        if self.memory not in _STACK_MODES:
+            return self._l, self._l
+        return self._current_curve().shapes_at(self._p)
 
     def _push(self, point: tuple[float, float]) -> None:
         self._stack.append(point)
@@ -238,12 +361,12 @@ class HysteresisModel:
             raise ValueError(f'gauge pressure must be finite, got {p_pa!r}')
         branch = self._detector.update(p_pa)
         if self.memory == 'switch':
-            self._p, self._l = p_pa, float(self._major(branch == BRANCH_INCREASING).length(p_pa))
+            self._p, self._l = p_pa, float(self.major(branch == BRANCH_INCREASING).length(p_pa))
             return self._l, branch
         if self.memory == 'play':
             self._step_play(p_pa)
             return self._l, branch
-        self._step_madelung(p_pa)
+        self._step_madelung(p_pa)   # 'madelung' and 'identify'
         return self._l, branch
 
     def _step_play(self, p_pa: float) -> None:
@@ -371,9 +494,10 @@ class HysteresisModel:
 
         INCREASING / DECREASING: that direction's major branch over 0..max (the paper's
         per-branch inverse; the state does not matter). AUTO: from the current state, in
-        the direction the target needs (shorter -> rising); with 'madelung' memory along the
-        path pressure would really follow (`path_pressure_for_length`), with 'switch' on
-        that direction's major branch. Refusals carry the reachable range.
+        the direction the target needs (shorter -> rising); with 'identify', 'madelung' or
+        'play' memory along the path pressure would really follow
+        (`path_pressure_for_length`), with 'switch' on that direction's major branch.
+        Refusals carry the reachable range.
         """
         if branch not in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING):
             return InverseResult(False, f'unknown branch {branch!r}: use 0 (auto), '
@@ -390,7 +514,7 @@ class HysteresisModel:
         else:
             rising = branch == BRANCH_INCREASING
         ends = (0.0, self.max_gauge_pressure_pa)
-        segments = [(_Curve(self._major(rising)), *(ends if rising else ends[::-1]))]
+        segments = [(_Curve(self.major(rising)), *(ends if rising else ends[::-1]))]
         name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
         return self._invert_along(segments, rising, length_m, f'{name} major branch')
 
@@ -413,7 +537,7 @@ class HysteresisModel:
 
     def _play_segments(self, rising: bool) -> list[tuple[_Curve, float, float]]:
         """Play: the length holds until the major branch reaches it, then follows it."""
-        major = self._major(rising)
+        major = self.major(rising)
         meets_pa = float(major.inverse_unchecked(self._l))
         if math.isnan(meets_pa):
             meets_pa = self._p

@@ -31,12 +31,14 @@ from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
 from pma_model.detector import BRANCH_NAMES
+from pma_model.identification import CORRECTION_KNOTS_PA, CREEP_TIME_CONSTANTS_S
 from pma_model.params import ModelParams, ParamsError, default_params
 
 _DESCRIPTIONS = {
     'branch_form': "branch shape: 'sigmoid' (the paper's L0 - a*L0/(1+exp(-b*P))^c) or "
                    "'hill' (L0 - dL*P^n/(P^n+K^n))",
-    'memory': "minor-loop memory: 'play' (friction band between the branches), 'madelung' "
+    'memory': "minor-loop memory: 'identify' (learned mix of Madelung and play-like scanning "
+              "curves), 'play' (friction band between the branches), 'madelung' "
               "(turning-point stack) or 'switch' (the paper's "
               'jump between the major branches)',
     'deadband_pa': 'pressure must move this far against the current direction before a '
@@ -61,7 +63,9 @@ SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
 _RANGES = {
     'deadband_pa': (0.0, 250_000.0),
     'max_gauge_pressure_pa': (10_000.0, 1_000_000.0),
-    'adaptation.forgetting': (0.5, 1.0),
+    'adaptation.time_constant_s': (1.0, 3600.0),
+    'identification.play_share_rising': (0.0, 1.0),
+    'identification.play_share_falling': (0.0, 1.0),
 }
 
 
@@ -69,7 +73,10 @@ def _describe(name: str) -> str:
     if name in _DESCRIPTIONS:
         return _DESCRIPTIONS[name]
     if name.startswith('adaptation.'):
-        return f'online drift adaptation (offset + gain RLS): {name.split(".", 1)[1]}'
+        return f'online drift adaptation (rest-length shift, stroke gain): {name.split(".", 1)[1]}'
+    if name.startswith('identification.'):
+        return (f'online identification (docs/model.md): {name.split(".", 1)[1]}; the learned '
+                'values are published on pma/model_params')
     direction, form, field = name.split('.')
     return f'{direction} branch, {form} form: {field} (SI units; suffix names the unit)'
 
@@ -106,8 +113,8 @@ class ModelNode(Node):
             self._params = defaults
             self.set_parameters([Parameter(name, value=value) for name, value
                                  in defaults.to_ros_parameters().items()])
-        self._model = self._params.build_model()
-        self._adapter = self._params.build_adapter()
+        self._model = self._params.build_online()
+        self._published_learning = -1
         self._latest_state: PmaState | None = None
         self._stats = {'samples': 0, 'nan_pressure': 0, 'nan_length': 0, 'sum_sq_residual': 0.0,
                        'residuals': 0}
@@ -185,11 +192,13 @@ class ModelNode(Node):
     def _apply_model_parameters(self) -> None:
         params = ModelParams.from_ros_parameters(self._model_parameter_values())
         with self._lock:
-            model = params.build_model()
+            built = params
+            if params.branches() == self._params.branches() and \
+                    params.identification == self._params.identification:
+                # Same muscle, same starting point: keep what has been learned about it.
+                built = params.with_learned(self._model.learned())
+            model = built.build_online()
             model.resume_from(self._model)  # keep the muscle's history, not "at rest"
-            if params.adaptation != self._params.adaptation or \
-                    params.branches() != self._params.branches():
-                self._adapter = params.build_adapter()
             self._params = params
             self._model = model
         self.get_logger().info(
@@ -243,7 +252,11 @@ class ModelNode(Node):
                                     '; checking the file again')
 
     def _publish_params(self) -> None:
-        params = self._params
+        with self._lock:
+            learned = self._model.learned()
+            drift = self._model.drift
+            counts = (self._model.samples_learned, self._model.samples_rejected)
+        params = self._params.with_learned(learned)
         msg = ModelParamsMsg()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.form = params.branch_form
@@ -252,6 +265,16 @@ class ModelNode(Node):
         msg.deadband_pa = float(params.deadband_pa)
         msg.max_gauge_pressure_pa = float(params.max_gauge_pressure_pa)
         msg.adaptation_enabled = bool(params.adaptation.enabled)
+        msg.identification_enabled = bool(learned.enabled)
+        msg.play_share_rising = learned.play_share_rising
+        msg.play_share_falling = learned.play_share_falling
+        msg.branch_correction_pressures_pa = list(CORRECTION_KNOTS_PA)
+        msg.branch_correction_m = list(learned.branch_correction_m)
+        msg.creep_time_constants_s = list(CREEP_TIME_CONSTANTS_S)
+        msg.creep_gains = list(learned.creep_gains)
+        msg.samples_learned, msg.samples_rejected = counts
+        msg.adaptation_offset_m = drift.offset_m if params.adaptation.enabled else 0.0
+        msg.adaptation_gain = drift.gain if params.adaptation.enabled else 1.0
         self._params_pub.publish(msg)
 
     # --- stream ---------------------------------------------------------------------
@@ -268,17 +291,14 @@ class ModelNode(Node):
                 self.get_logger().warning(
                     f'sample seq {state.seq}: pressure is {pressure}; predicted length NaN',
                     throttle_duration_sec=5.0)
-                predicted, branch = math.nan, self._model.branch
-                offset, gain = ((self._adapter.offset_m, self._adapter.gain)
-                                if self._params.adaptation.enabled else (0.0, 1.0))
             else:
                 self._latest_state = state
-                base_length, branch = self._model.update(pressure)
-                if self._params.adaptation.enabled:
-                    predicted = self._adapter.correct_then_learn(base_length, measured)
-                    offset, gain = self._adapter.offset_m, self._adapter.gain
-                else:
-                    predicted, offset, gain = base_length, 0.0, 1.0
+            stamp = state.header.stamp
+            prediction = self._model.step(pressure, measured,
+                                          stamp.sec + 1e-9 * stamp.nanosec or None)
+            predicted, branch = prediction.length_m, prediction.branch
+            offset, gain = ((prediction.offset_m, prediction.gain)
+                            if self._params.adaptation.enabled else (0.0, 1.0))
             if math.isfinite(measured) and math.isfinite(predicted):
                 residual = measured - predicted
                 self._stats['sum_sq_residual'] += residual * residual
@@ -320,24 +340,12 @@ class ModelNode(Node):
             response.min_length_m = response.max_length_m = math.nan
             return response
         with self._lock:
-            base_target = target
-            if self._params.adaptation.enabled:
-                base_target = float(self._adapter.uncorrect(target))
-            result = self._model.pressure_for_length(base_target, request.branch)
-            message = result.message
-            if self._params.adaptation.enabled:
-                low, high = self._adapter.correct([result.min_length_m, result.max_length_m])
-                result_min, result_max = float(min(low, high)), float(max(low, high))
-                if not result.success and math.isfinite(result_min):
-                    message += (f' (lengths of the unadapted model; with the adapted offset '
-                                f'and gain: reachable [{result_min:.6g}, {result_max:.6g}] m)')
-            else:
-                result_min, result_max = result.min_length_m, result.max_length_m
+            result = self._model.pressure_for_length(target, request.branch)
         response.success = result.success
-        response.message = message
+        response.message = result.message
         response.gauge_pressure_pa = result.gauge_pressure_pa
         response.branch = result.branch
-        response.min_length_m, response.max_length_m = result_min, result_max
+        response.min_length_m, response.max_length_m = result.min_length_m, result.max_length_m
         return response
 
     # --- diagnostics ----------------------------------------------------------------
@@ -346,7 +354,10 @@ class ModelNode(Node):
         with self._lock:
             stats = dict(self._stats)
             sequence = self._state_sequence.stats()
-            adapter = self._adapter if self._params.adaptation.enabled else None
+            adapting = self._params.adaptation.enabled
+            drift = self._model.drift
+            learned = self._model.learned()
+            learned_count = self._model.samples_learned
         status = DiagnosticStatus()
         status.name = f'{self.get_fully_qualified_name()}: hysteresis model'
         status.hardware_id = 'model'
@@ -372,14 +383,27 @@ class ModelNode(Node):
             'params_file': self.get_parameter('params_file').value or '(none)',
             'params_file_loaded': 'no' if problem is not None else 'yes',
         }
-        if adapter is not None:
-            values.update(adaptation_offset_m=f'{adapter.offset_m:.6f}',
-                          adaptation_gain=f'{adapter.gain:.6f}')
+        if adapting:
+            values.update(adaptation_offset_m=f'{drift.offset_m:.6f}',
+                          adaptation_gain=f'{drift.gain:.6f}')
+        if learned.enabled:
+            values.update(
+                samples_learned=learned_count,
+                play_share_rising=f'{learned.play_share_rising:.3f}',
+                play_share_falling=f'{learned.play_share_falling:.3f}',
+                branch_correction_mm=' '.join(f'{1e3 * v:.2f}'
+                                              for v in learned.branch_correction_m),
+                creep_gains=' '.join(f'{v:.3f}' for v in learned.creep_gains))
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [status]
         self._diagnostics_pub.publish(array)
+        if (learned.enabled or adapting) and learned_count != self._published_learning:
+            # What it has learned, latched at 1 Hz at most: a recording (or a restart from
+            # its parameters_yaml) keeps it.
+            self._published_learning = learned_count
+            self._publish_params()
 
 
 def main(args=None) -> int:

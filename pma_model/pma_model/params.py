@@ -15,7 +15,7 @@ import io
 import math
 import os
 import stat
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 
@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from pma_model import units
-from pma_model.adaptation import AdaptationSettings, DriftAdapter
+from pma_model.adaptation import AdaptationSettings
 from pma_model.branches import (
     MAX_B_PER_PA,
     MAX_L0_M,
@@ -34,6 +34,7 @@ from pma_model.branches import (
     branch_class,
 )
 from pma_model.detector import DEFAULT_DEADBAND_PA
+from pma_model.identification import IdentificationSettings, OnlineModel
 from pma_model.memory import MEMORY_MODES, HysteresisModel
 
 BRANCH_FORM_NAMES = ('sigmoid', 'hill')
@@ -69,6 +70,7 @@ class ModelParams:
     adaptation: AdaptationSettings
     increasing: BranchParams
     decreasing: BranchParams
+    identification: IdentificationSettings = field(default_factory=IdentificationSettings)
 
     def __post_init__(self):
         if self.branch_form not in BRANCH_FORM_NAMES:
@@ -98,14 +100,31 @@ class ModelParams:
                 self.decreasing.of_form(self.branch_form))
 
     def build_model(self) -> HysteresisModel:
+        """The memory model alone, with the branches as given (offline prediction, fits).
+
+        The identified play shares are used; the learned branch correction, creep and
+        drift are OnlineModel's (build_online).
+        """
         increasing, decreasing = self.branches()
         return HysteresisModel(increasing, decreasing, memory=self.memory,
                                deadband_pa=self.deadband_pa,
-                               max_gauge_pressure_pa=self.max_gauge_pressure_pa)
+                               max_gauge_pressure_pa=self.max_gauge_pressure_pa,
+                               play_shares=self.identification.play_shares)
 
-    def build_adapter(self) -> DriftAdapter:
-        """Adapter around the model's rest length (used only if adaptation.enabled)."""
-        return DriftAdapter(float(self.branches()[0].length(0.0)), self.adaptation)
+    def build_online(self) -> OnlineModel:
+        """The memory model with what it learns online (identification, drift adaptation)."""
+        increasing, decreasing = self.branches()
+        return OnlineModel(increasing, decreasing, memory=self.memory,
+                           deadband_pa=self.deadband_pa,
+                           max_gauge_pressure_pa=self.max_gauge_pressure_pa,
+                           identification=self.identification, adaptation=self.adaptation)
+
+    def with_learned(self, learned: IdentificationSettings) -> ModelParams:
+        """A copy starting from what an OnlineModel has learned (shares, correction, creep)."""
+        return replace(self, identification=replace(
+            self.identification, play_share_rising=learned.play_share_rising,
+            play_share_falling=learned.play_share_falling,
+            branch_correction_m=learned.branch_correction_m, creep_gains=learned.creep_gains))
 
     def with_branches(self, increasing: Branch, decreasing: Branch) -> ModelParams:
         """A copy with the given branches (their form) replacing that form's numbers."""
@@ -125,9 +144,10 @@ class ModelParams:
             'deadband_pa': float(self.deadband_pa),
             'max_gauge_pressure_pa': float(self.max_gauge_pressure_pa),
         }
-        for item in fields(AdaptationSettings):
-            value = getattr(self.adaptation, item.name)
-            flat[f'adaptation.{item.name}'] = value if isinstance(value, bool) else float(value)
+        for group in ('adaptation', 'identification'):
+            settings = getattr(self, group)
+            for item in fields(settings):
+                flat[f'{group}.{item.name}'] = _ros_value(getattr(settings, item.name))
         for direction in DIRECTIONS:
             for form in BRANCH_FORM_NAMES:
                 for name, value in getattr(self, direction).of_form(form).to_dict().items():
@@ -147,12 +167,14 @@ class ModelParams:
             raise ParamsError(f'unknown parameter(s) {unknown}; known: {sorted(merged)}')
         for name, value in values.items():
             merged[name] = _coerce(name, value, merged[name])
-        adaptation = {item.name: merged[f'adaptation.{item.name}']
-                      for item in fields(AdaptationSettings)}
-        try:
-            adaptation_settings = AdaptationSettings(**adaptation)
-        except ValueError as error:
-            raise ParamsError(f'adaptation.{error}') from None
+        groups = {}
+        for group, settings in (('adaptation', AdaptationSettings),
+                                ('identification', IdentificationSettings)):
+            values = {item.name: merged[f'{group}.{item.name}'] for item in fields(settings)}
+            try:
+                groups[group] = settings(**values)
+            except ValueError as error:
+                raise ParamsError(f'{group}.{error}') from None
         pairs = {}
         for direction in DIRECTIONS:
             forms = {}
@@ -167,8 +189,7 @@ class ModelParams:
             pairs[direction] = BranchParams(**forms)
         return cls(branch_form=merged['branch_form'], memory=merged['memory'],
                    deadband_pa=merged['deadband_pa'],
-                   max_gauge_pressure_pa=merged['max_gauge_pressure_pa'],
-                   adaptation=adaptation_settings, **pairs)
+                   max_gauge_pressure_pa=merged['max_gauge_pressure_pa'], **groups, **pairs)
 
     # --- YAML (ROS params-file format) ----------------------------------------------
 
@@ -305,8 +326,22 @@ def _check_units(prefix: str, branch: Branch) -> None:
                           '(Pa, not kPa)')
 
 
+def _ros_value(value):
+    """A settings value as rclpy types it: bool, float, or a list of floats."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, (tuple, list)):
+        return [float(item) for item in value]
+    return float(value)
+
+
 def _coerce(name: str, value, template):
     """`value` as the type of the default `template`, or ParamsError naming the field."""
+    if isinstance(template, list):
+        if isinstance(value, (str, bytes)) or not hasattr(value, '__iter__'):
+            raise ParamsError(f'{name} must be a list of {len(template)} numbers, '
+                              f'got {value!r}')
+        return [_coerce(name, item, 0.0) for item in value]
     if isinstance(template, bool):
         if isinstance(value, bool):
             return value
@@ -374,7 +409,7 @@ def default_params() -> ModelParams:
 # from_ros_parameters needs a complete base to merge into; this seed is only that scaffold
 # (every value is overwritten by the data file, and the file must name every field).
 _SEED = ModelParams(
-    branch_form='sigmoid', memory='play', deadband_pa=DEFAULT_DEADBAND_PA,
+    branch_form='sigmoid', memory='identify', deadband_pa=DEFAULT_DEADBAND_PA,
     max_gauge_pressure_pa=500_000.0, adaptation=AdaptationSettings(),
     increasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)),
     decreasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)))

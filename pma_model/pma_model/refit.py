@@ -51,10 +51,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument('--deadband-pa', type=float, default=DEFAULT_DEADBAND_PA, metavar='X',
                         help=f'branch detector deadband [Pa] (default {DEFAULT_DEADBAND_PA:g})')
     parser.add_argument('--memory-check', type=Path, metavar='BAG_OR_CSV',
-                        help='also run each memory rule (switch, madelung, play) with the '
-                        'fitted branches along this recorded path (minor loops, e.g. a Sweep '
-                        'with reversal_pressures_pa) and score it; --params-out then also '
-                        'sets memory to the best')
+                        help='also run each memory rule (identify, switch, madelung, play) '
+                        'with the fitted branches along this recorded path (minor loops, e.g. '
+                        'a Sweep with reversal_pressures_pa) and score it; identify learns '
+                        'online as model_node does; --params-out then also sets memory to the '
+                        'best (and, for identify, what it learned)')
     parser.add_argument('--topic', default=STATE_TOPIC,
                         help='PmaState topic of a bag (default: pma/state in any namespace)')
     parser.add_argument('--no-holdout', action='store_true',
@@ -78,8 +79,13 @@ def choose_params_model(report: dict, requested: str | None) -> str | None:
     return min(scored)[1] if scored else None
 
 
-def write_params(path: Path, fitted, name: str, source: str, memory: str | None = None) -> None:
+def write_params(path: Path, fitted, name: str, source: str, memory: str | None = None, *,
+                 identified: dict | None = None) -> None:
     """The branch form and the fitted branches (and the memory rule, if one was measured).
+
+    With memory 'identify', what the online identification learned along the memory-check
+    path (`identified`: play shares, branch correction, creep gains) is written too, so
+    model_node starts from there.
 
     Adaptation, deadband and the pressure limit are the node's own settings: a hot reload
     of this file must not reset them. Both forms are written (the sigmoid from the paper's
@@ -102,6 +108,10 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
         params = replace(params, memory=memory)
         only += ('memory',)
         note += f', memory {memory} (the best along the --memory-check path)'
+    if memory == 'identify' and identified:
+        params = replace(params, identification=replace(params.identification, **identified))
+        only += tuple(f'identification.{key}' for key in identified)
+        note += ', with what it learned there'
     path.parent.mkdir(parents=True, exist_ok=True)
     params.save_yaml(path, only=only, header=(
         f'Written by refit from {source}: {note}.\n'
@@ -198,8 +208,10 @@ def run(args: argparse.Namespace) -> int:
             args.json.write_text(json.dumps(report, indent=2, allow_nan=False) + '\n')
             print(f'wrote {args.json}')
         if args.params_out and refusal is None:
-            memory = report.get('memory_check', {}).get('best_memory', {}).get(name)
-            write_params(args.params_out, fitted, name, str(args.input), memory)
+            check = report.get('memory_check', {})
+            memory = check.get('best_memory', {}).get(name)
+            write_params(args.params_out, fitted, name, str(args.input), memory,
+                         identified=check.get('identified', {}).get(name))
             print(f'wrote {args.params_out} ({name}, branch_form '
                   f'{BRANCH_MODEL_FORMS[name]})')
         if args.plots:

@@ -27,6 +27,7 @@ from pma_model.boucwen import BoucWenFit, fit_bouc_wen, minor_loop_drift
 from pma_model.branches import Branch, HillBranch, SigmoidBranch
 from pma_model.detector import DEFAULT_DEADBAND_PA, detect_branches
 from pma_model.fitting import BranchFit, LeastSquaresFit, fit_branch_multistart
+from pma_model.identification import OnlineModel, run_online
 from pma_model.memory import MEMORY_MODES, HysteresisModel
 from pma_model.metrics import fit_metrics
 from pma_model.samples import BranchData, Samples, settled_holds
@@ -313,9 +314,13 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
     The major loop cannot tell the rules apart (they differ only inside it); a path with
     reversals inside the loop - the Sweep action's `reversal_pressures_pa` - can. Scored
     against the measured length, from rest, so the path must start at rest (a sweep does).
-    A staircase is scored on its hold means (the settled half of each hold, as the refit
-    reduces holds), so the ultrasonic noise does not swamp the differences; the models
-    still run along every sample, since the memory depends on the whole path.
+    'switch', 'madelung' and 'play' run as they are; 'identify' runs online as model_node
+    would, predicting each sample before learning from it (docs/model.md, "Online
+    identification"), and what it learned along the path is reported (`identified`) and
+    written by --params-out when it wins. A staircase is scored on its hold means (the
+    settled half of each hold, as the refit reduces holds), so the ultrasonic noise does not
+    swamp the differences; the models still run along every sample, since the memory
+    depends on the whole path.
     """
     stroke_cm = float(units.m_to_cm(np.ptp(samples.length_m)))
     holds, on_holds = settled_holds(samples)
@@ -326,16 +331,27 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
     measured = scored(samples.length_m)
     models: dict = {}
     best: dict[str, str] = {}
+    identified: dict[str, dict] = {}
     for name, model in fitted.items():
         if name not in BRANCH_MODEL_FORMS:
             continue
+        branches = (model.branches['increasing'], model.branches['decreasing'])
         scores = {}
         for memory in MEMORY_MODES:
-            hysteresis = HysteresisModel(model.branches['increasing'],
-                                         model.branches['decreasing'], memory=memory,
-                                         deadband_pa=deadband_pa)
-            predicted = scored(hysteresis.predict(samples.pressure_pa))
-            entry = metrics_cm(measured, predicted, 0, stroke_cm)
+            if memory == 'identify':
+                online = OnlineModel(*branches, memory=memory, deadband_pa=deadband_pa)
+                predicted = run_online(online, samples.pressure_pa, samples.length_m,
+                                       samples.time_s)
+                learned = online.learned()
+                identified[name] = {
+                    'play_share_rising': learned.play_share_rising,
+                    'play_share_falling': learned.play_share_falling,
+                    'branch_correction_m': list(learned.branch_correction_m),
+                    'creep_gains': list(learned.creep_gains)}
+            else:
+                predicted = HysteresisModel(*branches, memory=memory,
+                                            deadband_pa=deadband_pa).predict(samples.pressure_pa)
+            entry = metrics_cm(measured, scored(predicted), 0, stroke_cm)
             models[f'{name}/{memory}'] = {key: entry[key] for key in (
                 'rmse_cm', 'max_cm', 'rmse_pct_stroke', 'max_pct_stroke', 'n')}
             scores[memory] = entry['rmse_cm']
@@ -344,7 +360,7 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
             'scored_on': f'{len(holds)} hold means' if on_holds else 'every sample',
             'reversals': int(np.count_nonzero(np.diff(
                 detect_branches(samples.pressure_pa, deadband_pa).astype(int)))),
-            'models': models, 'best_memory': best}
+            'models': models, 'best_memory': best, 'identified': identified}
 
 
 def holdout_report(data: BranchData, fitted: dict[str, FittedModel], stroke_cm: float) -> dict:
@@ -448,6 +464,13 @@ def format_table(report: dict) -> str:
                          f"({entry['rmse_pct_stroke']:.1f} / {entry['max_pct_stroke']:.1f} %)")
         lines.append('  best: ' + ', '.join(f'{name} -> {memory}'
                                              for name, memory in check['best_memory'].items()))
+        for name, values in check.get('identified', {}).items():
+            correction = ' '.join(f'{100 * v:.2f}' for v in values['branch_correction_m'])
+            lines.append(f"  {name}/identify learned: play share rising "
+                         f"{values['play_share_rising']:.2f}, falling "
+                         f"{values['play_share_falling']:.2f}; branch correction cm at 0, 50, "
+                         f"... 500 kPa: {correction}; creep gains "
+                         + ', '.join(f'{v:.3f}' for v in values['creep_gains']))
     if report['warnings']:
         lines += ['', 'warnings:'] + [f'  - {text}' for text in report['warnings']]
     lines += ['', 'notes:'] + [f'  - {text}' for text in report['notes']]

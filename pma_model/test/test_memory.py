@@ -36,7 +36,7 @@ def length_at(model, path, p_pa, occurrence):
     return lengths[np.flatnonzero(np.isclose(path, p_pa))[occurrence]]
 
 
-@pytest.mark.parametrize('memory', ['madelung', 'play'])
+@pytest.mark.parametrize('memory', ['identify', 'madelung', 'play'])
 @pytest.mark.parametrize('form', ['sigmoid', 'hill'])
 def test_return_point_memory_after_a_minor_loop(form, memory):
     model = model_of(form, memory)
@@ -64,7 +64,7 @@ def test_wiping_out_forgets_an_inner_loop():
     assert [round(p / KPA) for p, _ in model.turning_points] == [400, 100]
 
 
-@pytest.mark.parametrize('memory', ['madelung', 'play'])
+@pytest.mark.parametrize('memory', ['identify', 'madelung', 'play'])
 @pytest.mark.parametrize('form', ['sigmoid', 'hill'])
 def test_no_jump_at_reversals(form, memory):
     model = model_of(form, memory)
@@ -105,7 +105,7 @@ def test_major_loop_follows_the_major_branches():
 @given(turns=st.lists(st.floats(-20.0, 520.0), min_size=2, max_size=25),
        step=st.sampled_from([0.611, 5.0, 50.0]),
        form=st.sampled_from(['sigmoid', 'hill']),
-       memory=st.sampled_from(['madelung', 'switch', 'play']))
+       memory=st.sampled_from(['identify', 'madelung', 'switch', 'play']))
 def test_online_equals_vectorised(turns, step, form, memory):
     path = ramp(*turns, step_kpa=step)
     online = model_of(form, memory)
@@ -188,7 +188,8 @@ def test_inverse_round_trip_on_a_scanning_curve(form):
 @settings(max_examples=60, deadline=None)
 @given(turns=st.lists(st.floats(0.0, 500.0), min_size=2, max_size=12),
        fraction=st.floats(0.0, 1.0), rising=st.booleans(),
-       form=st.sampled_from(['sigmoid', 'hill']), memory=st.sampled_from(['madelung', 'play']))
+       form=st.sampled_from(['sigmoid', 'hill']),
+       memory=st.sampled_from(['identify', 'madelung', 'play']))
 def test_inverse_round_trip_property(turns, fraction, rising, form, memory):
     model = model_of(form, memory)
     model.advance(ramp(*turns, step_kpa=5.0))
@@ -213,7 +214,7 @@ def test_inverse_round_trip_property(turns, fraction, rising, form, memory):
     assert simulate_to(model, result.gauge_pressure_pa) == pytest.approx(target, abs=1e-8)
 
 
-@pytest.mark.parametrize('memory', ['madelung', 'switch', 'play'])
+@pytest.mark.parametrize('memory', ['identify', 'madelung', 'switch', 'play'])
 def test_explicit_branch_is_the_major_branch_whatever_the_state(memory):
     model = model_of(memory=memory)
     target = 0.27
@@ -332,7 +333,7 @@ def test_constructor_validates():
         HysteresisModel(increasing, decreasing, max_gauge_pressure_pa=math.nan)
 
 
-@pytest.mark.parametrize('memory', ['madelung', 'switch', 'play'])
+@pytest.mark.parametrize('memory', ['identify', 'madelung', 'switch', 'play'])
 def test_resume_from_rebuilds_the_state_with_new_branches(memory):
     path = ramp(0, 400, 150, 300, 220)
     old = model_of('sigmoid', memory=memory)
@@ -347,3 +348,69 @@ def test_resume_from_rebuilds_the_state_with_new_branches(memory):
     assert resumed.length_m == pytest.approx(direct.length_m, abs=1e-12)
     onward = ramp(220, 350, 0)
     assert np.allclose(resumed.advance(onward)[0], direct.advance(onward)[0], atol=1e-12)
+
+
+# --- 'identify': the Madelung stack with a play share -----------------------------------
+
+def identify_model(form='sigmoid', shares=(0.5, 0.5), correction=None):
+    params = replace(default_params(), branch_form=form, memory='identify')
+    model = HysteresisModel(*params.branches(), memory='identify', play_shares=shares)
+    if correction is not None:
+        from pma_model.identification import CorrectedBranch
+
+        model.relearn(*(CorrectedBranch(branch, correction) for branch in params.branches()))
+    return model
+
+
+def test_identify_spans_madelung_and_a_play_like_hold():
+    path = ramp(0, 350, 200)
+    madelung = model_of(memory='madelung').predict(path)
+    assert np.array_equal(identify_model(shares=(0.0, 0.0)).predict(path), madelung)
+    held = identify_model(shares=(1.0, 1.0))
+    lengths = held.predict(path)
+    top = lengths[np.argmax(path)]
+    after = lengths[np.argmax(path) + 1:]
+    # share 1: the length holds after the reversal, then runs parallel to the branch
+    assert after[5] == pytest.approx(top, abs=1e-12)
+    assert after[-1] > top + 1e-3
+    mixed = identify_model(shares=(0.5, 0.5)).predict(path)
+    half = 0.5 * (madelung + lengths)
+    assert np.allclose(mixed, half, atol=1e-12)   # linear in the share
+    # the falling share shapes falling scans only
+    assert np.array_equal(identify_model(shares=(0.0, 1.0)).predict(path), lengths)
+
+
+def test_relearn_keeps_the_history_and_moves_the_length_a_little():
+    model = identify_model(shares=(0.5, 0.5))
+    model.advance(ramp(0, 400, 150, 300, 220))
+    turns = [round(p / KPA) for p, _ in model.turning_points]
+    before = model.length_m
+    model.relearn(model.increasing, model.decreasing, (0.52, 0.48))
+    assert [round(p / KPA) for p, _ in model.turning_points] == turns
+    assert abs(model.length_m - before) < 2e-4
+    with pytest.raises(ValueError, match=r'within 0\.\.1'):
+        model.relearn(model.increasing, model.decreasing, (1.5, 0.5))
+
+
+@settings(max_examples=60, deadline=None)
+@given(turns=st.lists(st.floats(0.0, 500.0), min_size=2, max_size=10),
+       fraction=st.floats(0.0, 1.0), rising=st.booleans(),
+       shares=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+       bump=st.floats(-0.003, 0.003))
+def test_identify_inverse_round_trip_with_any_shares_and_a_learned_correction(
+        turns, fraction, rising, shares, bump):
+    correction = tuple(bump * math.sin(k) for k in range(11))
+    from pma_model.identification import correction_caps, monotone_correction
+
+    params = default_params()
+    caps = np.minimum(*(correction_caps(branch) for branch in params.branches()))
+    correction = monotone_correction(correction, caps)
+    model = identify_model(shares=shares, correction=correction)
+    model.advance(ramp(*turns, step_kpa=5.0))
+    span = model.path_pressure_for_length(model.length_m, rising)
+    if not span.success:
+        return
+    target = span.min_length_m + fraction * (span.max_length_m - span.min_length_m)
+    result = model.path_pressure_for_length(target, rising)
+    assert result.success, result.message
+    assert simulate_to(model, result.gauge_pressure_pa) == pytest.approx(target, abs=1e-8)

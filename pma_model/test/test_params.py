@@ -102,8 +102,11 @@ def test_flat_ros_parameters_round_trip(defaults):
     assert flat['decreasing.hill.k_pa'] == defaults.decreasing.hill.k_pa
     assert flat['adaptation.enabled'] is False
     assert all(isinstance(v, float) for k, v in flat.items()
-               if k not in ('branch_form', 'memory', 'adaptation.enabled'))
-    assert len(flat) == 4 + 6 + 16
+               if k not in ('branch_form', 'memory', 'adaptation.enabled',
+                            'identification.enabled', 'identification.branch_correction_m',
+                            'identification.creep_gains'))
+    assert flat['identification.branch_correction_m'] == [0.0] * 11
+    assert len(flat) == 4 + 6 + 6 + 16
     assert ModelParams.from_ros_parameters(flat) == defaults
     changed = ModelParams.from_ros_parameters({'deadband_pa': 5000, 'memory': 'switch'})
     assert changed.deadband_pa == 5000.0 and isinstance(changed.deadband_pa, float)
@@ -122,7 +125,8 @@ def test_flat_ros_parameters_round_trip(defaults):
     ({'deadband_pa': True}, 'deadband_pa must be a number'),
     ({'deadband_pa': float('nan')}, 'deadband_pa must be finite'),
     ({'adaptation.enabled': 'yes'}, 'adaptation.enabled must be true or false'),
-    ({'adaptation.forgetting': 0.2}, 'adaptation.forgetting must be'),
+    ({'adaptation.time_constant_s': 0.2}, 'adaptation.time_constant_s must be'),
+    ({'identification.play_share_rising': 2.0}, 'identification.play_share_rising must be'),
     ({'memory': 'preisach'}, 'memory must be one of'),
     ({'branch_form': 'cubic'}, 'branch_form must be one of'),
     ({'increasing.sigmoid.q': 1.0}, r"unknown parameter\(s\) \['increasing.sigmoid.q'\]"),
@@ -178,7 +182,7 @@ def test_a_file_larger_than_any_params_file_is_refused(defaults, tmp_path):
     assert ModelParams.load_yaml(fine) == defaults
 
 
-def test_build_model_and_adapter_use_the_selected_form(defaults):
+def test_build_model_and_online_model_use_the_selected_form(defaults):
     hill = replace(defaults, branch_form='hill', memory='switch', deadband_pa=5_000.0,
                    max_gauge_pressure_pa=400_000.0)
     model = hill.build_model()
@@ -187,7 +191,9 @@ def test_build_model_and_adapter_use_the_selected_form(defaults):
     assert model.decreasing == defaults.decreasing.hill
     assert (model.memory, model.deadband_pa, model.max_gauge_pressure_pa) == (
         'switch', 5_000.0, 400_000.0)
-    assert hill.build_adapter().reference_length_m == defaults.increasing.hill.l0_m
+    online = hill.build_online()
+    assert online.model.increasing == defaults.increasing.hill
+    assert (online.memory, online.deadband_pa) == ('switch', 5_000.0)
     swapped = defaults.with_branches(HillBranch(0.3, 0.06, 2e5, 2.0),
                                      HillBranch(0.3, 0.06, 1.8e5, 2.0))
     assert swapped.increasing.hill.k_pa == 2e5 and swapped.increasing.sigmoid == \

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pma_driver import protocol
 from pma_driver.calibration import LengthCalibration, PressureCalibration
 from pma_driver.protocol import Command, NakReason, Valve
-from pma_driver.sim.muscle import PreisachMuscle
+from pma_driver.sim.families import DEFAULT_FAMILY, Muscle, muscle_from_spec, parse_muscle_spec
 from pma_driver.sim.pneumatics import PneumaticParams, Pneumatics
 
 FIRMWARE_NAME = 'fake_arduino'
@@ -65,6 +65,7 @@ class DeviceConfig:
     echo_timeout_rate: float = 0.0             # probability a sample has no echo
     seed: int = 0
     pneumatics: PneumaticParams = field(default_factory=PneumaticParams)
+    muscle: str = DEFAULT_FAMILY               # sim.families: a family name, '+drift' optional
 
     def __post_init__(self):
         if not 1 <= self.max_rate_hz <= 1000:
@@ -77,14 +78,20 @@ class DeviceConfig:
             raise ValueError(f'hb_timeout_ms must be within {HBTO_RANGE_MS}')
         if not 0.0 <= self.echo_timeout_rate <= 1.0:
             raise ValueError('echo_timeout_rate must be within 0..1')
+        parse_muscle_spec(self.muscle)   # an unknown family fails here, with the choices
 
 
 class Rig:
-    """The physical side, which survives a device reboot: air, muscle and sensors."""
+    """The physical side, which survives a device reboot: air, muscle and sensors.
 
-    def __init__(self, config: DeviceConfig):
+    The muscle is `config.muscle`'s family unless one is given; `time_s` is the rig's own
+    clock (the muscle families' time argument), advanced by `step`.
+    """
+
+    def __init__(self, config: DeviceConfig, muscle: Muscle | None = None):
         self.pneumatics = Pneumatics(config.pneumatics)
-        self.muscle = PreisachMuscle()
+        self.muscle = muscle if muscle is not None else muscle_from_spec(config.muscle)
+        self.time_s = 0.0
         self.pressure_sensor = PressureCalibration()
         self.range_sensor = LengthCalibration()
         # A broken or unplugged pressure sensor: every conversion reads this count.
@@ -101,7 +108,8 @@ class Rig:
         return self.muscle.length_m
 
     def step(self, dt_s: float, valve: Valve) -> None:
-        self.muscle.update(self.pneumatics.step(dt_s, valve))
+        self.time_s += dt_s
+        self.muscle.update(self.pneumatics.step(dt_s, valve), self.time_s)
 
     def read_adc(self) -> int:
         """One ADC conversion of the pressure sensor, with its own noise."""

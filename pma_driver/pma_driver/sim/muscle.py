@@ -156,8 +156,16 @@ class PreisachMuscle:
     def hysteretic_fraction(self) -> float:
         return self._prefix + self._segment(self._turns[-1], self._input)
 
-    def update(self, pressure_pa: float) -> float:
-        """Move to a new pressure [Pa gauge]; return the muscle length [m]."""
+    @property
+    def rest_length_m(self) -> float:
+        """Length at 0 Pa in the relaxed state [m]."""
+        return self._length(0.0, 0.0)
+
+    def update(self, pressure_pa: float, t_s: float = 0.0) -> float:
+        """Move to a new pressure [Pa gauge]; return the muscle length [m].
+
+        `t_s` is the families' common time argument (sim.families.Muscle); unused here.
+        """
         v = min(max(float(pressure_pa) - self.params.dead_zone_pa, 0.0), SPAN_PA)
         turns = self._turns
         changed = False

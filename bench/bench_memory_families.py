@@ -1,0 +1,151 @@
+"""The model on every simulated muscle family: minor-loop errors and the issue's criteria.
+
+Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid hill]
+(OMP_NUM_THREADS=1; about 10 minutes on one core for the defaults). Prints the table of
+docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of stroke) and
+checks, for every family, path and seed:
+  - identify, from the third reversal on: RMSE <= 0.9x and max <= 0.7x the paper's switch;
+  - identify vs the best single fixed rule (static and with the same learning): <= 1.1x RMSE;
+  - adaptation on vs off without drift: <= 1.05x RMSE;
+  - with drift (from 60 s, time constant 30 s): error back to the drift-free level
+    (<= 1.1x) in the window 120-240 s after the drift started;
+  - the moonshot: minor-loop RMSE <= 1.5 % of stroke.
+The figures are model errors (not speeds), so no in-run baseline is needed; the reference
+is the paper's switch on the same samples.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
+
+from pma_driver.sim.families import FAMILY_NAMES
+from support.muscle_families import (
+    ALL_CONFIGS,
+    IDENTIFY,
+    LEARNED_RULES,
+    PAPER,
+    PATH_KINDS,
+    STATIC_RULES,
+    STROKE_M,
+    Config,
+    Scenario,
+    score,
+)
+
+DRIFT_START_S = 60.0
+DRIFT_DURATION_S = 300.0
+RECOVERED_WINDOW_S = (DRIFT_START_S + 120.0, DRIFT_DURATION_S)
+
+
+def table(form: str, seeds: list[int], duration_s: float) -> list[str]:
+    lines = [f'\n### {form} branches (RMSE | max error, cm (% of stroke), from the third '
+             f'reversal on; mean RMSE and worst max over seeds {seeds})', '',
+             '| family | rule | adaptation | ' + ' | '.join(
+                 f'{kind} RMSE | {kind} max' for kind in PATH_KINDS) + ' |',
+             '|---|---|---|' + '---|---|' * len(PATH_KINDS)]
+    for family in FAMILY_NAMES:
+        for config in ALL_CONFIGS:
+            for adapt in (False, True):
+                variant = Config(config.memory, config.learn, adapt)
+                cells = []
+                for kind in PATH_KINDS:
+                    results = [score(Scenario(family, kind, seed, duration_s), variant, form)
+                               for seed in seeds]
+                    rmse = sum(r.rmse_m for r in results) / len(results)
+                    worst = max(r.max_m for r in results)
+                    cells.append(f'{rmse * 100:.3f} ({100 * rmse / STROKE_M:.2f}) | '
+                                 f'{worst * 100:.3f} ({100 * worst / STROKE_M:.2f})')
+                lines.append(f'| {family} | {config.label} | {"on" if adapt else "off"} | '
+                             + ' | '.join(cells) + ' |')
+    return lines
+
+
+def criteria(form: str, seeds: list[int], duration_s: float) -> tuple[list[str], bool]:
+    lines = [f'\n### criteria, {form} branches (identify, learning on)', '',
+             '| scenario | RMSE / switch | max / switch | RMSE / best fixed rule (which) | '
+             'adaptation on / off | RMSE % of stroke |', '|---|---|---|---|---|---|']
+    passed = True
+    for family in FAMILY_NAMES:
+        for kind in PATH_KINDS:
+            for seed in seeds:
+                scenario = Scenario(family, kind, seed, duration_s)
+                ours = score(scenario, IDENTIFY, form)
+                paper = score(scenario, PAPER, form)
+                fixed = {config.label: score(scenario, config, form)
+                         for config in (*STATIC_RULES, *LEARNED_RULES, PAPER)}
+                best_label = min(fixed, key=lambda label: fixed[label].rmse_m)
+                adapted = score(scenario, Config('identify', True, True), form)
+                ratios = (ours.rmse_m / paper.rmse_m, ours.max_m / paper.max_m,
+                          ours.rmse_m / fixed[best_label].rmse_m, adapted.rmse_m / ours.rmse_m)
+                ok = (ratios[0] <= 0.9, ratios[1] <= 0.7, ratios[2] <= 1.1, ratios[3] <= 1.05,
+                      ours.rmse_pct <= 1.5)
+                passed &= all(ok[:4])
+                marks = ['' if good else ' **x**' for good in ok]
+                lines.append(
+                    f'| {scenario.label} | {ratios[0]:.2f}{marks[0]} | {ratios[1]:.2f}{marks[1]}'
+                    f' | {ratios[2]:.2f} ({best_label}){marks[2]} | {ratios[3]:.3f}{marks[3]} | '
+                    f'{ours.rmse_pct:.2f}{marks[4]} |')
+    return lines, passed
+
+
+def drift(form: str, seed: int) -> tuple[list[str], bool]:
+    lines = [f'\n### drift, {form} branches (identify; drift +1.5 mm rest length, x1.08 stroke '
+             f'from {DRIFT_START_S:.0f} s, time constant 30 s; random path, seed {seed}; '
+             'RMSE % of stroke per minute)', '',
+             '| family | muscle | adaptation | ' + ' | '.join(
+                 f'{start:.0f}-{start + 60:.0f} s' for start in range(0, int(DRIFT_DURATION_S),
+                                                                     60)) + ' | recovered |',
+             '|---|---|---|' + '---|' * (int(DRIFT_DURATION_S) // 60) + '---|']
+    passed = True
+    for family in FAMILY_NAMES:
+        clean = Scenario(family, 'random', seed, DRIFT_DURATION_S)
+        drifting = Scenario(family, 'random', seed, DRIFT_DURATION_S, DRIFT_START_S)
+        floor = score(clean, Config('identify', True, False), form, RECOVERED_WINDOW_S)
+        for scenario, name in ((clean, 'no drift'), (drifting, 'drifting')):
+            for adapt in (False, True):
+                config = Config('identify', True, adapt)
+                windows = [score(scenario, config, form, (start, start + 60.0))
+                           for start in range(0, int(DRIFT_DURATION_S), 60)]
+                recovered = ''
+                if scenario is drifting and adapt:
+                    late = score(scenario, config, form, RECOVERED_WINDOW_S)
+                    ratio = late.rmse_m / floor.rmse_m
+                    passed &= ratio <= 1.1
+                    recovered = f'{ratio:.2f}x the drift-free error' + (
+                        '' if ratio <= 1.1 else ' **x**')
+                lines.append(f'| {family} | {name} | {"on" if adapt else "off"} | '
+                             + ' | '.join(f'{w.rmse_pct:.2f}' for w in windows)
+                             + f' | {recovered} |')
+    return lines, passed
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
+    parser.add_argument('--forms', nargs='+', default=['sigmoid', 'hill'])
+    parser.add_argument('--duration', type=float, default=180.0, help='path length [s]')
+    args = parser.parse_args()
+    start = time.monotonic()
+    print(f'# Minor loops on every muscle family (paths of {args.duration:.0f} s at 50 Hz, '
+          f'stroke {STROKE_M * 100:.2f} cm)')
+    verdicts = []
+    for form in args.forms:
+        print('\n'.join(table(form, args.seeds, args.duration)), flush=True)
+        lines, passed = criteria(form, args.seeds, args.duration)
+        print('\n'.join(lines), flush=True)
+        drift_lines, drift_passed = drift(form, args.seeds[0])
+        print('\n'.join(drift_lines), flush=True)
+        verdicts.append(f'{form}: minor-loop criteria {"met" if passed else "NOT met"}, '
+                        f'drift recovery {"met" if drift_passed else "NOT met"}')
+    print('\n' + '\n'.join(verdicts))
+    print(f'({time.monotonic() - start:.0f} s)')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

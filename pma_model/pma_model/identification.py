@@ -1,0 +1,590 @@
+"""Online identification: learn which muscle this is from the lengths the model already sees.
+
+One major loop (Table 1) fixes the branches only roughly and says nothing about minor loops,
+so the model keeps learning, sample by sample, three things about the muscle and one about
+its state (docs/model.md, "Online identification"):
+
+- the minor-loop rule: the play share of the 'identify' memory for rising and for falling
+  pressure (0 = Madelung, 1 = hold-then-branch; memory.py). The prediction is linear in
+  each share, with regressor (play-like - Madelung) length on the current scanning curve,
+  so each is a scalar recursive least-squares estimate, clamped to 0..1: a continuous
+  memory parameter between the two rules, whose regret against the best fixed share
+  grows only logarithmically. It learns only where the shapes differ: after reversals.
+- the branch shape: a correction delta(P) given at knots every 50 kPa (CORRECTION_KNOTS_PA),
+  the same for both branches, added inside them (CorrectedBranch) so every memory rule uses
+  it and keeps its continuity and return-point memory. Between knots it follows the branch's
+  own length, so it can flatten the sigmoid's dead zone and still invert in closed form. (A
+  correction per branch learned worse: on a scanning curve a residual cannot be told to one
+  branch.)
+- creep: length = static + sum_j k_j (lag_j(static) - static), the model's static length
+  through first-order lags of CREEP_TIME_CONSTANTS_S: a share of each change arriving late,
+  which vanishes in a hold (so the inverse, a steady-state answer, ignores it).
+- drift (adaptation.enabled): rest-length shift and stroke gain (adaptation.Drift).
+
+delta, the creep gains and the drift are one Kalman filter (random walks: delta and creep
+nearly static, drift moving over adaptation.time_constant_s; with drift on, delta is kept
+out of the two directions drift moves the knots in, so they cannot trade off). Its
+measurement noise is the sensor's, divided by a confidence that is 1 on the major branches
+and falls as the two memory shapes disagree: a residual the memory could explain is not
+learned as shape or drift. The learned numbers are applied to the memory model when they have
+moved enough to matter (COMMIT_M, COMMIT_SHARE), by replaying the remembered turning points:
+the state stays a function of the pressure history and the learned numbers.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field, replace
+from typing import ClassVar
+
+import numpy as np
+
+from pma_model.adaptation import AdaptationSettings, Drift
+from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
+from pma_model.detector import BRANCH_AUTO, DEFAULT_DEADBAND_PA
+from pma_model.memory import HysteresisModel, InverseResult
+
+CORRECTION_KNOTS_PA = tuple(float(p) for p in np.linspace(0.0, 500_000.0, 11))
+CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
+MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
+MAX_CREEP_GAIN = 1.0
+SPREAD_SCALE_M = 0.0005      # memory shapes this far apart halve the confidence (quarter R)
+COMMIT_M = 2e-5              # apply learned branch changes once they move 0.02 mm somewhere
+COMMIT_SHARE = 0.01          # or a share by this much
+MAX_STEP_S = 1.0             # a longer gap between samples counts as this (a pause)
+GAIN_WALK_LENGTH_M = 0.03    # the gain may move as fast as the shift does at this |L - L_ref|
+SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth nothing)
+
+# Kalman filter priors (standard deviations) and random-walk rates (per second).
+_PRIOR = {'correction': 0.004, 'creep': 0.5, 'shift': 0.003, 'gain': 0.1, 'share': 1.0}
+_PRIOR_RESUMED = {'correction': 0.001, 'creep': 0.1, 'share': 0.2}
+_WALK_PER_S = {'correction': 1e-5, 'creep': 1e-3, 'share': 0.003}
+
+
+@dataclass(frozen=True)
+class IdentificationSettings:
+    """Whether to learn, and what has been learned (saved, so a restart resumes it)."""
+
+    enabled: bool = True
+    play_share_rising: float = 0.5
+    play_share_falling: float = 0.5
+    branch_correction_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
+    creep_gains: tuple[float, ...] = (0.0,) * len(CREEP_TIME_CONSTANTS_S)
+    length_noise_m: float = 0.0017   # HC-SR04: 1.5 mm noise and 3 mm steps
+
+    def __post_init__(self):
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f'enabled must be true or false, got {self.enabled!r}')
+        for name in ('play_share_rising', 'play_share_falling'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f'{name} must be within 0..1, got {value!r}')
+        object.__setattr__(self, 'branch_correction_m',
+                           _checked_vector('branch_correction_m', self.branch_correction_m,
+                                           len(CORRECTION_KNOTS_PA), MAX_CORRECTION_M))
+        object.__setattr__(self, 'creep_gains',
+                           _checked_vector('creep_gains', self.creep_gains,
+                                           len(CREEP_TIME_CONSTANTS_S), MAX_CREEP_GAIN))
+        if not (math.isfinite(self.length_noise_m) and 1e-5 <= self.length_noise_m <= 0.05):
+            raise ValueError('length_noise_m must be within 1e-5..0.05 m, '
+                             f'got {self.length_noise_m!r}')
+
+    @property
+    def play_shares(self) -> tuple[float, float]:
+        return self.play_share_rising, self.play_share_falling
+
+    @property
+    def learned_anything(self) -> bool:
+        return any(self.branch_correction_m) or any(self.creep_gains) or \
+            self.play_shares != (0.5, 0.5)
+
+
+def _checked_vector(name: str, values, size: int, limit: float) -> tuple[float, ...]:
+    try:
+        vector = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(f'{name} must be a list of {size} numbers, got {values!r}') from None
+    if len(vector) != size:
+        raise ValueError(f'{name} must have {size} values, got {len(vector)}')
+    if not all(math.isfinite(v) and abs(v) <= limit for v in vector):
+        raise ValueError(f'{name} values must be finite and within +/-{limit}, got {vector}')
+    return vector
+
+
+# --- the branch correction ------------------------------------------------------------------
+
+def _knot_position(p_pa: float) -> tuple[int, bool]:
+    """(interval k, inside) for a pressure: knots k and k + 1 bracket it when inside."""
+    position = (p_pa - CORRECTION_KNOTS_PA[0]) / _KNOT_STEP_PA
+    last = len(CORRECTION_KNOTS_PA) - 1
+    if position <= 0.0:
+        return 0, False
+    if position >= last:
+        return last, False
+    return int(position), True
+
+
+_KNOT_STEP_PA = CORRECTION_KNOTS_PA[1] - CORRECTION_KNOTS_PA[0]
+
+
+@dataclass(frozen=True)
+class CorrectedBranch(Branch):
+    """`base` plus a correction given at CORRECTION_KNOTS_PA, flat beyond them.
+
+    Between two knots the correction is interpolated along the base branch's own length,
+    not along pressure: with B_k the base length at knot k,
+        delta(P) = d_k + (d_{k+1} - d_k) * (B_k - B(P)) / (B_k - B_{k+1}).
+    So the corrected branch stays monotone exactly when d_{k+1} - d_k <= B_k - B_{k+1}
+    (`monotone_correction`), it can go flat where the muscle is (the sigmoid's slope in the
+    0-50 kPa dead zone), and its inverse is closed form: on interval k,
+        B(P) = (L - d_k - r B_k) / (1 - r),  r = (d_{k+1} - d_k) / (B_k - B_{k+1}),
+    then P = B^-1.
+    """
+
+    form: ClassVar[str] = 'corrected'
+
+    base: Branch
+    offsets_m: tuple[float, ...]
+
+    @functools.cached_property
+    def _base_at_knots(self) -> tuple[float, ...]:
+        return tuple(float(v) for v in self.base.length(np.array(CORRECTION_KNOTS_PA)))
+
+    def correction_at(self, p_pa: float, base_length_m: float) -> float:
+        """delta at one pressure, given the base length there."""
+        k, inside = _knot_position(p_pa)
+        if not inside:
+            return self.offsets_m[k]
+        knots = self._base_at_knots
+        drop = knots[k] - knots[k + 1]
+        if drop <= 0.0:
+            return self.offsets_m[k]
+        share = (knots[k] - base_length_m) / drop
+        return self.offsets_m[k] + (self.offsets_m[k + 1] - self.offsets_m[k]) * share
+
+    def length(self, p_pa):
+        if isinstance(p_pa, float):   # the online path: one sample, no numpy round trip
+            base = self.base.length(p_pa)
+            return base + self.correction_at(p_pa, base)
+        p = np.asarray(p_pa, dtype=float)
+        base = np.asarray(self.base.length(p))
+        result = base + np.vectorize(self.correction_at, otypes=[float])(p, base)
+        return float(result) if np.ndim(result) == 0 else result
+
+    def inverse_unchecked(self, length_m):
+        lengths = np.asarray(length_m, dtype=float)
+        result = np.vectorize(self._inverse_one, otypes=[float])(lengths)
+        return float(result) if result.ndim == 0 else result
+
+    def _inverse_one(self, length_m: float) -> float:
+        if not math.isfinite(length_m):
+            return math.nan
+        base, offsets = self._base_at_knots, self.offsets_m
+        corrected = [b + d for b, d in zip(base, offsets, strict=True)]
+        if length_m > corrected[0]:
+            return math.nan    # longer than at 0 Pa (flat below: the least pressure is 0)
+        if length_m <= corrected[-1]:
+            return float(self.base.inverse_unchecked(length_m - offsets[-1]))
+        first = next(i for i, value in enumerate(corrected) if value <= length_m)
+        if corrected[first] == length_m:
+            return CORRECTION_KNOTS_PA[first]   # the least pressure of a flat stretch too
+        k = first - 1
+        drop = base[k] - base[k + 1]
+        ratio = (offsets[k + 1] - offsets[k]) / drop if drop > 0.0 else 1.0
+        if ratio >= 1.0:       # a flat interval: its lowest pressure
+            return CORRECTION_KNOTS_PA[k]
+        target = (length_m - offsets[k] - ratio * base[k]) / (1.0 - ratio)
+        return float(self.base.inverse_unchecked(target))
+
+    def invertible_pressure_limit(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+        """The base branch's: a learned flat stretch (a plateau) is answered with its least
+        pressure, it does not end the range the inverse answers for."""
+        return self.base.invertible_pressure_limit(p_max_pa)
+
+    def stroke_m(self) -> float:
+        return self.base.stroke_m() + self.offsets_m[0] - self.offsets_m[-1]
+
+    def saturation_length_m(self) -> float:
+        return self.base.saturation_length_m() + self.offsets_m[-1]
+
+    @classmethod
+    def bounds(cls):
+        raise TypeError('a corrected branch is learned online, not fitted')
+
+
+def correction_caps(branch: Branch) -> np.ndarray:
+    """Per knot interval: how much the correction may rise and keep the branch monotone."""
+    return np.maximum(-np.diff(branch.length(np.array(CORRECTION_KNOTS_PA))), 0.0)
+
+
+def monotone_correction(offsets, caps: np.ndarray) -> tuple[float, ...]:
+    """The offsets, bounded, each knot lowered only as needed (from 0 Pa upward) so that
+    the corrected branch stays non-increasing."""
+    values = np.clip(np.array(offsets, dtype=float), -MAX_CORRECTION_M, MAX_CORRECTION_M)
+    for k in range(1, values.size):
+        values[k] = min(values[k], values[k - 1] + caps[k - 1])
+    return tuple(float(v) for v in values)
+
+
+def correction_weights(p_pa: float, branch: Branch) -> np.ndarray:
+    """d delta / d d_k at p_pa along `branch` (the filter's regressor for the knots)."""
+    weights = np.zeros(len(CORRECTION_KNOTS_PA))
+    k, inside = _knot_position(p_pa)
+    if not inside:
+        weights[k] = 1.0
+        return weights
+    low, high = (float(branch.length(CORRECTION_KNOTS_PA[i])) for i in (k, k + 1))
+    share = (low - float(branch.length(p_pa))) / (low - high) if low > high else 0.0
+    weights[k], weights[k + 1] = 1.0 - share, share
+    return weights
+
+
+# --- the online model -----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Prediction:
+    length_m: float          # what the model predicts for this sample (before learning from it)
+    branch: int              # the deadband detector's branch code
+    static_length_m: float   # the memory model alone (no creep, no drift)
+    offset_m: float          # drift correction: length = offset + gain * (static + creep)
+    gain: float
+    confidence: float        # 1 on a major branch, toward 0 where the memory shapes disagree
+
+
+@dataclass
+class _Filter:
+    """Kalman filter over [shape coordinates, creep gains, shift, gain - 1]."""
+
+    mean: np.ndarray
+    covariance: np.ndarray
+    walk_per_s: np.ndarray    # random-walk variance added per second
+    samples: int = 0
+    rejected: int = 0
+
+
+@dataclass
+class OnlineModel:
+    """The memory model plus what it learns online; `step` is the whole online order.
+
+    Built by ModelParams.build_online(). `step(pressure, measured, t)` predicts the sample
+    from the pressure history, then learns from its measured length (so the published
+    residual stays out-of-sample). With identification and adaptation both off it is the
+    plain memory model.
+    """
+
+    increasing: Branch
+    decreasing: Branch
+    memory: str = 'identify'
+    deadband_pa: float = DEFAULT_DEADBAND_PA
+    max_gauge_pressure_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA
+    identification: IdentificationSettings = field(default_factory=IdentificationSettings)
+    adaptation: AdaptationSettings = field(default_factory=AdaptationSettings)
+
+    def __post_init__(self):
+        self._caps = (correction_caps(self.increasing), correction_caps(self.decreasing))
+        settings = self.identification
+        self._learning = settings.enabled
+        self._drifting = self.adaptation.enabled
+        # Drift's gain acts about mid-stroke: there a gain change moves nothing, so shift
+        # and gain are nearly uncorrelated unknowns (about the rest length they trade off).
+        knots = np.array(CORRECTION_KNOTS_PA)
+        self.reference_length_m = float(np.mean(
+            0.5 * (self.increasing.length(knots) + self.decreasing.length(knots))))
+        shares = settings.play_shares
+        self._shares = np.array(shares, dtype=float)
+        priors = _PRIOR_RESUMED if settings.learned_anything else _PRIOR
+        self._share_variance = np.full(2, priors['share'] ** 2)
+        self._filter = self._new_filter(settings, priors)
+        correction = self._monotone(self._parts()[0])
+        self._committed = (correction, shares)
+        self._committed_raw = self._parts()[0]
+        branches = self._corrected(correction)
+        self.model = HysteresisModel(*branches, memory=self.memory,
+                                     deadband_pa=self.deadband_pa,
+                                     max_gauge_pressure_pa=self.max_gauge_pressure_pa,
+                                     play_shares=shares)
+        # What measures the memory's doubt for every rule: the 'identify' shapes.
+        self._shapes = self.model if self.memory == 'identify' else (
+            HysteresisModel(*branches, memory='identify', deadband_pa=self.deadband_pa,
+                            max_gauge_pressure_pa=self.max_gauge_pressure_pa,
+                            play_shares=shares)
+            if self._learning or self._drifting else None)
+        self._lags = None
+        self._time = None
+        self._static = math.nan
+        self.commits = 0
+
+    # --- construction ---------------------------------------------------------------
+
+    def _new_filter(self, settings: IdentificationSettings, priors: dict) -> _Filter:
+        """The filter's state: [shape coordinates z, creep gains, shift, gain - 1].
+
+        The correction is basis @ z. With adaptation on, the basis leaves out the two
+        directions drift moves the knots in (a constant, and the stroke-like B - L_ref), so
+        shape and drift cannot trade off against each other; without it, every knot is free.
+        """
+        knots = len(CORRECTION_KNOTS_PA)
+        drift_directions = self._drift_directions()
+        if self._drifting:
+            full, _, _ = np.linalg.svd(drift_directions, full_matrices=True)
+            self._basis = full[:, drift_directions.shape[1]:]
+        else:
+            self._basis = np.eye(knots)
+        saved = np.array(settings.branch_correction_m)
+        shape = self._basis.T @ saved
+        drift = np.zeros(2)
+        if self._drifting:
+            drift = np.linalg.lstsq(drift_directions, saved - self._basis @ shape, rcond=None)[0]
+        size = self._basis.shape[1]
+        mean = np.concatenate([shape, settings.creep_gains, drift])
+        learn = 1.0 if self._learning else 0.0
+        on = 1.0 if self._drifting else 0.0
+        prior = np.concatenate([np.full(size, learn * priors['correction'] ** 2),
+                                np.full(len(CREEP_TIME_CONSTANTS_S), learn * priors['creep'] ** 2),
+                                on * np.array([_PRIOR['shift'], _PRIOR['gain']]) ** 2])
+        walk = np.concatenate([np.full(size, learn * _WALK_PER_S['correction'] ** 2),
+                               np.full(len(CREEP_TIME_CONSTANTS_S),
+                                       learn * _WALK_PER_S['creep'] ** 2), [0.0, 0.0]])
+        return _Filter(mean, np.diag(prior), walk)
+
+    def _drift_directions(self) -> np.ndarray:
+        """How a shift and a stroke gain move the knots: columns 1 and B(knots) - L_ref,
+        B the mean of the two branches."""
+        knots = np.array(CORRECTION_KNOTS_PA)
+        middle = 0.5 * (self.increasing.length(knots) + self.decreasing.length(knots))
+        return np.column_stack([np.ones(knots.size), middle - self.reference_length_m])
+
+    def _monotone(self, correction) -> np.ndarray:
+        """The correction, bounded and kept monotone on both branches."""
+        return np.array(monotone_correction(correction, np.minimum(*self._caps)))
+
+    def _corrected(self, correction) -> tuple[Branch, Branch]:
+        if not any(correction):
+            return self.increasing, self.decreasing
+        offsets = tuple(float(v) for v in correction)
+        return (CorrectedBranch(self.increasing, offsets),
+                CorrectedBranch(self.decreasing, offsets))
+
+    # --- what it has learned --------------------------------------------------------
+
+    @property
+    def drift(self) -> Drift:
+        _, _, shift, gain_excess = self._parts()
+        return Drift(self.reference_length_m, float(shift), 1.0 + float(gain_excess))
+
+    @property
+    def branch(self) -> int:
+        return self.model.branch
+
+    @property
+    def samples_learned(self) -> int:
+        return self._filter.samples
+
+    @property
+    def samples_rejected(self) -> int:
+        return self._filter.rejected
+
+    def learned(self) -> IdentificationSettings:
+        """The identification settings with what has been learned (for ModelParams).
+
+        The drift at this moment is folded into the correction (it is this muscle, now);
+        a model built from these settings starts from there with no drift.
+        """
+        correction, creep, shift, gain_excess = self._parts()
+        folded = self._monotone(correction + self._drift_directions()
+                                @ np.array([shift, gain_excess]))
+        return replace(self.identification, play_share_rising=float(self._shares[0]),
+                       play_share_falling=float(self._shares[1]),
+                       branch_correction_m=tuple(float(v) for v in folded),
+                       creep_gains=tuple(float(v) for v in creep))
+
+    def _parts(self):
+        """(correction at the knots, creep gains, shift, gain - 1) from the filter's state."""
+        size, lags = self._basis.shape[1], len(CREEP_TIME_CONSTANTS_S)
+        mean = self._filter.mean
+        return self._basis @ mean[:size], mean[size:size + lags], mean[-2], mean[-1]
+
+    # --- the online order -----------------------------------------------------------
+
+    def step(self, pressure_pa: float, measured_length_m: float = math.nan,
+             t_s: float | None = None) -> Prediction:
+        """Predict this sample, then learn from its measured length (NaN: nothing to learn).
+
+        A non-finite pressure gives a NaN prediction and changes nothing.
+        """
+        pressure_pa = float(pressure_pa)
+        drift = self.drift
+        if not math.isfinite(pressure_pa):
+            return Prediction(math.nan, self.model.branch, math.nan, drift.offset_m, drift.gain,
+                              math.nan)
+        static, branch = self.model.update(pressure_pa)
+        if self._shapes is not None and self._shapes is not self.model:
+            self._shapes.update(pressure_pa)
+        play, madelung = (self._shapes.expert_lengths() if self._shapes is not None
+                          else (static, static))
+        spread = abs(play - madelung)
+        confidence = 1.0 / (1.0 + (spread / SPREAD_SCALE_M) ** 2)
+        dt = self._advance_lags(static, t_s)
+        _, creep_gains, _, _ = self._parts()
+        creep = self._lags - static
+        undrifted = static + float(creep_gains @ creep)
+        predicted = float(drift.correct(undrifted))
+        measured_length_m = float(measured_length_m)
+        if (self._learning or self._drifting) and math.isfinite(measured_length_m):
+            self._learn(measured_length_m - predicted, creep=creep, undrifted=undrifted,
+                        shape_difference=play - madelung, confidence=confidence,
+                        gain=drift.gain, dt=dt)
+        return Prediction(predicted, branch, static, drift.offset_m, drift.gain, confidence)
+
+    def _advance_lags(self, static: float, t_s: float | None) -> float:
+        """Move the creep lags to this sample's time; returns the step [s] (0 if unknown)."""
+        if self._lags is None or t_s is None or self._time is None:
+            dt = 0.0
+            if self._lags is None:
+                self._lags = np.full(len(CREEP_TIME_CONSTANTS_S), static)
+        else:
+            dt = min(max(float(t_s) - self._time, 0.0), MAX_STEP_S)
+        if dt > 0.0:
+            # Exact for a static length that moves linearly over the step.
+            slope = (static - self._static) / dt
+            taus = np.array(CREEP_TIME_CONSTANTS_S)
+            decay = np.exp(-dt / taus)
+            self._lags = static - slope * taus + (self._lags - self._static + slope * taus) * decay
+        if t_s is not None:
+            self._time = float(t_s)
+        self._static = static
+        return dt
+
+    def _learn(self, residual: float, *, creep: np.ndarray, undrifted: float,
+               shape_difference: float, confidence: float, gain: float, dt: float) -> None:
+        state = self._filter
+        if abs(residual) > self.adaptation.outlier_m:
+            state.rejected += 1
+            return
+        noise = self.identification.length_noise_m ** 2
+        if self._learning and self.memory == 'identify':
+            self._learn_share(residual, shape_difference * gain, noise, dt)
+        size = self._basis.shape[1]
+        regressor = np.concatenate([
+            gain * (self._correction_regressor() @ self._basis),
+            gain * creep,
+            [1.0, undrifted - self.reference_length_m]])
+        walk = state.walk_per_s * dt
+        if self._drifting:
+            # A random walk whose steady Kalman gain remembers about time_constant_s.
+            samples = self.adaptation.time_constant_s / max(dt, 1e-3)
+            walk = walk.copy()
+            walk[-2] = noise / samples ** 2
+            walk[-1] = walk[-2] / GAIN_WALK_LENGTH_M ** 2
+        covariance = state.covariance
+        covariance[np.diag_indices_from(covariance)] += walk
+        spread = covariance @ regressor
+        innovation = noise / max(confidence, SPREAD_FLOOR) + float(regressor @ spread)
+        kalman_gain = spread / innovation
+        mean = state.mean + kalman_gain * residual
+        covariance = covariance - np.outer(kalman_gain, spread)
+        state.covariance = 0.5 * (covariance + covariance.T)
+        state.mean = mean
+        self._project_shape(state)
+        mean = state.mean
+        mean[size:-2] = np.clip(mean[size:-2], -MAX_CREEP_GAIN, MAX_CREEP_GAIN)
+        limits = self.adaptation
+        mean[-2] = min(max(mean[-2], -limits.max_shift_m), limits.max_shift_m)
+        mean[-1] = min(max(mean[-1], limits.min_gain - 1.0), limits.max_gain - 1.0)
+        state.samples += 1
+        self._commit_if_moved()
+
+    def _project_shape(self, state: _Filter) -> None:
+        """Keep the filter's belief a correction the model can use (bounded, monotone).
+
+        The branch-coordinate interpolation lets the correction go flat, so the limit
+        binds only where the data ask for a branch that rises with pressure (noise, early
+        on); the mean is moved back inside, the covariance is left alone.
+        """
+        size = self._basis.shape[1]
+        shape = self._basis @ state.mean[:size]
+        projected = self._monotone(shape)
+        if np.array_equal(projected, shape):
+            return
+        state.mean[:size] = self._basis.T @ projected
+        if self._drifting:
+            left = projected - self._basis @ state.mean[:size]
+            state.mean[-2:] += np.linalg.lstsq(self._drift_directions(), left, rcond=None)[0]
+
+    def _correction_regressor(self) -> np.ndarray:
+        """d length / d knots at the current pressure, along the current direction's branch
+        (exact on a major branch; on a scanning curve a shift of the correction there moves
+        the length by about as much). The direction is the stack's ('switch' has none)."""
+        tracker = self._shapes if self._shapes is not None else self.model
+        return correction_weights(tracker.pressure_pa, tracker.major(tracker.rising))
+
+    def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
+        """Scalar RLS on the current direction's play share (prediction linear in it)."""
+        if difference == 0.0:
+            return
+        index = 0 if self.model.rising else 1
+        variance = self._share_variance[index] + _WALK_PER_S['share'] ** 2 * dt
+        gain = variance * difference / (noise + difference * difference * variance)
+        self._shares[index] = min(1.0, max(0.0, self._shares[index] + gain * residual))
+        self._share_variance[index] = min(variance - gain * difference * variance,
+                                          _PRIOR['share'] ** 2)
+
+    def _commit_if_moved(self) -> None:
+        _, shares = self._committed
+        raw = self._parts()[0]
+        if float(np.max(np.abs(raw - self._committed_raw))) < COMMIT_M and \
+                float(np.max(np.abs(self._shares - shares))) < COMMIT_SHARE:
+            return
+        self._committed_raw = raw
+        correction = self._monotone(raw)
+        self.commits += 1
+        new_shares = (float(self._shares[0]), float(self._shares[1]))
+        branches = self._corrected(correction)
+        self.model.relearn(*branches, new_shares)
+        if self._shapes is not None and self._shapes is not self.model:
+            self._shapes.relearn(*branches, new_shares)
+        self._committed = (correction, new_shares)
+
+    # --- inverse --------------------------------------------------------------------
+
+    def pressure_for_length(self, length_m: float, branch: int = BRANCH_AUTO) -> InverseResult:
+        """The memory model's inverse (steady state: creep has settled), drift undone.
+
+        Lengths in the answer's range are the drifted ones, as the muscle will show them.
+        """
+        drift = self.drift
+        target = float(drift.uncorrect(length_m)) if math.isfinite(length_m) else length_m
+        result = self.model.pressure_for_length(target, branch)
+        if self._drifting and math.isfinite(result.min_length_m):
+            low, high = drift.correct([result.min_length_m, result.max_length_m])
+            low, high = float(min(low, high)), float(max(low, high))
+            message = result.message
+            if not result.success:
+                message += (f' (lengths without the drift correction; with it: reachable '
+                            f'[{low:.6g}, {high:.6g}] m)')
+            result = replace(result, message=message, min_length_m=low, max_length_m=high)
+        return result
+
+    # --- run-time parameter changes -------------------------------------------------
+
+    def resume_from(self, other: OnlineModel) -> None:
+        """Continue `other`'s pressure history (and its creep lags) with these settings."""
+        self.model.resume_from(other.model)
+        if self._shapes is not None and self._shapes is not self.model:
+            self._shapes.resume_from(other._shapes if other._shapes is not None
+                                     else other.model)
+        self._lags, self._time, self._static = other._lags, other._time, other._static
+
+
+def run_online(online: OnlineModel, pressure_pa, measured_length_m, time_s) -> np.ndarray:
+    """`step` along recorded arrays (predict, then learn, sample by sample); the predictions.
+
+    The replay of a recording through the online model: what model_node would have
+    published. `online` is advanced (and has learned) when it returns.
+    """
+    pressures = np.asarray(pressure_pa, dtype=float)
+    lengths = np.asarray(measured_length_m, dtype=float)
+    times = np.asarray(time_s, dtype=float)
+    return np.array([online.step(p, length, t).length_m
+                     for p, length, t in zip(pressures, lengths, times, strict=True)])

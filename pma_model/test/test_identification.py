@@ -1,0 +1,260 @@
+"""Online identification: the learned correction, the shares, creep, drift, restart.
+
+Truths here are built from the model's own pieces (a known share, a known correction, a
+known creep), so the test can say what the right answer is; the simulated muscle families
+(tests/test_minor_loops.py) test the same machinery against muscles it does not contain.
+"""
+
+import itertools
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pma_model.identification import (
+    CORRECTION_KNOTS_PA,
+    CorrectedBranch,
+    IdentificationSettings,
+    OnlineModel,
+    correction_caps,
+    monotone_correction,
+    run_online,
+)
+from pma_model.memory import HysteresisModel
+from pma_model.params import ModelParams, ParamsError, default_params
+
+KPA = 1000.0
+RATE_HZ = 50.0
+
+
+def random_path(seed=0, turns=60, step_pa=3_000.0):
+    rng = np.random.default_rng(seed)
+    points = [0.0]
+    for k in range(turns):
+        points.append(rng.uniform(points[-1], 500e3) if k % 2 == 0
+                      else rng.uniform(0.0, points[-1]))
+    points.append(0.0)
+    pieces = []
+    for a, b in itertools.pairwise(points):   # a ramp, then a 1 s hold at the turning point
+        pieces += [np.linspace(a, b, max(2, round(abs(b - a) / step_pa)))[1:],
+                   np.full(round(RATE_HZ), b)]
+    pressure = np.concatenate(pieces)
+    return np.arange(pressure.size) / RATE_HZ, pressure
+
+
+def online(**identification):
+    params = default_params()
+    return replace(params, identification=replace(params.identification, **identification))
+
+
+def rms(values):
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+SMOOTH_BUMP = tuple(0.002 * math.sin(math.pi * p / 500e3) - 0.001 for p in CORRECTION_KNOTS_PA)
+
+
+# --- the correction -------------------------------------------------------------------------
+
+@settings(max_examples=50, deadline=None)
+@given(values=st.lists(st.floats(-0.005, 0.005), min_size=11, max_size=11),
+       form=st.sampled_from(['sigmoid', 'hill']), fraction=st.floats(0.0, 1.0))
+def test_corrected_branches_stay_monotone_and_invert_in_closed_form(values, form, fraction):
+    branches = replace(default_params(), branch_form=form).branches()
+    grid = np.linspace(0.0, 600e3, 1201)
+    for base in branches:
+        offsets = monotone_correction(values, correction_caps(base))
+        corrected = CorrectedBranch(base, offsets)
+        lengths = corrected.length(grid)
+        assert np.all(np.diff(lengths) <= 1e-12)
+        assert np.allclose(corrected.length(np.array(CORRECTION_KNOTS_PA)),
+                           base.length(np.array(CORRECTION_KNOTS_PA)) + offsets, atol=1e-12)
+        assert corrected.length(123e3) == pytest.approx(float(corrected.length(
+            np.array([123e3]))[0]), abs=1e-15)   # scalar and array paths agree
+        low, high = corrected.length_range(500e3)
+        target = low + fraction * (high - low)
+        pressure = corrected.pressure(target, 500e3)
+        if np.any(np.isclose(lengths, target, atol=1e-9) & (np.gradient(lengths) == 0.0)):
+            continue   # a flat stretch: any pressure on it is right
+        assert float(corrected.length(pressure)) == pytest.approx(target, abs=1e-9)
+
+
+def test_the_correction_can_make_the_sigmoid_flat_in_the_dead_zone():
+    # The paper's sigmoid falls 3.5 mm between 0 and 50 kPa, where the muscle is flat.
+    increasing, _ = default_params().branches()
+    caps = correction_caps(increasing)
+    fall = increasing.length(0.0) - increasing.length(50e3)
+    assert caps[0] == pytest.approx(fall)
+    flat = monotone_correction([0.0, 0.01] + [0.0] * 9, caps)
+    corrected = CorrectedBranch(increasing, flat)
+    assert np.ptp(corrected.length(np.linspace(0, 50e3, 11))) < 1e-12
+    assert corrected.pressure(float(corrected.length(0.0))) == 0.0   # the least pressure
+
+
+# --- learning -------------------------------------------------------------------------------
+
+def corrections(bump=SMOOTH_BUMP):
+    """A known correction of both default branches, monotone on each."""
+    caps = np.minimum(*(correction_caps(branch) for branch in default_params().branches()))
+    correction = monotone_correction(bump, caps)
+    return correction, correction
+
+
+def truth_with(shares=(0.5, 0.5), correction=None):
+    branches = default_params().branches()
+    if correction is not None:
+        branches = tuple(CorrectedBranch(b, c) for b, c in zip(branches, correction,
+                                                                strict=True))
+    return HysteresisModel(*branches, memory='identify', play_shares=shares)
+
+
+def test_it_learns_the_play_shares_of_each_direction():
+    time_s, pressure = random_path(1)
+    truth = truth_with(shares=(0.9, 0.1)).predict(pressure)
+    noisy = truth + np.random.default_rng(2).normal(0.0, 2e-4, truth.size)
+    model = online(length_noise_m=2e-4).build_online()
+    run_online(model, pressure, noisy, time_s)
+    learned = model.learned()
+    assert learned.play_share_rising == pytest.approx(0.9, abs=0.1)
+    assert learned.play_share_falling == pytest.approx(0.1, abs=0.1)
+
+
+def test_it_learns_a_branch_correction_and_the_error_falls_to_the_noise():
+    correction = corrections()
+    time_s, pressure = random_path(3)
+    truth = truth_with(correction=correction).predict(pressure)
+    noise = np.random.default_rng(4).normal(0.0, 5e-4, truth.size)
+    frozen = online(enabled=False).build_online()
+    learning = online(length_noise_m=5e-4).build_online()
+    before = run_online(frozen, pressure, truth + noise, time_s) - truth
+    after = run_online(learning, pressure, truth + noise, time_s) - truth
+    second_half = slice(truth.size // 2, None)
+    print(f'\nfrozen {rms(before[second_half]) * 1e3:.3f} mm, learned '
+          f'{rms(after[second_half]) * 1e3:.3f} mm')
+    assert rms(after[second_half]) < 0.25 * rms(before[second_half])
+    assert rms(after[second_half]) < 3e-4
+    assert np.allclose(learning.learned().branch_correction_m, correction[0], atol=8e-4)
+
+
+def test_it_learns_creep_and_predicts_the_length_still_moving_in_a_hold():
+    time_s, pressure = random_path(5, step_pa=5_000.0)
+    static = truth_with().predict(pressure)
+    lagged = static[0]
+    truth = np.empty_like(static)
+    for i, value in enumerate(static):          # share 0.3 of each change arrives with 1 s lag
+        lagged = value + (lagged - value) * math.exp(-1.0 / RATE_HZ)
+        truth[i] = value + 0.3 * (lagged - value)
+    learning, frozen = online().build_online(), online(enabled=False).build_online()
+    after = run_online(learning, pressure, truth, time_s) - truth
+    before = run_online(frozen, pressure, truth, time_s) - truth
+    late = slice(truth.size // 2, None)
+    assert rms(after[late]) < 0.2 * rms(before[late])
+    assert sum(learning.learned().creep_gains) == pytest.approx(0.3, abs=0.1)
+
+
+def test_a_restart_resumes_what_was_learned():
+    correction = corrections()
+    time_s, pressure = random_path(6)
+    truth = truth_with(shares=(0.8, 0.2), correction=correction).predict(pressure)
+    first = online().build_online()
+    run_online(first, pressure, truth, time_s)
+    saved = default_params().with_learned(first.learned())
+    reloaded = ModelParams.from_yaml(saved.to_yaml())
+    assert reloaded == saved and reloaded.identification.learned_anything
+    fresh, resumed = online().build_online(), reloaded.build_online()
+    early = slice(0, truth.size // 10)
+    error_fresh = run_online(fresh, pressure, truth, time_s) - truth
+    error_resumed = run_online(resumed, pressure, truth, time_s) - truth
+    assert rms(error_resumed[early]) < 0.5 * rms(error_fresh[early])
+
+
+def test_bad_samples_neither_predict_nor_teach():
+    model = online().build_online()
+    time_s, pressure = random_path(7, turns=4)
+    run_online(model, pressure[:200], truth_with().predict(pressure[:200]), time_s[:200])
+    learned, count = model.learned(), model.samples_learned
+    nan = model.step(math.nan, 0.28, time_s[200])
+    assert math.isnan(nan.length_m) and model.samples_learned == count
+    model.step(pressure[200], math.nan, time_s[200])     # no echo: predict, do not learn
+    assert model.samples_learned == count
+    model.step(pressure[201], 0.5, time_s[201])           # 20 cm off: an outlier
+    assert model.samples_learned == count and model.samples_rejected == 1
+    assert model.learned() == learned
+
+
+def test_settings_are_validated_and_named_in_params():
+    with pytest.raises(ValueError, match=r'play_share_rising must be within 0\.\.1'):
+        IdentificationSettings(play_share_rising=1.5)
+    with pytest.raises(ValueError, match='branch_correction_m must have 11 values'):
+        IdentificationSettings(branch_correction_m=(0.0,) * 3)
+    with pytest.raises(ParamsError, match=r'identification\.creep_gains values must be'):
+        ModelParams.from_ros_parameters({'identification.creep_gains': [0.0, 3.0]})
+    with pytest.raises(ParamsError, match=r'identification\.branch_correction_m must be a list'):
+        ModelParams.from_ros_parameters({'identification.branch_correction_m': 0.0})
+
+
+def test_the_prediction_never_jumps():
+    # The memory is continuous; learning moves the prediction by its updates: up to ~2 mm
+    # while the first noisy samples (1.7 mm) arrive, a fraction of a millimetre after that.
+    # On 1 kPa steps the length may also move by the branch slope (~0.3 mm per kPa at
+    # most). The paper's switch jumps by the loop width, ~5 mm.
+    time_s, pressure = random_path(8, step_pa=1_000.0)
+    truth = truth_with(shares=(0.9, 0.1), correction=corrections()).predict(pressure)
+    noisy = truth + np.random.default_rng(9).normal(0.0, 1.7e-3, truth.size)
+    predicted = run_online(online().build_online(), pressure, noisy, time_s)
+    increasing = default_params().branches()[0]
+    slope = max(increasing.slope_m_per_pa(p) for p in np.linspace(0, 500e3, 101))
+    steps = np.abs(np.diff(predicted)) - slope * np.abs(np.diff(pressure))
+    assert steps.max() < 2.5e-3
+    assert steps[time_s[1:] > 20.0].max() < 5e-4
+
+
+def test_identification_off_is_the_memory_model_alone():
+    time_s, pressure = random_path(10, turns=10)
+    params = online(enabled=False)
+    plain = params.build_model().predict(pressure)
+    model = params.build_online()
+    assert np.array_equal(run_online(model, pressure, plain + 0.003, time_s), plain)
+    assert isinstance(model, OnlineModel) and model.samples_learned == 0
+
+
+def test_a_noisy_hold_neither_moves_the_prediction_nor_teaches_nonsense():
+    # A long hold in miniature: 250 kPa above the last turn, read through the 10-bit sensor
+    # (611 Pa steps, 1.25 kPa noise), the HC-SR04's 1.7 mm noise on the length. Every noise
+    # reversal enters the memory and closes again; the reported branch does not flip (the
+    # deadband), learning adds next to nothing to the jitter and learns no nonsense.
+    rng = np.random.default_rng(11)
+    time_s, pressure = random_path(12, turns=6)
+    truth = truth_with().predict(pressure)
+    level = pressure[-1] + 250e3
+    hold = 611.0 * np.round((level + rng.normal(0.0, 1.25e3, 3000)) / 611.0)
+    path = np.concatenate([np.linspace(pressure[-1], level, 50), hold])
+    times = time_s[-1] + (1 + np.arange(path.size)) / RATE_HZ
+    expected = truth_with().predict(np.concatenate([pressure, path]))[pressure.size:]
+    jitter = {}
+    for learn in (True, False):
+        model = online(enabled=learn).build_online()
+        run_online(model, pressure, truth + rng.normal(0.0, 1.7e-3, truth.size), time_s)
+        measured = expected + rng.normal(0.0, 1.7e-3, path.size)
+        steps = [model.step(*sample) for sample in zip(path[:100], measured[:100], times[:100],
+                                                       strict=True)]
+        before = model.learned()    # the ramp taught what it could; now only noise
+        steps += [model.step(*sample) for sample in zip(path[100:], measured[100:],
+                                                        times[100:], strict=True)]
+        predicted = [step.length_m for step in steps]
+        branches = {step.branch for step in steps[100:]}
+        jitter[learn] = float(np.ptp(predicted[550:]))
+        assert len(branches) == 1 and len(model.model.turning_points) < 40
+        after = model.learned()
+        # A hold on a scanning curve still says something about the share (the truth's is
+        # 0.5): it may move toward it, not away; the correction stays where it was.
+        for name in ('play_share_rising', 'play_share_falling'):
+            assert abs(getattr(after, name) - 0.5) <= abs(getattr(before, name) - 0.5) + 0.05
+        assert np.max(np.abs(np.subtract(after.branch_correction_m,
+                                         before.branch_correction_m))) < 1e-3
+    print(f'\njitter over the hold: {jitter[False] * 1e3:.2f} mm frozen, '
+          f'{jitter[True] * 1e3:.2f} mm learning')
+    assert jitter[True] < jitter[False] + 2e-4

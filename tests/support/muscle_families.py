@@ -1,0 +1,124 @@
+"""The model on every simulated muscle family: scenarios, configurations and their scores.
+
+Shared by tests/test_minor_loops.py, tests/test_drift_adaptation.py and
+bench/bench_memory_families.py (which prints the table in docs/model.md). ROS-free.
+
+A scenario is a family, a reversal-rich pressure path (`nested` or `random`, from
+pma_driver.sim.paths) and a seed; the muscle sees the true pressure, the model the sensors'
+readings (noisy 10-bit pressure, HC-SR04 length), sample by sample, online. Scores are the
+error against the true length from the third reversal on, in % of the stroke of Table 1.
+Every model starts from the shipped defaults: branches fitted to Table 1, no memory data.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from pma_driver.sim import families, paths
+from pma_model.identification import run_online
+from pma_model.params import ModelParams, default_params
+
+STROKE_M = 0.0586            # Table 1: 30.06 - 24.20 cm
+SCORED_FROM_REVERSAL = 3     # "after the first three reversals"
+PATH_KINDS = ('nested', 'random')
+FORMS = ('sigmoid', 'hill')
+
+
+@dataclass(frozen=True)
+class Config:
+    """A model configuration: memory rule, online identification, drift adaptation."""
+
+    memory: str
+    learn: bool
+    adapt: bool = False
+
+    @property
+    def label(self) -> str:
+        name = {'switch': 'switch (paper)'}.get(self.memory, self.memory) \
+            if not self.learn else f'{self.memory} + learned'
+        if self.memory == 'identify':
+            name = 'identify' if self.learn else 'identify (shares 0.5, not learned)'
+        return name
+
+    def params(self, form: str) -> ModelParams:
+        base = default_params()
+        return replace(base, branch_form=form, memory=self.memory,
+                       identification=replace(base.identification, enabled=self.learn),
+                       adaptation=replace(base.adaptation, enabled=self.adapt))
+
+
+PAPER = Config('switch', learn=False)
+STATIC_RULES = (Config('madelung', False), Config('play', False))
+LEARNED_RULES = (Config('switch', True), Config('madelung', True), Config('play', True))
+IDENTIFY = Config('identify', True)
+ALL_CONFIGS = (PAPER, *STATIC_RULES, *LEARNED_RULES, IDENTIFY)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    family: str
+    kind: str = 'random'
+    seed: int = 1
+    duration_s: float = 180.0
+    drift_start_s: float | None = None   # None: no drift
+
+    @property
+    def label(self) -> str:
+        drift = f', drift from {self.drift_start_s:.0f} s' if self.drift_start_s is not None \
+            else ''
+        return f'{self.family}/{self.kind}/seed {self.seed}{drift}'
+
+
+@functools.lru_cache(maxsize=64)
+def simulate(scenario: Scenario) -> paths.Run:
+    turns = (paths.nested_turns if scenario.kind == 'nested' else paths.random_turns)(
+        scenario.duration_s, seed=scenario.seed)
+    path = paths.ramp_path(turns, seed=scenario.seed)
+    drift = None if scenario.drift_start_s is None else families.DriftSpec(
+        start_s=scenario.drift_start_s)
+    return paths.simulate(families.muscle_family(scenario.family, drift), path,
+                          seed=scenario.seed)
+
+
+@functools.lru_cache(maxsize=1024)
+def predict(scenario: Scenario, config: Config, form: str = 'sigmoid') -> np.ndarray:
+    """What the model would publish for every sample of the scenario (online)."""
+    run = simulate(scenario)
+    online = config.params(form).build_online()
+    return run_online(online, run.measured_pressure_pa, run.measured_length_m, run.time_s)
+
+
+@dataclass(frozen=True)
+class Score:
+    rmse_m: float
+    max_m: float
+
+    @property
+    def rmse_pct(self) -> float:
+        return 100.0 * self.rmse_m / STROKE_M
+
+    @property
+    def max_pct(self) -> float:
+        return 100.0 * self.max_m / STROKE_M
+
+
+def score(scenario: Scenario, config: Config, form: str = 'sigmoid',
+          window_s: tuple[float, float] | None = None) -> Score:
+    """Error against the true length: from the third reversal on, or within `window_s`."""
+    run = simulate(scenario)
+    error = predict(scenario, config, form) - run.length_m
+    if window_s is None:
+        start = run.reversal_times_s[SCORED_FROM_REVERSAL - 1]
+        keep = run.time_s >= start
+    else:
+        keep = (run.time_s >= window_s[0]) & (run.time_s < window_s[1])
+    error = error[keep]
+    return Score(float(np.sqrt(np.mean(error ** 2))), float(np.max(np.abs(error))))
+
+
+def largest_step_m(scenario: Scenario, config: Config, form: str = 'sigmoid') -> float:
+    """Largest change of the prediction between two samples (a jump shows here)."""
+    return float(np.max(np.abs(np.diff(predict(scenario, config, form)))))
