@@ -33,6 +33,7 @@ from benchlib import check, isolate_ros_graph, load_row, print_table, read_line,
 from pma_control.controller import ControllerSettings, LengthController
 from pma_driver.sim.closed_loop import run_closed_loop
 from pma_driver.sim.device import DeviceConfig, Rig
+from pma_driver.sim.families import FAMILY_NAMES, muscle_family
 from pma_model.params import default_params
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,16 +52,13 @@ RESOLUTION_M = 0.003
 # --- tracking on the simulated muscles -----------------------------------------------------
 
 def muscles() -> dict[str, object]:
-    """name -> a factory of the simulated rig; every family the simulation offers."""
-    try:
-        from pma_driver.sim.families import FAMILY_NAMES, make_rig
-    except ImportError:
-        return {'preisach': Rig}
-    return {name: (lambda config, name=name: make_rig(name, config)) for name in FAMILY_NAMES}
+    """name -> a factory of the simulated rig; every muscle family the simulation offers."""
+    return {name: (lambda config, name=name: Rig(config, muscle_family(name)))
+            for name in FAMILY_NAMES}
 
 
 def run(mode: str, make_rig, profile, duration_s: float, rate_hz: int = 20):
-    control = LengthController(default_params().build_model(), ControllerSettings(mode=mode))
+    control = LengthController(default_params().build_online(), ControllerSettings(mode=mode))
 
     def step(t_s, pressure_pa, length_m):
         control.set_target(profile(t_s))

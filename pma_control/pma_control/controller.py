@@ -1,9 +1,10 @@
 """Length control of the muscle: hysteresis-model feedforward plus feedback, without ROS.
 
 The plant from pressure to length is nonlinear (flat near 0 and 500 kPa) and hysteretic
-(the length depends on the path). The feedforward inverts the hysteresis model *from the
-muscle's current state* (HysteresisModel.pressure_for_length with BRANCH_AUTO: memory
-included), which turns the plant into roughly "length in, length out". The feedback is a PI
+(the length depends on the path). The model is model_node's own (pma_model's OnlineModel:
+the memory rule, and what it learns online about this muscle). The feedforward inverts it
+*from the muscle's current state* (pressure_for_length with BRANCH_AUTO: memory included),
+which turns the plant into roughly "length in, length out". The feedback is a PI
 on the remaining length error, in metres, passed through the same inverse, so its gains are
 dimensionless and need no retuning where the muscle is stiff or soft.
 
@@ -27,7 +28,7 @@ import math
 from dataclasses import dataclass, fields
 
 from pma_model.detector import BRANCH_AUTO
-from pma_model.memory import HysteresisModel
+from pma_model.identification import OnlineModel
 
 MODES = ('ff_fb', 'ff', 'fb')
 
@@ -40,7 +41,7 @@ class ControllerSettings:
     max_gauge_pressure_pa: float = 500_000.0
     # 'ff_fb' feedback, in the length domain: correction_m = kp * e + ki * integral(e).
     kp: float = 0.3
-    ki_per_s: float = 1.5
+    ki_per_s: float = 3.0
     # 'fb' feedback, in the pressure domain: p = -(kp * e + ki * integral(e)). Table 1's
     # mean slope is 500 kPa / 5.86 cm = 8.5e6 Pa/m; these are 0.6 and 2 /s times it.
     fb_kp_pa_per_m: float = 5.0e6
@@ -51,7 +52,7 @@ class ControllerSettings:
     max_pressure_rate_pa_s: float = 600_000.0
     max_setpoint_rate_m_s: float = 0.05
     # Bias observer: how fast the model's error may wander [m/sqrt(s)], and the sensor noise.
-    bias_process_noise_m: float = 0.002
+    bias_process_noise_m: float = 0.001
     length_noise_m: float = 0.0018
 
     def __post_init__(self):
@@ -87,7 +88,7 @@ class ControlOutput:
 class LengthController:
     """Feed it every sample (`update`); aim it with `set_target`."""
 
-    def __init__(self, model: HysteresisModel, settings: ControllerSettings | None = None):
+    def __init__(self, model: OnlineModel, settings: ControllerSettings | None = None):
         self.settings = settings or ControllerSettings()
         self.model = model
         self.reset()
@@ -106,8 +107,8 @@ class LengthController:
         self._last_t: float | None = None
         self._dt = 0.0
 
-    def replace_model(self, model: HysteresisModel) -> None:
-        """A new fit (a refit was loaded): keep the muscle's history and what was learned."""
+    def replace_model(self, model: OnlineModel) -> None:
+        """A new fit (a refit was loaded): keep the muscle's history and the learned bias."""
         model.resume_from(self.model)
         self.model = model
 
@@ -159,7 +160,9 @@ class LengthController:
         if s.mode == 'fb':
             estimate = self._filter_measurement(measured_length_m, dt)
         else:
-            model_m = float(self.model.update(gauge_pressure_pa)[0])
+            # 'ff' learns nothing: the model predicts from pressure alone.
+            learn_from = measured_length_m if s.mode == 'ff_fb' else math.nan
+            model_m = self.model.step(gauge_pressure_pa, learn_from, t_s).length_m
             if s.mode == 'ff_fb':
                 self._observe_bias(model_m, measured_length_m, dt)
             estimate = model_m + self._bias_m

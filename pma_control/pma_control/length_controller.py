@@ -38,6 +38,7 @@ from pma_control.controller import MODES, ControllerSettings, ControlOutput, Len
 from pma_interfaces.action import MoveToLength
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
+from pma_model.identification import IdentificationSettings
 from pma_model.params import ModelParams, ParamsError, default_params
 
 DEFAULT_TOLERANCE_M = 0.002
@@ -84,7 +85,7 @@ class LengthControllerNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         self._params = default_params()
-        self._controller = LengthController(self._params.build_model(), self._settings())
+        self._controller = LengthController(self._params.build_online(), self._settings())
         self._goal = None                    # the running goal handle
         self._goal_started = 0.0
         self._inside_since: float | None = None   # since when the goal is within tolerance
@@ -148,10 +149,11 @@ class LengthControllerNode(Node):
         except ParamsError as error:
             self.get_logger().error(f'pma/model_params not usable, keeping the model: {error}')
             return
-        if params == self._params:
-            return
+        unlearned = params.with_learned(IdentificationSettings())
+        if unlearned == self._params.with_learned(IdentificationSettings()):
+            return      # only what model_node learned moved: this model learns the same
         self._params = params
-        self._controller.replace_model(params.build_model())
+        self._controller.replace_model(params.build_online())
         self.get_logger().info(f"following model_node's model: {params.branch_form} "
                                f'branches, {params.memory} memory')
 
