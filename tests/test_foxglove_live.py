@@ -238,3 +238,24 @@ def test_a_second_bridge_on_a_taken_port_says_so(rig, procs):
                             ros_args=['-r', '__node:=foxglove_live_2', '-p', f'port:={port}'])
     assert second.popen.wait(30) == 1
     assert 'Address already in use' in second.output and 'port:=' in second.output
+
+
+def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path):
+    """`make demo` runs this executable: while it runs, its URL serves the rig's topics."""
+    demo = procs.ros2_run('pma_bringup', 'demo', '--runs-dir', str(tmp_path), '--live-port',
+                          '0', '--hold-s', '0.3', name='demo')
+    url = URL.search(demo.wait_for_line('live view: ws://', 60)).group(0)
+    layout = demo.wait_for_line('its layout: ', 5).split('its layout: ')[1].split('  (')[0]
+    assert json.loads(open(layout).read()) == json.loads(LAYOUT.read_text())
+    client = FoxgloveClient(url)
+    try:
+        client.follow([STATE, PREDICTION])
+        client.wait(lambda c: min(len(c.received(t)) for t in (STATE, PREDICTION)) >= 20, 90,
+                    '20 states and 20 predictions')
+        states = [Decoder(client.channel_for(STATE))(m)[0] for m in client.received(STATE)]
+        assert all(0.2 < s.length_m < 0.35 for s in states)
+    finally:
+        client.close()
+    demo.signal(signal.SIGINT)
+    assert demo.popen.wait(60) == 130, demo.output[-2000:]
+    assert 'interrupted: stopping every process' in demo.output

@@ -8,11 +8,17 @@ binary frames: 0x01, subscription id (uint32 LE), log time (uint64 LE, ns), the 
 
 `FoxgloveClient.follow(topics)` subscribes to each of those topics whenever a channel for it
 is advertised, now or later (a restarted type gets a new channel), the way the app does.
+
+foxglove-sdk 0.30.3 queues a channel's `advertise` to a client before it records the channel
+for that client, so a client that subscribes at once can be answered "Unknown channel ID"
+(seen here under load, when a topic appears while a client is connected). This client then
+subscribes again; `refused` counts how often that happened.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import struct
 import threading
 import time
@@ -24,6 +30,7 @@ from websockets.sync.client import connect
 SUBPROTOCOLS = ['foxglove.sdk.v1', 'foxglove.websocket.v1']
 MESSAGE_DATA = 0x01
 _HEADER = struct.Struct('<BIQ')
+_UNKNOWN = re.compile(r'Unknown channel ID: (\d+)')
 
 
 @dataclass
@@ -42,6 +49,7 @@ class FoxgloveClient:
         self.server_info: dict | None = None
         self.channels: dict[int, dict] = {}          # advertised, by channel id
         self.unadvertised: list[int] = []
+        self.refused = 0                              # subscriptions answered "unknown channel"
         self.messages: list[Received] = []
         self._followed: set[str] = set()
         self._subscriptions: dict[int, int] = {}      # subscription id -> channel id
@@ -107,6 +115,14 @@ class FoxgloveClient:
                 for channel_id in message['channelIds']:
                     self.channels.pop(channel_id, None)
                     self.unadvertised.append(channel_id)
+            elif op == 'status' and _UNKNOWN.match(message.get('message', '')):
+                channel_id = int(_UNKNOWN.match(message['message']).group(1))
+                for subscription, channel in list(self._subscriptions.items()):
+                    if channel == channel_id:
+                        del self._subscriptions[subscription]
+                if channel_id in self.channels:
+                    self.refused += 1
+                    subscribe.append(channel_id)
             self._cond.notify_all()
         if subscribe:
             self.subscribe(subscribe)
