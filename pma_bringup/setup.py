@@ -12,16 +12,19 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+        ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
     maintainer='PMA testbed team',
     maintainer_email='pma-testbed@example.org',
-    description='Launch files and the end-to-end demo of the PMA testbed.',
+    description='Launch files, the end-to-end demo and the live view (Foxglove) of the '
+                'PMA testbed.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
             'demo = pma_bringup.demo:main',
+            'foxglove_live = pma_bringup.entry_points:foxglove_live',
         ],
     },
 )

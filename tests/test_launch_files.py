@@ -39,7 +39,8 @@ LAUNCH_FILES = {
 NODE_NAMES = {('pma_driver', 'driver_node'): 'driver_node',
               ('pma_model', 'model_node'): 'model_node',
               ('pma_bag', 'record'): 'recorder',
-              ('pma_control', 'length_controller'): 'length_controller'}
+              ('pma_control', 'length_controller'): 'length_controller',
+              ('pma_bringup', 'foxglove_live'): 'foxglove_live'}
 
 # ---------------------------------------------------------------------------------------
 # Stand-ins for launch / launch_ros (Jazzy signatures, keyword names only).
@@ -362,6 +363,7 @@ def declared(module_procs, tmp_path_factory) -> dict[tuple[str, str], dict[str, 
     module_procs.ros2_run('pma_model', 'model_node')
     module_procs.ros2_run('pma_bag', 'record', '-o', str(bag))
     module_procs.ros2_run('pma_control', 'length_controller')
+    module_procs.ros2_run('pma_bringup', 'foxglove_live', ros_args=['-p', 'port:=0'])
     probe = SpinningNode('launch_file_probe')
     try:
         result = {}
@@ -496,6 +498,22 @@ def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_
     nodes = {n['executable']: n for n in explicit.nodes}
     assert fake_arduino_args(explicit.processes[0][1:]).link == tmp_path / 'dev'
     assert recorder_args(nodes['record']['arguments']).output == tmp_path / 'bag'
+
+
+@pytest.mark.integration
+def test_bringup_live_starts_the_bridge_in_the_muscles_namespace(stand_ins, declared):
+    assert 'foxglove_live' not in [n['executable'] for n in launch('bringup').nodes]
+    launched = launch('bringup', live='true', namespace='left', use_fake_arduino='true')
+    check_nodes_against_code(launched, declared)
+    [bridge] = [n for n in launched.nodes if n['executable'] == 'foxglove_live']
+    assert bridge['namespace'] == 'left'
+    assert parameters_given(bridge) == {'host': '127.0.0.1', 'port': 8765}
+    lab = launch('bringup', live='true', live_host='0.0.0.0', live_port='8766')
+    check_nodes_against_code(lab, declared)
+    [bridge] = [n for n in lab.nodes if n['executable'] == 'foxglove_live']
+    assert parameters_given(bridge) == {'host': '0.0.0.0', 'port': 8766}
+    with pytest.raises(ValueError, match='not a port'):
+        launch('bringup', live='true', live_port='http')
 
 
 def test_launch_arguments_refuse_values_outside_their_choices(stand_ins):

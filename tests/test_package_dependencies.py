@@ -73,9 +73,17 @@ def files_of_tests(package: str) -> list[Path]:
     return sorted((PACKAGES[package] / 'test').rglob('*.py'))
 
 
-def provider(module: str) -> str | None:
-    """The dependency that provides `module`; None for the standard library."""
+def provider(module: str, package: str) -> str | None:
+    """The dependency that provides `module`; None for the standard library and for the
+    documented pip-only modules of `package` (dependency_keys.yaml: pip_only)."""
     if module in sys.stdlib_module_names or module == '__future__':
+        return None
+    pip_only = KEYS['pip_only'].get(module)
+    if pip_only is not None:
+        assert package in pip_only['packages'], (
+            f'{package} imports {module}, which no rosdep key provides; if it must, add '
+            f'{package} to pip_only.{module}.packages in dependency_keys.yaml (and the comment '
+            'to its package.xml)')
         return None
     if module in PACKAGES or module in KEYS['jazzy_packages']:
         return module
@@ -99,20 +107,44 @@ def test_every_import_is_covered_and_every_run_dependency_used(package):
     test_deps = dependencies(package, ('test_depend',)) | run_deps
     used = set()
     for module in imported_modules(code_files(package)) - {package}:
-        needed = provider(module)
+        needed = provider(module, package)
         if needed is not None:
             assert needed in run_deps, (f'{package} imports {module}, but its package.xml '
                                         f'has no exec_depend on {needed}')
             used.add(needed)
     local = {path.stem for path in files_of_tests(package)}     # one test importing another
     for module in imported_modules(files_of_tests(package)) - {package, 'conftest'} - local:
-        needed = provider(module)
+        needed = provider(module, package)
         if needed is not None:
             assert needed in test_deps, (f"{package}'s tests import {module}, but its "
                                          f'package.xml has no test_depend on {needed}')
     launched = package_strings(sorted((PACKAGES[package] / 'launch').glob('*.py')))
     unused = run_deps - used - launched - set(KEYS['used_without_import'].get(package, {}))
     assert not unused, f'{package}/package.xml depends on {sorted(unused)} but never uses it'
+
+
+@pytest.mark.parametrize('module', sorted(KEYS['pip_only']))
+def test_pip_only_modules_are_pinned_installed_and_documented(module):
+    """What rosdep cannot install, `make setup` (both modes) and the image install instead."""
+    entry = KEYS['pip_only'][module]
+    distribution = entry['distribution']
+    assert entry['reason'].strip()
+    pins = set()
+    for requirements in ('python.txt', 'python-system.txt'):
+        lines = (ROOT / 'requirements' / requirements).read_text().splitlines()
+        found = [line for line in lines if line.startswith(f'{distribution}==')]
+        assert len(found) == 1, f'requirements/{requirements} must pin {distribution} exactly'
+        pins.update(found)
+    assert len(pins) == 1, f'the two requirements files pin {distribution} differently: {pins}'
+    pin = pins.pop()
+    dockerfile = (ROOT / 'docker' / 'Dockerfile').read_text().splitlines()
+    assert any('pip3 install' in line and pin in line.split() for line in dockerfile), (
+        f'docker/Dockerfile does not pip-install {pin}')
+    for package in entry['packages']:
+        text = (PACKAGES[package] / 'package.xml').read_text()
+        assert distribution in text, f'{package}/package.xml does not say why {distribution} ' \
+                                     'is not one of its dependencies'
+        assert f'>{distribution}<' not in text, f'{distribution} is not a rosdep key'
 
 
 def test_the_interface_package_builds_with_what_it_declares():

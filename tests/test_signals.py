@@ -172,6 +172,20 @@ def test_recorder_finishes_its_bag_under_any_burst(procs, tmp_path, seed):
     run_parallel(trial, trials(seed))
 
 
+@pytest.mark.parametrize('seed', [6])
+def test_live_bridge_stops_its_server_quietly_under_any_burst(procs, seed):
+    def trial(k: int, rng: random.Random) -> None:
+        bridge = procs.ros2_run('pma_bringup', 'foxglove_live', name=f'live{k}',
+                                ros_args=['-r', f'__ns:=/l{k}', '-p', 'port:=0'])
+        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        send(bridge, burst(rng))
+        output = finish(bridge)
+        if 'ws://' in output:                 # the server was up: it was stopped
+            assert 'foxglove_live: stopped' in output, output[-3000:]
+
+    run_parallel(trial, trials(seed))
+
+
 def write_bag(path: Path, count: int = 2000) -> Path:
     writer = BagWriter(path)
     writer.add_topic('/signal_test', 'std_msgs/msg/Float64', [])

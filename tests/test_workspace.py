@@ -18,7 +18,7 @@ EXECUTABLES = {
     'pma_driver': ['driver_node', 'fake_arduino', 'recorder'],
     'pma_model': ['model_node', 'replay', 'refit'],
     'pma_bag': ['record', 'play', 'recover', 'info'],
-    'pma_bringup': ['demo'],
+    'pma_bringup': ['demo', 'foxglove_live'],
     'pma_control': ['length_controller'],
 }
 

@@ -79,6 +79,7 @@ if [ -f "${build_stamp}" ] && [ -f "${WS}/install/setup.bash" ]; then
         \( -name package.xml -o -name setup.py -o -name setup.cfg -o -name CMakeLists.txt \
            -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.txt' \
            -o -path '*/launch*' -o -path '*/config*' -o -path '*/resource*' -o -path '*/firmware*' \
+           -o -path '*/foxglove/*' \
            -o -name colcon_defaults.yaml \) \
         -newer "${build_stamp}" -print -quit)"
     [ -z "${newer}" ] && changed=0

@@ -2,6 +2,8 @@
 
     ros2 launch pma_bringup bringup.launch.py port:=/dev/pma0
     ros2 launch pma_bringup bringup.launch.py use_fake_arduino:=true record:=true
+    ros2 launch pma_bringup bringup.launch.py use_fake_arduino:=true live:=true
+        # + the live view: Foxglove -> Open connection -> ws://127.0.0.1:8765 (docs/live-view.md)
     # two muscles side by side (two terminals, or include this file twice):
     ros2 launch pma_bringup bringup.launch.py namespace:=left port:=/dev/pma0
     ros2 launch pma_bringup bringup.launch.py namespace:=right port:=/dev/pma1
@@ -29,6 +31,18 @@ from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackagePrefix, FindPackageShare
 
 DEVICE_PORT = '/dev/ttyACM0'
+LIVE_PORT = 8765
+
+
+def live_port(text: str) -> int:
+    """The live view's TCP port as the integer parameter foxglove_live declares."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise ValueError(f'live_port:={text} is not a port number') from None
+    if not 0 <= port <= 65535:
+        raise ValueError(f'live_port:={text} is outside 0..65535')
+    return port
 
 
 def _flag(value: str) -> bool:
@@ -94,6 +108,12 @@ def _bringup(context):
             package='pma_bag', executable='record', name='recorder', namespace=namespace,
             arguments=['-o', arg('bag_dir') or default_bag_dir(namespace)],
             parameters=[arg('recorder_params_file')], output='screen', emulate_tty=True))
+
+    if _flag(arg('live')):
+        actions.append(Node(
+            package='pma_bringup', executable='foxglove_live', name='foxglove_live',
+            namespace=namespace, output='screen', emulate_tty=True,
+            parameters=[{'host': arg('live_host'), 'port': live_port(arg('live_port'))}]))
     return actions
 
 
@@ -128,6 +148,18 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'bag_dir', default_value='',
             description='bag directory to create; empty = pma_bag_[<namespace>_]<date-time>'),
+        DeclareLaunchArgument(
+            'live', default_value='false', choices=['true', 'false'],
+            description='true: also run foxglove_live, the live view for Foxglove (its ws:// URL '
+                        'is in the log; docs/live-view.md)'),
+        DeclareLaunchArgument(
+            'live_host', default_value='127.0.0.1',
+            description='address the live view listens on: 127.0.0.1 = this machine only, '
+                        '0.0.0.0 = the lab network too (no authentication; docs/live-view.md)'),
+        DeclareLaunchArgument(
+            'live_port', default_value=str(LIVE_PORT),
+            description='TCP port of the live view; one per bridge (two muscles: two ports, or '
+                        "one bridge with topics:=['/*/pma/state', ...])"),
         DeclareLaunchArgument(
             'autostart', default_value='true', choices=['true', 'false'],
             description='driver configures/activates itself (true) or launch does it (false)'),

@@ -1,9 +1,10 @@
 """demo (`make demo`): the whole pipeline on the simulated rig, one run under runs/<timestamp>/.
 
-fake_arduino, driver_node, model_node and the recorder run as separate processes, exactly
-as `ros2 run` starts them; this script is the operator: it runs the paper's experiment and a
-minor-loop run through the Sweep action, asks pressure_for_length on both branches, refits
-the model from the new bag, lets model_node hot-load the refit, and says where everything is.
+fake_arduino, driver_node, model_node, the recorder and foxglove_live (the live view: open its
+ws:// URL in Foxglove) run as separate processes, exactly as `ros2 run` starts them; this
+script is the operator: it runs the paper's experiment and a minor-loop run through the Sweep
+action, asks pressure_for_length on both branches, refits the model from the new bag, lets
+model_node hot-load the refit, and says where everything is.
 Every process is stopped on success, failure and Ctrl-C.
 """
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -82,6 +84,21 @@ class Processes:
         for name, child in reversed(self.children):
             if child.poll() is None:
                 self.stop(name)
+
+
+def start_live_view(procs: Processes, port: int) -> str | None:
+    """foxglove_live, first, so a viewer can watch the whole run; its URL (None if it failed)."""
+    procs.start('foxglove_live', 'pma_bringup', 'foxglove_live', ros_args=['-p', f'port:={port}'])
+    try:
+        url = re.search(r'ws://\S+', procs.wait_for_log('foxglove_live', 'ws://', 20)).group(0)
+        layout = procs.wait_for_log('foxglove_live', 'layout: ', 5).split('layout: ', 1)[1]
+    except RuntimeError as error:
+        say(f'live view not available (the demo goes on without it): {error}')
+        return None
+    say(f'live view: {url}  (Foxglove desktop or web app -> Open connection -> '
+        'Foxglove WebSocket)')
+    say(f'   its layout: {layout.split(" (")[0]}  (Foxglove: Layouts -> Import from file)')
+    return url
 
 
 def progress_bar(fraction: float, width: int = 30) -> str:
@@ -168,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--rate-hz', type=float, default=50.0, help='sample rate (default 50)')
     parser.add_argument('--runs-dir', type=Path, default=Path('runs'),
                         help='where the run directory goes (default ./runs)')
+    parser.add_argument('--live-port', type=int, default=8765,
+                        help='TCP port of the live view (default 8765; 0 = any free port)')
     args = parser.parse_args(argv)
 
     run_dir = (args.runs_dir / datetime.datetime.now().strftime('%Y%m%d-%H%M%S')).resolve()
@@ -194,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     node = executor = spinner = None
     try:
         say(f'run directory: {run_dir}')
+        start_live_view(procs, args.live_port)
         say('1/7 starting fake_arduino (simulated rig on a pseudo-terminal)')
         port = run_dir / 'pma0'
         procs.start('fake_arduino', 'pma_driver', 'fake_arduino', '--link', str(port),
