@@ -82,6 +82,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add('--disconnect-after', type=float, help='close the pty (unplug) after this many seconds')
     add('--reconnect-after', type=float, default=2.0,
         help='new pty (device reboots) this many seconds after the unplug (default 2)')
+    add('--truth', type=Path, metavar='CSV',
+        help='write the simulated true length of every sample here (seq, device time, true '
+             'length, true pressure): for evaluating a controller; nothing on ROS sees it')
     add('--log-level', default='INFO', choices=['DEBUG', 'INFO', 'WARNING', 'ERROR'])
     args = parser.parse_args(argv)
     for name in ('stall_after', 'stall_for', 'disconnect_after', 'reconnect_after'):
@@ -304,12 +307,30 @@ def configs_from_args(args: argparse.Namespace) -> tuple[DeviceConfig, LinkFault
     return device, link
 
 
+class TruthLog:
+    """The simulated truth beside each sample, as CSV (joined to pma/state by `seq`)."""
+
+    HEADER = 'seq,device_time_s,true_length_m,true_gauge_pressure_pa\n'
+
+    def __init__(self, path: Path):
+        self._file = open(path, 'w', encoding='utf-8', buffering=1)
+        self._file.write(self.HEADER)
+
+    def write(self, sample: protocol.Sample, rig: Rig) -> None:
+        self._file.write(f'{sample.seq},{sample.t_ms / 1000:.3f},{rig.length_m:.7f},'
+                         f'{rig.pressure_pa:.1f}\n')
+
+    def close(self) -> None:
+        self._file.close()
+
+
 def run(args: argparse.Namespace, stop: StopRequest) -> int:
     config, fault_config = configs_from_args(args)
     faults = LinkFaults(fault_config, seed=args.seed)
     link = Link(args.link)
     rig = Rig(config)
-    device = SimDevice(config, rig)
+    truth = TruthLog(args.truth) if args.truth else None
+    device = SimDevice(config, rig, on_sample=truth.write if truth else None)
     stats = LinkStats()
     writer = Writer(stats)
     start = time.monotonic()
@@ -398,6 +419,8 @@ def run(args: argparse.Namespace, stop: StopRequest) -> int:
             log.info('%d lines dropped because the host did not read', writer.dropped_lines)
         if any(faults.counts.values()):
             log.info('faults injected: %s', faults.counts)
+        if truth is not None:
+            truth.close()
         print(stats.text(), flush=True)
     return 0
 

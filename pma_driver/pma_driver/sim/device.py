@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import random
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from pma_driver import protocol
@@ -197,9 +198,12 @@ def encode_nak(command: bytes, reason: NakReason) -> bytes:
 class SimDevice:
     """The Arduino: protocol, control loop and safety; `boot()` is a reset."""
 
-    def __init__(self, config: DeviceConfig = DeviceConfig(), rig: Rig | None = None):
+    def __init__(self, config: DeviceConfig = DeviceConfig(), rig: Rig | None = None,
+                 on_sample: Callable[[protocol.Sample, Rig], None] | None = None):
         self.config = config
         self.rig = rig or Rig(config)
+        # Sees every sample with the rig that made it (the true length, for evaluation).
+        self.on_sample = on_sample
         self._calibration = PressureCalibration()
         self.boot()
 
@@ -305,6 +309,8 @@ class SimDevice:
             seq=self.seq, t_ms=self.t_ms % protocol.U32, adc=self.last_adc, echo_us=echo_us,
             valve=int(self.valve), setpoint_pa=self.setpoint_pa, status=status)
         self.seq = (self.seq + 1) % protocol.U32
+        if self.on_sample is not None:
+            self.on_sample(sample, self.rig)
         return sample
 
     # -- commands ---------------------------------------------------------------------------
