@@ -54,7 +54,8 @@ FLUSH_CHECK_S = 0.25
 GRAPH_PERIOD_S = 0.1         # rosbag2's default --topic-polling-interval
 START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its readers to match
 DEFAULT_TOPICS = ['pma/state', 'pma/pressure', 'pma/range', 'pma/prediction',
-                  'pma/model_params', '/diagnostics']
+                  'pma/model_params', 'pma/control_state', 'pma/pressure_setpoint',
+                  'pma/length_setpoint', '/diagnostics']
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
 DIAGNOSTICS_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
 # Types of the PMA topics (and whether they are latched), subscribed before discovery.
@@ -64,6 +65,9 @@ KNOWN_TOPICS = {
     'pma/range': ('sensor_msgs/msg/Range', False),
     'pma/prediction': ('pma_interfaces/msg/PmaPrediction', False),
     'pma/model_params': ('pma_interfaces/msg/ModelParams', True),
+    'pma/control_state': ('pma_interfaces/msg/ControlState', False),
+    'pma/pressure_setpoint': ('std_msgs/msg/Float64', False),
+    'pma/length_setpoint': ('pma_interfaces/msg/LengthSetpoint', False),
     '/diagnostics': (DIAGNOSTICS_TYPE, False),
 }
 # Keys of the driver's /diagnostics copied into custom_data when the bag has none of its own.

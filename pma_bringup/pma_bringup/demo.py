@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import math
 import os
 import re
 import signal
@@ -178,6 +179,124 @@ def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
     return answers
 
 
+def set_parameter(node, target: str, name: str, value: str) -> str:
+    """`ros2 param set TARGET NAME VALUE` for a string; the refusal's reason ('' if set)."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    client = node.create_client(SetParameters, f'{target}/set_parameters')
+    try:
+        if not client.wait_for_service(timeout_sec=10):
+            return f'{target} has no parameter service'
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(
+            name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING,
+                                            string_value=value))]))
+        _wait(future, 20, f'{target}/set_parameters')
+        result = future.result().results[0]
+        return '' if result.successful else result.reason
+    finally:
+        node.destroy_client(client)
+
+
+def record_bag(node, path: Path | None) -> str:
+    """Start (path) or stop (None) a bag on the idle recorder; its answer's message."""
+    from pma_interfaces.srv import StartRecording, StopRecording
+
+    kind, request = ((StartRecording, StartRecording.Request(bag_path=str(path)))
+                     if path is not None else (StopRecording, StopRecording.Request()))
+    client = node.create_client(kind, 'recorder/start' if path is not None else 'recorder/stop')
+    try:
+        if not client.wait_for_service(timeout_sec=10):
+            raise RuntimeError('the recorder does not answer (see logs/recorder.log)')
+        future = client.call_async(request)
+        _wait(future, 20, 'the recorder')
+        if not future.result().success:
+            raise RuntimeError(f'recorder: {future.result().message}')
+        return future.result().message
+    finally:
+        node.destroy_client(client)
+
+
+def move_to(node, client, length_m: float) -> str:
+    """One MoveToLength goal, as `ros2 action send_goal` would send it; a one-line summary."""
+    from pma_interfaces.action import MoveToLength
+
+    sent = client.send_goal_async(MoveToLength.Goal(length_m=length_m, tolerance_m=0.002,
+                                                    settle_s=1.0, timeout_s=20.0))
+    _wait(sent, 10, 'move_to_length accepted')
+    done = sent.result().get_result_async()
+    _wait(done, 40, 'move_to_length result')
+    result = done.result().result
+    if not result.success:
+        raise RuntimeError(f'move_to_length {length_m} m: {result.message}')
+    return (f'{length_m * 100:.1f} cm: settled in {result.settle_time_s:.2f} s, '
+            f'at {result.final_length_m * 100:.2f} cm')
+
+
+def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tuple[str, Path]]:
+    """Steps and a streamed sine through length_controller, recorded, plotted against the
+    simulated truth; the outputs."""
+    import csv
+
+    import numpy as np
+    from rclpy.action import ActionClient
+    from rclpy.qos import qos_profile_sensor_data
+
+    from pma_control.plots import plot_control_run
+    from pma_interfaces.action import MoveToLength
+    from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+
+    stroke_m = 0.0586
+    steps: list = []
+    seqs: dict[int, int] = {}
+    node.create_subscription(ControlState, 'pma/control_state', steps.append, 1000)
+    node.create_subscription(
+        PmaState, 'pma/state',
+        lambda s: seqs.__setitem__(s.header.stamp.sec * 10**9 + s.header.stamp.nanosec, s.seq),
+        qos_profile_sensor_data)
+    client = ActionClient(node, MoveToLength, 'pma/move_to_length')
+    if not client.wait_for_server(timeout_sec=20):
+        raise RuntimeError('no pma/move_to_length (see logs/length_controller.log)')
+    bag = run_dir / 'control'
+    record_bag(node, bag)
+    begin = len(steps)
+    for length_m in (0.255, 0.285, 0.265):
+        say(f'   move_to_length {move_to(node, client, length_m)}')
+    say('   following a streamed sine, 25.0 <-> 29.5 cm at 0.1 Hz, for 25 s '
+        '(pma/length_setpoint at 50 Hz)')
+    setpoints = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
+    start = time.time()
+    while (now := time.time()) - start < 25.0:
+        phase = 2 * math.pi * 0.1 * (now - start)
+        setpoints.publish(LengthSetpoint(length_m=0.2725 - 0.0225 * math.cos(phase)))
+        time.sleep(0.02)
+    time.sleep(0.5)
+    say(f'   {record_bag(node, None)}')
+    with open(truth_csv, newline='', encoding='utf-8') as stream:
+        truth = {int(r['seq']): float(r['true_length_m']) for r in csv.DictReader(stream)}
+    rows = []
+    for c in steps[begin:]:
+        stamp = c.header.stamp.sec * 10**9 + c.header.stamp.nanosec
+        if stamp in seqs and seqs[stamp] in truth:
+            rows.append((stamp / 1e9, c.setpoint_length_m, c.measured_length_m,
+                         truth[seqs[stamp]], c.gauge_pressure_command_pa, c.gauge_pressure_pa))
+    if not rows:
+        raise RuntimeError('no pma/control_state matched to the simulated truth')
+    t, setpoint, measured, true, command, pressure = (np.array(c) for c in zip(*rows,
+                                                                            strict=True))
+    sine = t >= start + 10.0                       # the sine's second period on
+    error = true[sine] - setpoint[sine]
+    rmse = float(np.sqrt(np.mean(error ** 2)))
+    say(f'   sine tracking against the simulated truth: RMSE {rmse * 1000:.2f} mm '
+        f'({100 * rmse / stroke_m:.2f} % of stroke), max {1000 * np.max(np.abs(error)):.2f} mm')
+    plot = plot_control_run(run_dir / 'plots' / 'control.png', t_s=t - t[0], target_m=setpoint,
+                            measured_m=measured, command_pa=command, pressure_pa=pressure,
+                            true_m=true,
+                            title=f'length_controller: steps, then a 0.1 Hz sine '
+                                  f'(simulated rig, {rate_hz:g} Hz)')
+    return [('the control run (bag)', bag), ('the control run (plot)', plot)]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--hold-s', type=float, default=1.0,
@@ -214,18 +333,20 @@ def main(argv: list[str] | None = None) -> int:
     try:
         say(f'run directory: {run_dir}')
         start_live_view(procs, args.live_port)
-        say('1/7 starting fake_arduino (simulated rig on a pseudo-terminal)')
+        say('1/8 starting fake_arduino (simulated rig on a pseudo-terminal)')
         port = run_dir / 'pma0'
+        truth_csv = logs / 'true_length.csv'     # the simulated truth, for the control plot
         procs.start('fake_arduino', 'pma_driver', 'fake_arduino', '--link', str(port),
-                    '--seed', '1', '--max-rate', str(int(args.rate_hz)))
+                    '--seed', '1', '--max-rate', str(int(args.rate_hz)), '--truth',
+                    str(truth_csv))
         procs.wait_for_log('fake_arduino', 'device at', 15)
-        say('2/7 starting driver_node, model_node and the recorder')
+        say('2/8 starting driver_node, model_node, the recorder and length_controller')
         procs.start('driver_node', 'pma_driver', 'driver_node', ros_args=[
             '-p', f'port:={port}', '-p', f'sample_rate_hz:={args.rate_hz}'])
-        procs.start('model_node', 'pma_model', 'model_node', ros_args=[
-            '-p', f'params_file:={params_out}'])
+        procs.start('model_node', 'pma_model', 'model_node')
         # Idle until the Sweep action asks it for a bag (the driver calls its ~/start).
         procs.start('recorder', 'pma_bag', 'record', '--idle', '--compression', 'zstd')
+        procs.start('length_controller', 'pma_control', 'length_controller')
 
         rclpy.init()
         node = Node('pma_demo')
@@ -256,17 +377,17 @@ def main(argv: list[str] | None = None) -> int:
             f'{first.length_m * 100:.2f} cm at rest')
         procs.wait_for_log('recorder', 'idle', 20)
 
-        say("3/7 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
+        say("3/8 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
         run_sweep(node, 'major loop', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1,
             record=True, bag_path=str(major_bag)), 300)
-        say('4/7 minor loops on both branches: 0 -> 300 -> 150 -> 500 -> 200 -> 350 -> 0 kPa')
+        say('4/8 minor loops on both branches: 0 -> 300 -> 150 -> 500 -> 200 -> 350 -> 0 kPa')
         run_sweep(node, 'minor loops', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=100e3, hold_s=args.hold_s, cycles=1,
             reversal_pressures_pa=[300e3, 150e3, 500e3, 200e3, 350e3],
             record=True, bag_path=str(minor_bag)), 300)
 
-        say('5/7 pressure_for_length (the inverse model)')
+        say('5/8 pressure_for_length (the inverse model)')
         print('        length     branch             gauge pressure   reachable on that branch')
         for length_m, branch, answer in ask_pressures(node, [0.29, 0.27, 0.25]):
             name = BRANCH_NAMES[branch] if branch else f'auto: {BRANCH_NAMES[answer.branch]}'
@@ -277,9 +398,8 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 print(f'      {length_m * 100:6.2f} cm  {name:17s}  refused: {answer.message}')
 
-        say("6/7 refitting the model from the major loop's bag and scoring the memory rules "
+        say("6/8 refitting the model from the major loop's bag and scoring the memory rules "
             "along the minor loops' bag")
-        loaded_before = len(model_params)  # model_node may reload while refit still plots
         refit = subprocess.run(
             [str(executable('pma_model', 'refit')), str(major_bag),
              '--memory-check', str(minor_bag),
@@ -291,7 +411,12 @@ def main(argv: list[str] | None = None) -> int:
         if refit.returncode:
             raise RuntimeError(f'refit failed (exit {refit.returncode}): {refit.stderr.strip()}')
 
-        say('7/7 model_node hot-loads the refit parameters')
+        say('7/8 model_node loads the refit (ros2 param set /model_node params_file ...); '
+            'the controller follows')
+        loaded_before = len(model_params)
+        refused = set_parameter(node, '/model_node', 'params_file', str(params_out))
+        if refused:
+            raise RuntimeError(f'model_node refused the refit: {refused}')
         deadline = time.monotonic() + 15
         while len(model_params) <= loaded_before and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -302,12 +427,16 @@ def main(argv: list[str] | None = None) -> int:
         else:
             say('   model_node did not report new parameters (see logs/model_node.log)')
 
+        say('8/8 length control: steps 25.5 -> 28.5 -> 26.5 cm (MoveToLength), then a sine')
+        control_outputs = run_control(node, run_dir, truth_csv, args.rate_hz)
+
         elapsed = time.monotonic() - started
         say(f'done in {elapsed:.0f} s. Outputs:')
         for label, path in (("the Sweep action's bags: major loop", major_bag),
                             ('                         minor loops', minor_bag),
                             ('refit report (JSON)', run_dir / 'refit.json'),
                             ('refit parameters (model_node params file)', params_out),
+                            *control_outputs,
                             ('plots (PNG)', run_dir / 'plots'), ('process logs', logs)):
             print(f'      {label:45s} {path}')
         return 0
