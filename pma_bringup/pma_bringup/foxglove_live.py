@@ -47,7 +47,6 @@ from pma_common.node import ros_context, spin_until_stopped
 
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
-# What the recorder records, and the length controller's topics.
 DEFAULT_TOPICS = list(RECORDED_TOPICS)   # what a bag of the rig holds: one layout for both
 GRAPH_PERIOD_S = 0.25     # how often new topics, restarted publishers and QoS changes are seen
 QUEUE_DEPTH = 100         # per subscription; a viewer is not a recorder
