@@ -33,6 +33,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from pma_common.stop import StopRequest, stop_request
@@ -237,6 +238,10 @@ class SimavrDevice:
         self.simulator = FirmwareSimulator(simulator_path, firmware_path, self._adc_mv,
                                            self._echo_us, self._valves)
         self.both_valves_open = 0
+        # Simulated and wall time spent simulating: their ratio is how much faster than the
+        # board simavr runs here (below 1 it cannot keep up with the wall clock).
+        self.simulated_ms = 0
+        self.simulating_s = 0.0
         self._valve = Valve.HOLD
         self._physics_ms = 0
         self.t_ms = 0
@@ -285,7 +290,10 @@ class SimavrDevice:
     def advance_to(self, t_ms: int) -> None:
         if t_ms <= self.t_ms:
             return
+        started = time.monotonic()
         self.simulator.run_to(t_ms * CYCLES_PER_MS)
+        self.simulating_s += time.monotonic() - started
+        self.simulated_ms += t_ms - self.t_ms
         self._physics_to(t_ms * CYCLES_PER_MS)
         self.t_ms = t_ms
         output = self.simulator.output
@@ -342,8 +350,9 @@ def run(args: argparse.Namespace, stop: StopRequest) -> int:
                 print(device.simulator.stats().text(), flush=True)
             except FirmwareStoppedError:
                 pass
-            if device.both_valves_open:
-                print(f'{PROG}: both valves open {device.both_valves_open} times', flush=True)
+            speed = device.simulated_ms / 1000 / max(device.simulating_s, 1e-9)
+            print(f'{PROG}: simulation speed_vs_real_time={speed:.1f} '
+                  f'both_valves_open={device.both_valves_open}', flush=True)
             device.close()
 
 

@@ -24,6 +24,16 @@ SCRIPT = ROOT / 'tools' / 'firmware.sh'
 FIRMWARE_DIR = ROOT / 'pma_driver' / 'firmware'
 
 
+# The deliberately broken firmware the tests must catch, a bug the host build cannot show:
+# the reference as a plain `int` (16 bits on the AVR, 32 on a PC), multiplied by the ADC
+# count without widening it first, so every reading wraps to about -60 kPa.
+SIXTEEN_BIT_OVERFLOW = {
+    'const int32_t ADC_REFERENCE_MV = 5000;': 'const int ADC_REFERENCE_MV = 5000;',
+    'const int32_t scaledMv = (int32_t)adc * ADC_REFERENCE_MV - ':
+        'const int32_t scaledMv = adc * ADC_REFERENCE_MV - ',
+}
+
+
 def script_exit_code(name: str) -> int:
     match = re.search(rf'^{name}=(\d+)$', SCRIPT.read_text(), re.M)
     assert match, f'{name} not set in {SCRIPT}'

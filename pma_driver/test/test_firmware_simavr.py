@@ -19,7 +19,13 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from firmware_build import mutated_firmware, require_simulator, run_firmware_script, session_build
+from firmware_build import (
+    SIXTEEN_BIT_OVERFLOW,
+    mutated_firmware,
+    require_simulator,
+    run_firmware_script,
+    session_build,
+)
 from test_firmware_build import (
     COMMAND_CASES,
     RIG_DIR,
@@ -37,15 +43,6 @@ from pma_driver.sim.device import DeviceConfig, Rig
 from pma_driver.simavr_arduino import SimavrDevice
 
 MEGA_VARIANT = Path('/usr/share/arduino/hardware/arduino/avr/variants/mega/pins_arduino.h')
-# The 16-bit overflow the host build cannot see: the reference as a plain `int` (16 bits on
-# the AVR, 32 on a PC), multiplied by the count without widening it first.
-SIXTEEN_BIT_OVERFLOW = {
-    'const int32_t ADC_REFERENCE_MV = 5000;': 'const int ADC_REFERENCE_MV = 5000;',
-    'const int32_t scaledMv = (int32_t)adc * ADC_REFERENCE_MV - ':
-        'const int32_t scaledMv = adc * ADC_REFERENCE_MV - ',
-}
-
-
 @pytest.fixture(scope='module')
 def build():
     return require_simulator(session_build())

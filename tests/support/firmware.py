@@ -12,6 +12,7 @@ if _PACKAGE_TESTS not in sys.path:
     sys.path.append(_PACKAGE_TESTS)
 
 from firmware_build import (  # noqa: E402
+    SIXTEEN_BIT_OVERFLOW,
     FirmwareBuild,
     mutated_firmware,
     require_simulator,
@@ -19,5 +20,5 @@ from firmware_build import (  # noqa: E402
     session_build,
 )
 
-__all__ = ['FirmwareBuild', 'mutated_firmware', 'require_simulator', 'run_firmware_script',
-           'session_build']
+__all__ = ['SIXTEEN_BIT_OVERFLOW', 'FirmwareBuild', 'mutated_firmware', 'require_simulator',
+           'run_firmware_script', 'session_build']
