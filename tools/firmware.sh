@@ -21,7 +21,7 @@ BUILD_DIR="${PMA_FIRMWARE_BUILD_DIR:-${ROOT}/build/firmware}"
 ARDUINO_DIR=/usr/share/arduino
 APT_PACKAGES=(gcc-avr avr-libc arduino-core-avr arduino-mk)
 # libsimavr-dev brings libsimavr2 and libsimavrparts1; simavr is the command-line runner.
-SIMAVR_PACKAGES=(simavr libsimavr-dev libsimavrparts1 gcc libc6-dev make)
+SIMAVR_PACKAGES=(simavr libsimavr-dev libsimavrparts1 gcc libc6-dev)
 SIMAVR_INCLUDE=/usr/include/simavr
 EXIT_NO_TOOLCHAIN=3
 EXIT_NO_SIMULATOR=4

@@ -1,4 +1,4 @@
-"""simavr_arduino: the real firmware image on a simulated ATmega2560, before the simulated rig.
+"""simavr_arduino: the firmware's own image on a simulated ATmega2560, with the simulated rig.
 
 fake_arduino re-implements the firmware in Python; this runs the firmware itself: the .elf
 that `make firmware` builds for the Mega executes on simavr at 16 MHz (the C program
@@ -15,8 +15,8 @@ the world, and each time the AVR stops and asks: an ADC conversion of the sensor
 gets the rig's pressure reading (`Rig.read_adc`, as volts on A0), the end of a trigger pulse
 gets the echo width (`Rig.read_echo_us`, played back on the echo pin 0.45 ms later). Valve
 pin changes come back stamped with their cycle, and the physics steps at 1 ms in that same
-simulated time, as in fake_arduino. simavr runs about four times faster than the board on
-one core here, so the AVR keeps up with the wall clock and catches up after a stall.
+simulated time, as in fake_arduino. simavr runs 2.5-4 times faster than the board on one
+core here, so the AVR keeps up with the wall clock and catches up after a stall.
 
 Prints what fake_arduino prints (`simavr_arduino: device at ...`, `simavr_arduino: stats
 ...`) and, at exit, `simavr_arduino: firmware ...` with what only the real image can tell:
@@ -61,11 +61,11 @@ NO_ECHO_US = 38_000
 INLET_OPEN_LEVEL = 1
 EXHAUST_OPEN_LEVEL = 1
 # Options whose values are compiled into the firmware: the image decides, not the command line.
-COMPILED = {'rate': 'DEFAULT_RATE_HZ (RATE sets another)',
-            'max_rate': 'MAX_RATE_HZ',
-            'ceiling_pa': 'CEILING_LIMIT_PA (MAX sets a lower ceiling)',
-            'hb_timeout_ms': 'DEFAULT_HEARTBEAT_TIMEOUT_MS (HBTO sets another)',
-            'no_heartbeat_check': 'the heartbeat check, always on'}
+COMPILED = {'rate': 'it boots at DEFAULT_RATE_HZ; RATE (sample_rate_hz) sets another',
+            'max_rate': 'MAX_RATE_HZ is compiled in',
+            'ceiling_pa': 'it boots at CEILING_LIMIT_PA; MAX (max_gauge_pressure_pa) lowers it',
+            'hb_timeout_ms': 'it boots at DEFAULT_HEARTBEAT_TIMEOUT_MS; HBTO sets another',
+            'no_heartbeat_check': 'its heartbeat check is always on'}
 
 
 def default_build_dir() -> Path:
@@ -327,11 +327,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description='The PMA firmware image on a simulated ATmega2560 (simavr), behind a '
                     'pseudo-terminal, in front of the simulated rig.')
     defaults = fake_arduino.parse_args([])
-    for name, where in COMPILED.items():
+    for name, why in COMPILED.items():
         if getattr(args, name) != getattr(defaults, name):
-            option = '--' + name.replace('_', '-')
-            raise SystemExit(f'{PROG}: {option} cannot be changed: the firmware has it '
-                             f'compiled in ({where})')
+            print(f"{PROG}: --{name.replace('_', '-')} is not for the real firmware: {why}",
+                  file=sys.stderr)
+            raise SystemExit(2)
     return args
 
 

@@ -38,6 +38,7 @@ from test_firmware_build import (
     spec_doc_banner,
 )
 
+from pma_common.stop import StopRequest
 from pma_driver import simavr_arduino
 from pma_driver.sim.device import DeviceConfig, Rig
 from pma_driver.simavr_arduino import SimavrDevice
@@ -116,6 +117,29 @@ def bench(build):
 
 def gaps_ms(samples) -> list[int]:
     return [later.t_ms - earlier.t_ms for earlier, later in itertools.pairwise(samples)]
+
+
+# ---- Command line ----------------------------------------------------------------------------
+
+def test_options_the_image_has_compiled_in_are_refused_with_the_reason(capsys):
+    for argv in (['--rate', '50'], ['--max-rate', '50'], ['--ceiling-pa', '300000'],
+                 ['--hb-timeout-ms', '500'], ['--no-heartbeat-check']):
+        with pytest.raises(SystemExit) as exited:
+            simavr_arduino.parse_args(argv)
+        assert exited.value.code == 2
+        assert f'{argv[0]} is not for the real firmware: ' in capsys.readouterr().err
+    # The image's own values, and fake_arduino's other options, are welcome.
+    args = simavr_arduino.parse_args(['--rate', '20', '--seed', '3', '--drop-rate', '0.1'])
+    assert (args.seed, args.drop_rate) == (3, 0.1)
+
+
+def test_a_missing_image_says_how_to_build_it(tmp_path):
+    args = simavr_arduino.parse_args(['--firmware', str(tmp_path / 'none.elf'),
+                                      '--link', str(tmp_path / 'tty')])
+    with pytest.raises(FileNotFoundError,
+                       match=r'no (simulator|firmware image) at .*make firmware'):
+        simavr_arduino.run(args, StopRequest())
+    assert not (tmp_path / 'tty').exists()
 
 
 # ---- Wiring -------------------------------------------------------------------------------
