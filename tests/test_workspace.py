@@ -15,7 +15,7 @@ from support.ros import SpinningNode, shutdown, wait_until
 
 HELPERS = Path(__file__).parent / 'helpers'
 EXECUTABLES = {
-    'pma_driver': ['driver_node', 'fake_arduino', 'recorder'],
+    'pma_driver': ['driver_node', 'fake_arduino', 'simavr_arduino', 'recorder'],
     'pma_model': ['model_node', 'replay', 'refit'],
     'pma_bag': ['record', 'play', 'recover', 'info'],
     'pma_bringup': ['demo', 'foxglove_live'],

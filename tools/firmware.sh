@@ -1,14 +1,18 @@
 #!/usr/bin/env bash
 # Compile the Arduino Mega 2560 firmware (pma_driver/firmware/pma_firmware/) with the Debian
-# AVR toolchain and arduino-mk, installing them first when they are missing, and print the
-# flash and RAM use. `make firmware` and pma_driver/test/test_firmware_build.py run this.
+# AVR toolchain and arduino-mk, print its flash and RAM use, then build the simulator that
+# runs that image (pma_driver/firmware/simavr/, against Debian's simavr) for
+# `ros2 run pma_driver simavr_arduino`. Missing packages are installed first with apt-get.
+# `make firmware` (so `make test`) and the firmware tests run this.
 #
-# Exit status: 0 built; 1 compile or link error (or the image does not fit); 3 the toolchain
-# is absent and cannot be installed here (not root, no apt-get, or the install failed), which
-# the test reports as a skip rather than a failure.
+# Exit status: 0 built; 1 compile or link error (or the image does not fit); 3 the AVR
+# toolchain is absent and cannot be installed here (not root, no apt-get, or the install
+# failed); 4 the firmware built but simavr is absent and cannot be installed. The tests
+# report 3 and 4 as skips that say so rather than as failures.
 #
-# Environment: PMA_FIRMWARE_BUILD_DIR (default <repo>/build/firmware, git-ignored) and
-# PMA_FIRMWARE_DIR (default pma_driver/firmware; the test points it at a broken copy).
+# Environment: PMA_FIRMWARE_BUILD_DIR (default <repo>/build/firmware, git-ignored; the image
+# is pma_firmware.elf, the simulator simavr/pma_simavr) and PMA_FIRMWARE_DIR (default
+# pma_driver/firmware; the tests point it at a broken copy).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -16,7 +20,11 @@ FIRMWARE_DIR="${PMA_FIRMWARE_DIR:-${ROOT}/pma_driver/firmware}"
 BUILD_DIR="${PMA_FIRMWARE_BUILD_DIR:-${ROOT}/build/firmware}"
 ARDUINO_DIR=/usr/share/arduino
 APT_PACKAGES=(gcc-avr avr-libc arduino-core-avr arduino-mk)
+# libsimavr-dev brings libsimavr2 and libsimavrparts1; simavr is the command-line runner.
+SIMAVR_PACKAGES=(simavr libsimavr-dev libsimavrparts1 gcc libc6-dev)
+SIMAVR_INCLUDE=/usr/include/simavr
 EXIT_NO_TOOLCHAIN=3
+EXIT_NO_SIMULATOR=4
 
 log() { echo "[firmware] $*"; }
 
@@ -27,9 +35,18 @@ toolchain_present() {
         && [ -f /usr/lib/avr/include/avr/io.h ]
 }
 
-install_toolchain() {
+simulator_present() {
+    command -v cc >/dev/null && [ -f "${SIMAVR_INCLUDE}/sim_avr.h" ] \
+        && [ -f "${SIMAVR_INCLUDE}/avr_uart.h" ] \
+        && echo 'int main(void) { return 0; }' | cc -x c -o /dev/null - -lsimavr 2>/dev/null
+}
+
+# apt_install WHAT PACKAGE...
+apt_install() {
+    local what=$1
+    shift
     if ! command -v apt-get >/dev/null; then
-        log "no apt-get: install ${APT_PACKAGES[*]} (or equivalents) by hand"
+        log "no apt-get: install $* (or equivalents) by hand"
         return 1
     fi
     local sudo=()
@@ -38,18 +55,20 @@ install_toolchain() {
         if command -v sudo >/dev/null && sudo -n true 2>/dev/null; then
             sudo=(sudo -n)
         else
-            log "not root and no password-less sudo: run" \
-                "'sudo apt-get install ${APT_PACKAGES[*]}' once"
+            log "not root and no password-less sudo: run 'sudo apt-get install $*' once"
             return 1
         fi
     fi
-    log "installing the AVR toolchain with apt-get: ${APT_PACKAGES[*]}"
+    log "installing ${what} with apt-get: $*"
     local start=${SECONDS}
     # Wait for a dpkg lock held by another install rather than fail on it.
     local apt=(env DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=300)
-    "${sudo[@]}" "${apt[@]}" update -qq || return 1
+    if [ -z "${APT_UPDATED:-}" ]; then
+        "${sudo[@]}" "${apt[@]}" update -qq || return 1
+        APT_UPDATED=1
+    fi
     # --no-install-recommends: the IDE that arduino-mk pulls in recommends a desktop's worth.
-    "${sudo[@]}" "${apt[@]}" install -y -qq --no-install-recommends "${APT_PACKAGES[@]}" \
+    "${sudo[@]}" "${apt[@]}" install -y -qq --no-install-recommends "$@" \
         >/dev/null || return 1
     log "apt-get took $((SECONDS - start)) s"
 }
@@ -57,7 +76,7 @@ install_toolchain() {
 if toolchain_present; then
     log "toolchain present: $(avr-gcc --version | head -n 1)"
 else
-    if ! install_toolchain || ! toolchain_present; then
+    if ! apt_install "the AVR toolchain" "${APT_PACKAGES[@]}" || ! toolchain_present; then
         log "TOOLCHAIN UNAVAILABLE: avr-gcc, avr-libc and ${ARDUINO_DIR}/Arduino.mk are needed"
         exit "${EXIT_NO_TOOLCHAIN}"
     fi
@@ -98,3 +117,19 @@ if [ "${flash}" -gt "${flash_max}" ] || [ "${ram}" -gt $((ram_max * 3 / 4)) ]; t
     log "FIRMWARE TOO LARGE for the atmega2560"
     exit 1
 fi
+
+# ---- The simulator that runs this image (firmware in the loop, docs/hardware.md).
+if simulator_present; then
+    log "simavr present: $(dpkg-query -W -f '${Version}' libsimavr-dev 2>/dev/null || echo '?')"
+elif ! apt_install "simavr" "${SIMAVR_PACKAGES[@]}" || ! simulator_present; then
+    log "SIMULATOR UNAVAILABLE: simavr's headers (${SIMAVR_INCLUDE}) and libsimavr are" \
+        "needed for simavr_arduino; the firmware itself built"
+    exit "${EXIT_NO_SIMULATOR}"
+fi
+if ! make --no-print-directory -C "${FIRMWARE_DIR}/simavr" OUT="${BUILD_DIR}/simavr" \
+        >"${BUILD_DIR}/simavr-build.log" 2>&1; then
+    cat "${BUILD_DIR}/simavr-build.log"
+    log "SIMULATOR BUILD FAILED (log: ${BUILD_DIR}/simavr-build.log)"
+    exit 1
+fi
+log "simulator: ${BUILD_DIR}/simavr/pma_simavr (ros2 run pma_driver simavr_arduino)"

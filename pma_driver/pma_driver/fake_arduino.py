@@ -24,6 +24,7 @@ import sys
 import termios
 import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
 
 from pma_common.stop import StopRequest, stop_request
@@ -54,9 +55,12 @@ ATTACH_SETTLE_S = 0.05
 MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog='fake_arduino', description='Simulated PMA rig on a pseudo-terminal (protocol v1).')
+def parse_args(argv: list[str] | None = None, prog: str = 'fake_arduino',
+               description: str = 'Simulated PMA rig on a pseudo-terminal (protocol v1).',
+               extend: Callable[[argparse.ArgumentParser], None] | None = None,
+               ) -> argparse.Namespace:
+    """fake_arduino's options; simavr_arduino `extend`s them with its own."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     add = parser.add_argument
     add('--link', type=Path, help='also make this path a symlink to the device (removed on exit)')
     add('--rate', type=int, default=20, help='sample rate at boot [Hz] (default 20, max 1000)')
@@ -86,6 +90,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help='write the simulated true length of every sample here (seq, device time, true '
              'length, true pressure): for evaluating a controller; nothing on ROS sees it')
     add('--log-level', default='INFO', choices=['DEBUG', 'INFO', 'WARNING', 'ERROR'])
+    if extend is not None:
+        extend(parser)
     args = parser.parse_args(argv)
     for name in ('stall_after', 'stall_for', 'disconnect_after', 'reconnect_after'):
         value = getattr(args, name)
@@ -197,9 +203,9 @@ class LinkStats:
     split: int = 0
     echo_timeouts: int = 0
 
-    def text(self) -> str:
+    def text(self, prog: str = 'fake_arduino') -> str:
         fields = ' '.join(f'{name}={value}' for name, value in dataclasses.asdict(self).items())
-        return f'fake_arduino: stats {fields}'
+        return f'{prog}: stats {fields}'
 
     def count_written(self, line: _LineRecord) -> None:
         for fault in ('bad_checksum', 'garbage', 'split'):
@@ -324,13 +330,21 @@ class TruthLog:
         self._file.close()
 
 
-def run(args: argparse.Namespace, stop: StopRequest) -> int:
+def run(args: argparse.Namespace, stop: StopRequest,
+        make_device: Callable[[DeviceConfig, Rig], SimDevice] = SimDevice,
+        prog: str = 'fake_arduino') -> int:
+    """The pty, its faults and the device clock around the device `make_device` returns.
+
+    simavr_arduino passes the real firmware on simavr, which offers SimDevice's interface.
+    """
     config, fault_config = configs_from_args(args)
     faults = LinkFaults(fault_config, seed=args.seed)
     link = Link(args.link)
     rig = Rig(config)
     truth = TruthLog(args.truth) if args.truth else None
-    device = SimDevice(config, rig, on_sample=truth.write if truth else None)
+    device = make_device(config, rig)
+    if truth is not None:
+        device.on_sample = truth.write
     stats = LinkStats()
     writer = Writer(stats)
     start = time.monotonic()
@@ -343,7 +357,7 @@ def run(args: argparse.Namespace, stop: StopRequest) -> int:
     def plug_in() -> PtyPort:
         new = PtyPort()
         link.point_at(new.path)
-        print(f'fake_arduino: device at {new.path}', flush=True)
+        print(f'{prog}: device at {new.path}', flush=True)
         log.info('device at %s%s; %d Hz, ceiling %d Pa, heartbeat %s, muscle %s', new.path,
                  f' (link {args.link})' if args.link else '', config.rate_hz, config.ceiling_pa,
                  f'{config.hb_timeout_ms} ms' if config.heartbeat_check else 'not checked',
@@ -361,7 +375,7 @@ def run(args: argparse.Namespace, stop: StopRequest) -> int:
                 link.remove()
                 port.close()
                 writer.clear()
-                print(stats.text(), flush=True)
+                print(stats.text(prog), flush=True)
                 port, unplug_at, unplugged_at = None, None, now
                 replug_at = now + args.reconnect_after
                 continue
@@ -421,7 +435,7 @@ def run(args: argparse.Namespace, stop: StopRequest) -> int:
             log.info('faults injected: %s', faults.counts)
         if truth is not None:
             truth.close()
-        print(stats.text(), flush=True)
+        print(stats.text(prog), flush=True)
     return 0
 
 

@@ -16,7 +16,6 @@ import dataclasses
 import importlib.util
 import inspect
 import itertools
-import os
 import re
 import shutil
 import subprocess
@@ -24,13 +23,18 @@ import sys
 from pathlib import Path
 
 import pytest
+from firmware_build import (
+    EXIT_NO_SIMULATOR,
+    require_image,
+    run_firmware_script,
+    session_build,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 FIRMWARE_DIR = ROOT / 'pma_driver' / 'firmware'
 SKETCH_DIR = FIRMWARE_DIR / 'pma_firmware'
 SKETCH = SKETCH_DIR / 'pma_firmware.ino'
 PROTOCOL_HEADER = SKETCH_DIR / 'pma_protocol.h'
-FIRMWARE_SCRIPT = ROOT / 'tools' / 'firmware.sh'
 HARDWARE_DOC = ROOT / 'docs' / 'hardware.md'
 PROTOCOL_DOC = ROOT / 'docs' / 'serial-protocol.md'
 RIG_DIR = Path(__file__).resolve().parent / 'firmware_host'
@@ -119,35 +123,17 @@ def spec_doc_range(command: str) -> tuple[int, int]:
 
 # ---- The AVR build -------------------------------------------------------------------------
 
-def _script_exit_code(name: str) -> int:
-    match = re.search(rf'^{name}=(\d+)$', FIRMWARE_SCRIPT.read_text(), re.M)
-    assert match, f'{name} not set in {FIRMWARE_SCRIPT}'
-    return int(match.group(1))
-
-
-def run_firmware_script(build_dir: Path, firmware_dir: Path | None = None):
-    env = dict(os.environ, PMA_FIRMWARE_BUILD_DIR=str(build_dir))
-    if firmware_dir is not None:
-        env['PMA_FIRMWARE_DIR'] = str(firmware_dir)
-    # The first run may install the toolchain with apt-get (about half a minute).
-    result = subprocess.run(['bash', str(FIRMWARE_SCRIPT)], env=env, capture_output=True,
-                            text=True, timeout=170, check=False)
-    if result.returncode == _script_exit_code('EXIT_NO_TOOLCHAIN'):
-        pytest.skip('AVR toolchain absent and not installable here: '
-                    + result.stdout.strip().splitlines()[-1])
-    return result
-
-
 @pytest.fixture(scope='module')
-def avr_build(tmp_path_factory):
-    build_dir = tmp_path_factory.mktemp('firmware_build')
-    return build_dir, run_firmware_script(build_dir)
+def avr_build():
+    """This checkout's image (and simulator), built once per session by tools/firmware.sh."""
+    return require_image(session_build())
 
 
 def test_firmware_compiles_for_the_mega_2560(avr_build):
-    build_dir, result = avr_build
-    output = result.stdout + result.stderr
-    assert result.returncode == 0, output
+    build_dir, result = avr_build.build_dir, avr_build.result
+    output = avr_build.output
+    # EXIT_NO_SIMULATOR: the image built, only simavr (test_firmware_simavr.py) is missing.
+    assert result.returncode in (0, EXIT_NO_SIMULATOR), output
     flash = re.search(r'flash: (\d+) bytes of (\d+)', output)
     ram = re.search(r'RAM: +(\d+) bytes of (\d+)', output)
     assert flash and ram, output
@@ -170,12 +156,12 @@ def test_firmware_compiles_for_the_mega_2560(avr_build):
     ('int unusedHelper() { int unused = 1; return 0; }', 'HAS WARNINGS'),
 ])
 def test_a_broken_sketch_fails_the_build(avr_build, tmp_path, mutation, message):
-    assert avr_build[1].returncode == 0, 'the real sketch must build first'
+    assert avr_build.result.returncode in (0, EXIT_NO_SIMULATOR), 'the real sketch must build'
     firmware_copy = tmp_path / 'firmware'
     shutil.copytree(FIRMWARE_DIR, firmware_copy)
     sketch = firmware_copy / 'pma_firmware' / 'pma_firmware.ino'
     sketch.write_text(sketch.read_text() + '\n' + mutation + '\n')
-    result = run_firmware_script(tmp_path / 'build', firmware_copy)
+    result = run_firmware_script(tmp_path / 'build', firmware_copy).result
     assert result.returncode == 1
     assert message in result.stdout
     assert 'pma_firmware.ino:' in result.stdout + result.stderr
