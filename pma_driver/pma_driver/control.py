@@ -54,6 +54,13 @@ class DeviceControl:
         self.on_event = on_event
         self._sweep_lock = threading.Lock()
         self._sweep_running = False
+        # One SET in flight at a time; setpoints that come meanwhile replace each other and
+        # the newest goes when the device has answered. A stream of setpoints (a controller
+        # at the sample rate, `ros2 topic pub -r 1000`) then never overruns the firmware's
+        # serial buffer: the real image lost commands from ~28 sent back to back.
+        self._set_in_flight = False
+        self._next_set: int | None = None
+        self.setpoints_coalesced = 0
 
     # -- state ---------------------------------------------------------------------------
 
@@ -120,15 +127,59 @@ class DeviceControl:
         return '', ''
 
     def command_setpoint(self, gauge_pa: float) -> tuple[str, str]:
-        """Send SET unless refused; (kind, reason) of the refusal, ('', '') when sent."""
+        """Send SET unless refused; (kind, reason) of the refusal, ('', '') when taken.
+
+        Taken means sent now, or, while an earlier SET awaits its answer, sent right after it
+        (replacing any other setpoint still waiting): the newest setpoint always wins.
+        """
         with self.lock:
             kind, reason = self.setpoint_refusal(gauge_pa)
             if not reason:
-                self.send(Command.SET, round(gauge_pa))
+                if self._set_in_flight:
+                    if self._next_set is not None:
+                        self.setpoints_coalesced += 1
+                    self._next_set = round(gauge_pa)
+                else:
+                    self._send_set(round(gauge_pa))
         return kind, reason
 
-    def send(self, command: Command, *args: int) -> bool:
-        """Send without blocking; a NAK, a lost reply or an unsendable command is reported."""
+    def _send_set(self, gauge_pa: int) -> None:
+        self._set_in_flight = True
+        if not self.send(Command.SET, gauge_pa, on_answer=self._on_set_answered):
+            self._set_in_flight = False
+
+    def _on_set_answered(self) -> None:
+        """The device answered a SET (or never will): the waiting one may go, if still allowed.
+
+        Runs on the link thread, which must never wait long for the lock: a tare holds it
+        while the link thread brings TARE's answer. Then the waiting setpoint is dropped.
+        """
+        if not self.lock.acquire(timeout=0.05):
+            # Whoever holds the lock is not commanding setpoints (tare, deactivation).
+            self._set_in_flight, waiting, self._next_set = False, self._next_set, None
+            if waiting is not None:
+                self.on_event(logging.WARNING, f'setpoint {waiting} Pa dropped: the device '
+                              'is busy with another command')
+            return
+        try:
+            self._set_in_flight = False
+            waiting, self._next_set = self._next_set, None
+            if waiting is None:
+                return
+            _, reason = self.setpoint_refusal(float(waiting))
+            if reason:       # deactivated, a sweep took over, the ceiling fell meanwhile
+                self.on_event(logging.WARNING, f'setpoint {waiting} Pa dropped: {reason}')
+                return
+            self._send_set(waiting)
+        finally:
+            self.lock.release()
+
+    def send(self, command: Command, *args: int,
+             on_answer: Callable[[], None] | None = None) -> bool:
+        """Send without blocking; a NAK, a lost reply or an unsendable command is reported.
+
+        `on_answer` runs once the device answered (ACK or NAK) or the answer timed out.
+        """
         link = self.link
         if link is None or not link.connected:
             self.on_event(logging.WARNING, f'{command.value} {args} not sent: '
@@ -139,6 +190,8 @@ class DeviceControl:
             if not isinstance(reply, Ack):
                 what = 'no reply' if reply is None else f'NAK {reply.reason}'
                 self.on_event(logging.ERROR, f'device refused {command.value} {args}: {what}')
+            if on_answer is not None:
+                on_answer()
 
         try:
             link.send_async(command, *args, on_reply=on_reply)

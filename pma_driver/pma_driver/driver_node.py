@@ -377,6 +377,8 @@ class PmaDriver(Node):
                 'state subscribers': str(pubs[0].get_subscription_count() if pubs else 0),
                 'samples while inactive': str(self._unpublished),
                 'sweep running': 'yes' if self._control.sweep_running else 'no',
+                # setpoints replaced by a newer one while a SET awaited its answer
+                'setpoints coalesced': str(self._control.setpoints_coalesced),
                 'last fault': (f'{self._last_fault[0]} at {self._last_fault[1]} s'
                                if self._last_fault[0] else '-'),
                 'clock offset [s]': f'{self._clock_sync.offset_s:.6f}',

@@ -26,6 +26,10 @@ class SimLink:
         self.state = LinkState.HANDSHAKE
         self.hello: Hello | None = None
         self.lost_replies = 0             # the next this many replies are lost on the wire
+        # > 0: send_async answers after this many device ms (as a real serial link does),
+        # from `advance`; 0: at once, inside send_async.
+        self.reply_delay_ms = 0
+        self._delayed: list[tuple[int, object, object]] = []   # (due ms, callback, reply)
         self.sent: list[tuple[int, str, tuple[int, ...]]] = []   # (device ms, command, args)
         self._decoder = protocol.FrameDecoder()
         self._next_heartbeat_ms = 0
@@ -42,6 +46,10 @@ class SimLink:
                 self._next_heartbeat_ms = self.device.t_ms + self.heartbeat_period_ms
             self.device.advance(1)
             self._read()
+            due = [d for d in self._delayed if d[0] <= self.device.t_ms]
+            self._delayed = [d for d in self._delayed if d[0] > self.device.t_ms]
+            for _, callback, reply in due:
+                callback(reply)
 
     def send(self, command: Command, *args: int, timeout: float | None = None) -> Ack | Nak:
         if not self.connected:
@@ -61,7 +69,11 @@ class SimLink:
             if not self.connected:
                 raise
             reply = None
-        if on_reply is not None:
+        if on_reply is None:
+            return
+        if self.reply_delay_ms:
+            self._delayed.append((self.device.t_ms + self.reply_delay_ms, on_reply, reply))
+        else:
             on_reply(reply)
 
     def commands(self, name: str) -> list[tuple[int, ...]]:

@@ -59,3 +59,30 @@ def test_tare_at_rest_returns_the_count_the_device_took_as_zero(control):
     SimClock(control.link).sleep(2.0)
     assert control.tare() == (None, 'the muscle is not vented: send setpoint 0.0 first and let '
                                     'the pressure settle')
+
+
+def test_a_burst_of_setpoints_keeps_one_set_in_flight_and_the_newest_wins(control):
+    """A controller at the sample rate, or `ros2 topic pub -r 1000`: the device gets the
+    newest setpoint, never a backlog (the real firmware lost SETs sent ~28 at a time)."""
+    link = control.link
+    link.reply_delay_ms = 5                      # answers take a few ms, as on the wire
+    before = len(link.commands('SET'))
+    for value in range(100_000, 130_000, 1_000):      # 30 setpoints back to back
+        assert control.command_setpoint(float(value)) == ('', '')
+    assert len(link.commands('SET')) - before == 1   # the first; the rest wait, coalesced
+    SimClock(link).sleep(0.1)
+    sent = link.commands('SET')[before:]
+    assert sent == [(100_000,), (129_000,)]          # then only the newest
+    assert control.setpoints_coalesced == 28
+    assert link.device.setpoint_pa == 129_000
+
+
+def test_a_waiting_setpoint_does_not_overtake_a_deactivation(control):
+    link = control.link
+    link.reply_delay_ms = 5
+    control.command_setpoint(100_000.0)
+    control.command_setpoint(150_000.0)               # waits for the first SET's answer
+    control.deactivate()                              # VENT now
+    SimClock(link).sleep(0.1)
+    assert link.commands('SET')[-1] == (100_000,)     # 150 kPa was never sent
+    assert link.device.setpoint_pa == 0
