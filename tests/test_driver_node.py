@@ -392,6 +392,73 @@ def run_goal(client: ActionClient, goal, timeout: float, feedback: list | None =
     return result_future.result()
 
 
+@ON_BOTH_RIGS
+def test_a_streamed_sine_is_followed_and_ends_at_rest(rig, probe):
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    assert probe.sweep.wait_for_server(timeout_sec=10)
+    feedback: list[Sweep.Feedback] = []
+    start = probe.state_count()
+    goal = Sweep.Goal(profile='sine', sine_amplitude_pa=80_000.0, sine_offset_pa=150_000.0,
+                      sine_frequency_hz=0.25, cycles=1)
+    answer = run_goal(probe.sweep, goal, timeout=30, feedback=feedback)
+    assert answer.result.success, answer.result.message
+    assert answer.result.message.startswith('sine done: ') and 'over 4 s' in \
+        answer.result.message
+    with probe.lock:
+        states = [m for _, m in probe.states[start:]]
+    # The device took a new setpoint about every 50 ms: 81 were sent, a few may be skipped
+    # (a late answer) but none pile up; the samples (20 Hz) see nearly every one of them.
+    setpoints = [m.gauge_setpoint_pa for m in states]
+    changes = len(list(itertools.groupby(setpoints)))
+    assert 50 < changes <= 83 and max(setpoints) == 230_000.0, changes
+    streamed = [m for m in states if m.gauge_setpoint_pa > 0]
+    errors = sorted(abs(m.gauge_pressure_pa - m.gauge_setpoint_pa) for m in streamed[25:])
+    assert errors[len(errors) // 2] < 12_000, errors[len(errors) // 2]   # the median
+    assert max(m.gauge_pressure_pa for m in streamed) > 215_000
+    progress = [f.progress for f in feedback]
+    assert progress == sorted(progress) and progress[-1] == pytest.approx(1.0)
+    assert {f.step_count for f in feedback} == {81}
+    assert probe.wait_states(1)[0].gauge_setpoint_pa == 0.0       # every profile ends at rest
+    assert driver.alive()
+
+
+def test_csv_points_travel_in_the_goal_and_bad_profiles_are_refused_with_the_reason(
+        rig, probe):
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    assert probe.sweep.wait_for_server(timeout_sec=10)
+    start = probe.state_count()
+    goal = Sweep.Goal(profile='csv', profile_time_s=[5.0, 6.0, 7.5],
+                      profile_pressure_pa=[0.0, 120_000.0, 120_000.0], cycles=2, rest_s=1.0)
+    answer = run_goal(probe.sweep, goal, timeout=30)
+    assert answer.result.success, answer.result.message
+    assert answer.result.message.startswith('csv done: ') and 'over 6 s' in \
+        answer.result.message
+    with probe.lock:
+        setpoints = [m.gauge_setpoint_pa for _, m in probe.states[start:]]
+    # Up to 120 kPa, held, rest at 0, again: two plateaus at 120 kPa with 0 Pa between.
+    runs = [value for value, _ in itertools.groupby(s == 120_000.0 for s in setpoints)]
+    assert runs.count(True) == 2, runs
+    for bad, words in (
+            (dict(profile='sine', sine_amplitude_pa=300e3, sine_offset_pa=300e3,
+                  sine_frequency_hz=0.1), 'the sine peaks at 600000 Pa, above the driver '
+                                          'ceiling'),
+            (dict(profile='ramp', max_gauge_pressure_pa=200e3, ramp_rate_pa_s=5e6),
+             'faster than 1000000 Pa/s'),
+            (dict(profile='csv', profile_time_s=[0.0, 1.0], profile_pressure_pa=[0.0]),
+             'profile_time_s has 2 points and profile_pressure_pa 1'),
+            (dict(max_gauge_pressure_pa=200e3, step_pa=100e3, forc_count=3),
+             "forc_count is set, but profile 'staircase' does not use it")):
+        answer = run_goal(probe.sweep, Sweep.Goal(cycles=1, **bad), timeout=10)
+        assert answer.status == GOAL_STATUS_ABORTED, answer
+        assert answer.result.message.startswith('goal refused: ') and words in \
+            answer.result.message, answer.result.message
+    assert driver.alive()
+
+
 def test_sweep_cancel_vents(rig, probe):
     _, driver, _ = rig()
     driver.wait_for_line('active: publishing', 30)
