@@ -344,20 +344,10 @@ def test_a_ceiling_lowered_under_the_pressure_trips_the_device_s_overpressure_ve
 
 @ON_BOTH_RIGS
 def test_sweep_action_gives_feedback_and_a_result(rig, probe):
-    _, driver, _ = rig()
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    driver = sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     goal = Sweep.Goal(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1)
-    sent = probe.sweep.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
-        f.feedback))
-    wait_until(sent.done, 10, 'goal answer')
-    handle = sent.result()
-    assert handle.accepted
-    result_future = handle.get_result_async()
-    wait_until(result_future.done, 60, 'sweep result')
-    result = result_future.result().result
+    result = run_goal(probe.sweep, goal, timeout=60, feedback=feedback).result
     assert result.success, result.message
     assert result.sample_count > 20 and result.bag_path == ''
     steps = {f.step_index for f in feedback}
@@ -380,6 +370,15 @@ def test_sweep_action_gives_feedback_and_a_result(rig, probe):
     assert driver.alive()
 
 
+def sweep_ready(rig, probe, *rig_args, **rig_kwargs):
+    """Start the rig; its driver once active, streaming to the probe and serving pma/sweep."""
+    _, driver, _ = rig(*rig_args, **rig_kwargs)
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    assert probe.sweep.wait_for_server(timeout_sec=10)
+    return driver
+
+
 def run_goal(client: ActionClient, goal, timeout: float, feedback: list | None = None):
     """Send a goal that must be accepted; its final (status, result)."""
     sent = client.send_goal_async(goal, feedback_callback=None if feedback is None else (
@@ -394,10 +393,7 @@ def run_goal(client: ActionClient, goal, timeout: float, feedback: list | None =
 
 @ON_BOTH_RIGS
 def test_a_streamed_sine_is_followed_and_ends_at_rest(rig, probe):
-    _, driver, _ = rig()
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    driver = sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     start = probe.state_count()
     goal = Sweep.Goal(profile='sine', sine_amplitude_pa=80_000.0, sine_offset_pa=150_000.0,
@@ -426,10 +422,7 @@ def test_a_streamed_sine_is_followed_and_ends_at_rest(rig, probe):
 
 def test_csv_points_travel_in_the_goal_and_bad_profiles_are_refused_with_the_reason(
         rig, probe):
-    _, driver, _ = rig()
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    driver = sweep_ready(rig, probe)
     start = probe.state_count()
     goal = Sweep.Goal(profile='csv', profile_time_s=[5.0, 6.0, 7.5],
                       profile_pressure_pa=[0.0, 120_000.0, 120_000.0], cycles=2, rest_s=1.0)
@@ -460,10 +453,7 @@ def test_csv_points_travel_in_the_goal_and_bad_profiles_are_refused_with_the_rea
 
 
 def test_sweep_cancel_vents(rig, probe):
-    _, driver, _ = rig()
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=5.0, cycles=2)
     sent = probe.sweep.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
@@ -481,10 +471,7 @@ def test_sweep_cancel_vents(rig, probe):
 
 
 def test_sweep_aborts_and_vents_when_the_data_stops(rig, probe):
-    _, driver, _ = rig('--stall-after', '5', '--stall-for', '4')
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    sweep_ready(rig, probe, '--stall-after', '5', '--stall-for', '4')
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
     sent = probe.sweep.send_goal_async(goal)
     wait_until(sent.done, 10, 'goal answer')
@@ -784,10 +771,7 @@ def test_a_recording_sweep_asks_the_recorder_in_its_namespace(rig, procs, probe,
 
 def test_a_recording_sweep_without_a_recorder_aborts_at_once_and_says_how_to_start_one(
         rig, procs, probe, tmp_path):
-    _, driver, _ = rig(driver_params=('sweep.recorder_timeout_s:=1.0',))
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    driver = sweep_ready(rig, probe, driver_params=('sweep.recorder_timeout_s:=1.0',))
     goal = Sweep.Goal(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1,
                       record=True)
     feedback: list[Sweep.Feedback] = []

@@ -273,6 +273,17 @@ def _check_hold(hold_s: float) -> None:
         raise SweepError(f'hold_s must be >= 0 s, got {hold_s}')
 
 
+def _check_stepped(max_gauge_pressure_pa: float, step_pa: float, hold_s: float, cycles: int,
+                   rest_s: float, *, ceiling_pa: float) -> None:
+    """The fields every stepped profile (staircase, forc) shares."""
+    _check_top(max_gauge_pressure_pa, ceiling_pa)
+    _check_finite('step_pa', step_pa)
+    _check_hold(hold_s)
+    if step_pa <= 0:
+        raise SweepError(f'step_pa must be > 0 Pa, got {step_pa}')
+    _check_cycles_and_rest(cycles, rest_s)
+
+
 def _check_duration(what: str, cycle_s: float, cycles: int, rest_s: float) -> None:
     total = cycles * cycle_s + (cycles - 1) * rest_s
     if total > MAX_DURATION_S:
@@ -361,12 +372,8 @@ def plan_sweep(max_gauge_pressure_pa: float, step_pa: float, hold_s: float, cycl
                reversal_pressures_pa: Sequence[float] = (), *, ceiling_pa: float,
                max_steps: int = MAX_STEPS, rest_s: float = 0.0) -> SweepPlan:
     """Check a staircase goal against the driver's ceiling and return its plan, or raise."""
-    _check_top(max_gauge_pressure_pa, ceiling_pa)
-    _check_finite('step_pa', step_pa)
-    _check_hold(hold_s)
-    if step_pa <= 0:
-        raise SweepError(f'step_pa must be > 0 Pa, got {step_pa}')
-    _check_cycles_and_rest(cycles, rest_s)
+    _check_stepped(max_gauge_pressure_pa, step_pa, hold_s, cycles, rest_s,
+                   ceiling_pa=ceiling_pa)
     turning = _turning_points(float(max_gauge_pressure_pa), reversal_pressures_pa, max_steps)
     return _stepped_plan(turning, step_pa, hold_s=hold_s, cycles=cycles, rest_s=rest_s,
                          max_steps=max_steps, profile='staircase')
@@ -409,12 +416,8 @@ def plan_forc(max_gauge_pressure_pa: float, step_pa: float, hold_s: float, cycle
               forc_count: int, forc_family: str = '', ceiling_pa: float,
               max_steps: int = MAX_STEPS, rest_s: float = 0.0) -> SweepPlan:
     """Check a FORC goal and return its plan (staircases between the turning points)."""
-    _check_top(max_gauge_pressure_pa, ceiling_pa)
-    _check_finite('step_pa', step_pa)
-    _check_hold(hold_s)
-    if step_pa <= 0:
-        raise SweepError(f'step_pa must be > 0 Pa, got {step_pa}')
-    _check_cycles_and_rest(cycles, rest_s)
+    _check_stepped(max_gauge_pressure_pa, step_pa, hold_s, cycles, rest_s,
+                   ceiling_pa=ceiling_pa)
     family = forc_family or 'ascending'
     if family not in FORC_FAMILIES:
         raise SweepError(f'forc_family {forc_family!r} is not one of '
