@@ -565,7 +565,9 @@ def test_every_valid_frame_is_published_once_and_every_bad_one_counted(rig, prob
     sent = fake_stats(fake.output)
     decoded = int(final['samples decoded'])
     published = int(final['samples published'])
-    assert sent['sent'] > 300 and sent['bad_checksum'] > 5 and sent['garbage'] > 5
+    # Enough traffic for every fault to show (a loaded machine takes longer to activate,
+    # and the stall comes at a fixed 14 s: 257 frames were seen in CI, 600 quiet).
+    assert sent['sent'] > 150 and sent['bad_checksum'] > 5 and sent['garbage'] > 5
     assert decoded + int(final['samples before handshake']) == sent['sent']
     assert published + int(final['samples while inactive']) == decoded
     assert int(final['bad frames (checksum)']) == sent['bad_checksum']
