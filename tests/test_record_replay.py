@@ -292,12 +292,9 @@ def no_loss_at_1khz(procs, tmp_path, seconds: int) -> None:
 
 
 def test_no_loss_at_1khz_for_10_s(procs, tmp_path):
+    # Rare losses need longer: bench/bench_model_node.py soaks the recorder and model_node at
+    # 1 kHz for minutes (`make bench`); a 60 s copy of this test cost a minute of every run.
     no_loss_at_1khz(procs, tmp_path, 10)
-
-
-@pytest.mark.slow
-def test_no_loss_at_1khz_for_60_s(procs, tmp_path):
-    no_loss_at_1khz(procs, tmp_path, 60)
 
 
 if __name__ == '__main__':
