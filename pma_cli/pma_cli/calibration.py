@@ -119,8 +119,10 @@ def length_offset_from_tape(values: Mapping[str, float], echo_us: Sequence[int],
                                f'{low * 100:.0f} to {high * 100:.0f} cm)')
     _, length = calibrations(values)
     ranges = [length.echo_to_range_m(echo) for echo in echo_us]
+    if len(ranges) < MIN_SAMPLES:
+        raise CalibrationError(f'only {len(ranges)} readings (at least {MIN_SAMPLES})')
     valid = [r for r in ranges if math.isfinite(r)]
-    if len(valid) < MIN_ECHO_SHARE * len(ranges) or len(valid) < MIN_SAMPLES:
+    if len(valid) < max(MIN_ECHO_SHARE * len(ranges), MIN_SAMPLES):
         raise CalibrationError(f'only {len(valid)} of {len(ranges)} readings had an echo: aim '
                                'the sensor at the plate (docs/hardware.md) and try again')
     range_m = Measurement.of(valid).mean

@@ -73,7 +73,8 @@ def prediction_topic_for(state_topic: str, topics: dict) -> str:
     """`/left/pma/state` -> `/left/pma/prediction`, if the bag holds it as PmaPrediction."""
     name = state_topic.rsplit('/', 1)[0] + '/prediction'
     topic = topics.get(name)
-    return name if topic is not None and topic.type_name == PREDICTION_TYPE else ''
+    usable = topic is not None and topic.type_name == PREDICTION_TYPE and topic.message_count
+    return name if usable else ''
 
 
 def metadata(bag: Path, reader: BagReader, state_topic: str, prediction_topic: str,
@@ -139,9 +140,10 @@ def export_csv(bag: Path, out: Path | None, topic: str = STATE_TOPIC,
             for message in reader.messages([state_topic]):
                 state = deserialize_message(message.data, PmaState)
                 stamp = state.header.stamp
-                stamp_s = stamp.sec + 1e-9 * stamp.nanosec
-                first = stamp_s if first is None else first
-                row = [_number(stamp_s - first), f'{stamp.sec}.{stamp.nanosec:09d}', state.seq,
+                stamp_ns = stamp.sec * 1_000_000_000 + stamp.nanosec
+                first = stamp_ns if first is None else first
+                row = [_number((stamp_ns - first) / 1e9), f'{stamp.sec}.{stamp.nanosec:09d}',
+                       state.seq,
                        _number(state.device_time_s), _number(state.gauge_pressure_pa),
                        _number(state.gauge_setpoint_pa), _number(state.length_m),
                        state.valve_state, state.status, state.pressure_adc, state.echo_us]
