@@ -35,7 +35,7 @@ from datetime import datetime
 from pathlib import Path
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -45,6 +45,7 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
+from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
@@ -622,10 +623,7 @@ class Recorder(Node):
             status.message = f'{values["state"]} {topics} topics'
         if self.failed_bags:
             values['incomplete bags (recover them)'] = ', '.join(self.failed_bags)
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(array)
+        publish_status(self, self.diagnostics, status, values)
 
 
 def drain(executor, node: Recorder, quiet_s: float = 0.2, limit_s: float = 1.0) -> None:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import foxglove
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -43,6 +43,7 @@ from pma_bag.errors import SchemaError
 from pma_bag.record import DEFAULT_TOPICS as RECORDED_TOPICS
 from pma_bag.record import message_class, subscription_qos
 from pma_bag.schemas import message_schema
+from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped
 
 DEFAULT_HOST = '127.0.0.1'
@@ -286,10 +287,7 @@ class FoxgloveLive(Node):
         else:
             status.level = DiagnosticStatus.OK
             status.message = f'{len(forwarded)} topics to {viewers} viewers'
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(array)
+        publish_status(self, self.diagnostics, status, values)
 
     def close(self) -> None:
         self.server.stop()

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import rclpy
-from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
@@ -53,3 +53,14 @@ def spin_until_stopped(executor: Executor, node: Node | None, stop: StopRequest,
             executor.spin_once(timeout_sec=SPIN_PERIOD_S)
     except ExternalShutdownException:
         return
+
+
+def run_single_threaded(make_node: Callable[[], Node], args: list[str] | None = None) -> int:
+    """The whole main() of a node that needs nothing else: build, spin, destroy; exit 0."""
+    with ros_context(args) as stop:
+        node = make_node()
+        try:
+            spin_until_stopped(SingleThreadedExecutor(), node, stop)
+        finally:
+            node.destroy_node()
+    return 0

@@ -24,16 +24,16 @@ import sys
 import time
 from dataclasses import fields
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from std_msgs.msg import Float64
 
-from pma_common.node import ros_context, spin_until_stopped
+from pma_common.diagnostics import publish_status
+from pma_common.node import run_single_threaded
 from pma_control.controller import MODES, ControllerSettings, ControlOutput, LengthController
 from pma_interfaces.action import MoveToLength
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
@@ -345,20 +345,11 @@ class LengthControllerNode(Node):
                            'bias [m]': f'{output.bias_m:.5f}',
                            'command [Pa]': f'{output.command_pa:.0f}',
                            'saturated': str(output.saturated_low or output.saturated_high)})
-        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        array = DiagnosticArray(status=[status])
-        array.header.stamp = self.get_clock().now().to_msg()
-        self._diagnostics_pub.publish(array)
+        publish_status(self, self._diagnostics_pub, status, values)
 
 
 def main(args=None) -> int:
-    with ros_context(args) as stop:
-        node = LengthControllerNode()
-        try:
-            spin_until_stopped(SingleThreadedExecutor(), node, stop)
-        finally:
-            node.destroy_node()
-    return 0
+    return run_single_threaded(LengthControllerNode, args)
 
 
 if __name__ == '__main__':

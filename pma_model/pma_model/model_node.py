@@ -12,9 +12,8 @@ import os
 import sys
 import threading
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
@@ -25,7 +24,8 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from pma_common.node import ros_context, spin_until_stopped
+from pma_common.diagnostics import publish_status
+from pma_common.node import run_single_threaded
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
@@ -394,11 +394,7 @@ class ModelNode(Node):
                 branch_correction_mm=' '.join(f'{1e3 * v:.2f}'
                                               for v in learned.branch_correction_m),
                 creep_gains=' '.join(f'{v:.3f}' for v in learned.creep_gains))
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        array = DiagnosticArray()
-        array.header.stamp = self.get_clock().now().to_msg()
-        array.status = [status]
-        self._diagnostics_pub.publish(array)
+        publish_status(self, self._diagnostics_pub, status, values)
         if (learned.enabled or adapting) and learned_count != self._published_learning:
             # What it has learned, latched at 1 Hz at most: a recording (or a restart from
             # its parameters_yaml) keeps it.
@@ -407,13 +403,7 @@ class ModelNode(Node):
 
 
 def main(args=None) -> int:
-    with ros_context(args) as stop:
-        node = ModelNode()
-        try:
-            spin_until_stopped(SingleThreadedExecutor(), node, stop)
-        finally:
-            node.destroy_node()
-    return 0
+    return run_single_threaded(ModelNode, args)
 
 
 if __name__ == '__main__':
