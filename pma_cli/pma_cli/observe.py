@@ -272,9 +272,9 @@ class Watch:
         return ' '.join((*numbers, f'{branch:>10}', f'{VALVES.get(state.valve_state, "?"):>5}',
                          status_text(state.status)))
 
-    def flush(self, everything: bool = False) -> None:
+    def flush(self, everything: bool = False, limit: int = 0) -> None:
         now = time.monotonic()
-        while self.pending:
+        while self.pending and not (limit and self.shown >= limit):
             received, state = self.pending[0]
             stamp = state.header.stamp
             prediction = self.predictions.pop((stamp.sec, stamp.nanosec), None)
@@ -295,7 +295,7 @@ class Watch:
         try:
             while count <= 0 or self.shown < count:
                 self.session.spin_until(lambda: False, 0.05)
-                self.flush()
+                self.flush(limit=count)
                 if self.received == 0 and time.monotonic() - started > first_timeout_s:
                     hint = self.session.where_hint('pma/state', 'driver_node')
                     if count > 0:
@@ -305,7 +305,7 @@ class Watch:
                         print(f'pma watch: no pma/state yet: {hint}', file=sys.stderr)
                         hinted = True
         except Interrupted:
-            self.flush(everything=True)
+            self.flush(everything=True, limit=count)
         stats = self.sequence.stats()
         print(f'pma watch: {self.shown} lines, {self.received} samples received, '
               f'{stats.lost} lost by sequence number', file=sys.stderr)
