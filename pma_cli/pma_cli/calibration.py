@@ -77,11 +77,12 @@ class LengthResult:
 
 
 def span_from_reference(values: Mapping[str, float], adc: Measurement,
-                        reference_pa: float) -> SpanResult:
-    """New volts_at_full so that the mean ADC count `adc` reads `reference_pa`.
+                        reference_pa: float, zero_adc: float | None = None) -> SpanResult:
+    """New volts_at_full: the slope from the count at rest to `adc` reading `reference_pa`.
 
-    The zero is the count the current calibration reads as 0 Pa (after a tare: the count the
-    device took at rest), so only the slope changes and the zero stays where the tare put it.
+    The count at rest is `zero_adc`, averaged at rest (the device's tare takes one noisy
+    conversion: two counts off make a 0.5 % span error), else the count the current
+    calibration reads as 0 Pa. The tare itself stays on the device's count.
     """
     pressure, _ = calibrations(values)
     full_scale = pressure.full_scale_pa
@@ -91,7 +92,8 @@ def span_from_reference(values: Mapping[str, float], adc: Measurement,
             f' check at {MIN_CHECK_FRACTION * full_scale / 1e3:.0f} kPa or more (20 % of '
             f'full_scale_pa {full_scale / 1e3:.0f} kPa)')
     zero_volts = pressure.volts_at_zero + pressure.tare_offset_pa / pressure.pa_per_volt
-    zero_count = zero_volts * ADC_FULL_SCALE / pressure.adc_reference_v
+    zero_count = zero_volts * ADC_FULL_SCALE / pressure.adc_reference_v \
+        if zero_adc is None else zero_adc
     counts = adc.mean - zero_count
     reading = pressure.adc_to_pa(adc.mean)
     if counts < 0.1 * MIN_CHECK_FRACTION * ADC_FULL_SCALE:

@@ -50,6 +50,24 @@ def test_span_from_a_reference_recovers_the_true_sensor(true_volts_at_full, zero
                                  'calibration.tare_offset_pa': result.tare_offset_pa}, None)
 
 
+def test_span_from_the_averaged_zero_is_right_whatever_count_the_tare_caught():
+    # The device tares on one conversion: here two counts below the sensor's true zero.
+    true_sensor = PressureCalibration(volts_at_full=4.4)
+    zero_count = true_adc(true_sensor, 0.0)
+    believed = values()
+    pressure, _ = calibrations(believed)
+    believed['calibration.tare_offset_pa'] = pressure.with_tare(zero_count - 2).tare_offset_pa
+    adc = cal.Measurement(true_adc(true_sensor, 300_000.0), 1.0, 40)
+    averaged = cal.span_from_reference(believed, adc, 300_000.0, zero_adc=zero_count)
+    assert math.isclose(averaged.volts_at_full, 4.4, rel_tol=1e-9)
+    from_the_tare = cal.span_from_reference(believed, adc, 300_000.0)
+    assert abs(from_the_tare.volts_at_full - 4.4) > 0.01          # what the zero step fixes
+    # The tare stays on the device's count: the device and the driver keep one zero.
+    assert math.isclose(averaged.tare_offset_pa, calibrations(
+        {**believed, 'calibration.volts_at_full': averaged.volts_at_full})[0].with_tare(
+            zero_count - 2).tare_offset_pa, rel_tol=1e-9)
+
+
 def test_span_refusals_say_why():
     believed = values()
     pressure, _ = calibrations(believed)
