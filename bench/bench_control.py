@@ -10,7 +10,10 @@
   - sines 25 <-> 29.5 cm at 0.05, 0.1 and 0.2 Hz: RMSE and max error against the truth in %
     of Table 1's stroke (5.86 cm), after the first period.
   Targets: ff_fb RMSE at 0.1 Hz <= 2 % of stroke and <= 1/2 of fb's, on every muscle;
-  steady error within the HC-SR04's 3 mm resolution.
+  steady error within the HC-SR04's 3 mm resolution. The 0.1 Hz sine again with every
+  setpoint reaching the device 50 ms late (DDS, serial line and firmware; gains must not be
+  tuned to a zero-delay simulation): ff_fb still <= 2 %; and 150 ms late (a loaded host),
+  reported.
 * loop latency over DDS at 50 Hz: a publisher process sends pma/state; length_controller
   (holding a target) answers each with pma/pressure_setpoint; this process receives both and
   takes setpoint arrival - state arrival. Baseline: a bare relay node (state in, Float64 out)
@@ -46,6 +49,10 @@ STEP_END_S = 30.0
 SINE_LOW_M, SINE_HIGH_M = 0.25, 0.295
 SINE_HZ = (0.05, 0.1, 0.2)
 TOLERANCE_M = 0.002
+# Setpoint to device: ~10-50 ms on a quiet host (DDS, serial line, the firmware's next loop),
+# 150 ms seen on a loaded one. The 2 % target holds up to DELAY_TARGET_S.
+COMMAND_DELAYS_S = (0.05, 0.15)
+DELAY_TARGET_S = 0.05
 RESOLUTION_M = 0.003
 
 
@@ -57,7 +64,8 @@ def muscles() -> dict[str, object]:
             for name in FAMILY_NAMES}
 
 
-def run(mode: str, make_rig, profile, duration_s: float, rate_hz: int = 20):
+def run(mode: str, make_rig, profile, duration_s: float, *, rate_hz: int = 20,
+        command_delay_s: float = 0.0):
     control = LengthController(default_params().build_online(), ControllerSettings(mode=mode))
 
     def step(t_s, pressure_pa, length_m):
@@ -65,7 +73,8 @@ def run(mode: str, make_rig, profile, duration_s: float, rate_hz: int = 20):
         return control.update(t_s, pressure_pa, length_m).command_pa
 
     config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=11)
-    trace = run_closed_loop(step, duration_s, config=config, rig=make_rig(config)).arrays()
+    trace = run_closed_loop(step, duration_s, config=config, rig=make_rig(config),
+                            command_delay_s=command_delay_s).arrays()
     return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
 
 
@@ -129,6 +138,17 @@ def tracking_table(families: dict[str, object]) -> tuple[list[tuple[str, str, st
                 ok &= steady_ok
                 rows.append((f'{family}: ff_fb steady error [mm]', f'{steps["steady_mm"]:.2f}',
                              check(steady_ok, '<= 3 mm (sensor resolution)')))
+        for delay_s in COMMAND_DELAYS_S:
+            delayed = sine_metrics(*run('ff_fb', make_rig, sine_profile(0.1), 32.0,
+                                        command_delay_s=delay_s), 0.1)['rmse_pct']
+            print(f'{family:<12}ff_fb with {1000 * delay_s:.0f} ms command delay: 0.1 Hz '
+                  f'RMSE {delayed:.2f} %', flush=True)
+            label = f'{family}: ff_fb RMSE at 0.1 Hz, {1000 * delay_s:.0f} ms delay [% stroke]'
+            if delay_s <= DELAY_TARGET_S:
+                ok &= delayed <= 2.0
+                rows.append((label, f'{delayed:.2f}', check(delayed <= 2.0, '<= 2 %')))
+            else:
+                rows.append((label, f'{delayed:.2f}', 'reported (a loaded host)'))
         within = rmse_01['ff_fb'] <= 2.0
         ratio = rmse_01['fb'] / rmse_01['ff_fb']
         ok &= within and ratio >= 2.0

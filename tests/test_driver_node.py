@@ -344,20 +344,10 @@ def test_a_ceiling_lowered_under_the_pressure_trips_the_device_s_overpressure_ve
 
 @ON_BOTH_RIGS
 def test_sweep_action_gives_feedback_and_a_result(rig, probe):
-    _, driver, _ = rig()
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    driver = sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     goal = Sweep.Goal(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1)
-    sent = probe.sweep.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
-        f.feedback))
-    wait_until(sent.done, 10, 'goal answer')
-    handle = sent.result()
-    assert handle.accepted
-    result_future = handle.get_result_async()
-    wait_until(result_future.done, 60, 'sweep result')
-    result = result_future.result().result
+    result = run_goal(probe.sweep, goal, timeout=60, feedback=feedback).result
     assert result.success, result.message
     assert result.sample_count > 20 and result.bag_path == ''
     steps = {f.step_index for f in feedback}
@@ -380,6 +370,15 @@ def test_sweep_action_gives_feedback_and_a_result(rig, probe):
     assert driver.alive()
 
 
+def sweep_ready(rig, probe, *rig_args, **rig_kwargs):
+    """Start the rig; its driver once active, streaming to the probe and serving pma/sweep."""
+    _, driver, _ = rig(*rig_args, **rig_kwargs)
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(3)
+    assert probe.sweep.wait_for_server(timeout_sec=10)
+    return driver
+
+
 def run_goal(client: ActionClient, goal, timeout: float, feedback: list | None = None):
     """Send a goal that must be accepted; its final (status, result)."""
     sent = client.send_goal_async(goal, feedback_callback=None if feedback is None else (
@@ -392,11 +391,69 @@ def run_goal(client: ActionClient, goal, timeout: float, feedback: list | None =
     return result_future.result()
 
 
+@ON_BOTH_RIGS
+def test_a_streamed_sine_is_followed_and_ends_at_rest(rig, probe):
+    driver = sweep_ready(rig, probe)
+    feedback: list[Sweep.Feedback] = []
+    start = probe.state_count()
+    goal = Sweep.Goal(profile='sine', sine_amplitude_pa=80_000.0, sine_offset_pa=150_000.0,
+                      sine_frequency_hz=0.25, cycles=1)
+    answer = run_goal(probe.sweep, goal, timeout=30, feedback=feedback)
+    assert answer.result.success, answer.result.message
+    assert answer.result.message.startswith('sine done: ') and 'over 4 s' in \
+        answer.result.message
+    with probe.lock:
+        states = [m for _, m in probe.states[start:]]
+    # The device took a new setpoint about every 50 ms: 81 were sent, a few may be skipped
+    # (a late answer) but none pile up; the samples (20 Hz) see nearly every one of them.
+    setpoints = [m.gauge_setpoint_pa for m in states]
+    changes = len(list(itertools.groupby(setpoints)))
+    assert 50 < changes <= 83 and max(setpoints) == 230_000.0, changes
+    streamed = [m for m in states if m.gauge_setpoint_pa > 0]
+    errors = sorted(abs(m.gauge_pressure_pa - m.gauge_setpoint_pa) for m in streamed[25:])
+    assert errors[len(errors) // 2] < 12_000, errors[len(errors) // 2]   # the median
+    assert max(m.gauge_pressure_pa for m in streamed) > 215_000
+    progress = [f.progress for f in feedback]
+    assert progress == sorted(progress) and progress[-1] == pytest.approx(1.0)
+    assert {f.step_count for f in feedback} == {81}
+    assert probe.wait_states(1)[0].gauge_setpoint_pa == 0.0       # every profile ends at rest
+    assert driver.alive()
+
+
+def test_csv_points_travel_in_the_goal_and_bad_profiles_are_refused_with_the_reason(
+        rig, probe):
+    driver = sweep_ready(rig, probe)
+    start = probe.state_count()
+    goal = Sweep.Goal(profile='csv', profile_time_s=[5.0, 6.0, 7.5],
+                      profile_pressure_pa=[0.0, 120_000.0, 120_000.0], cycles=2, rest_s=1.0)
+    answer = run_goal(probe.sweep, goal, timeout=30)
+    assert answer.result.success, answer.result.message
+    assert answer.result.message.startswith('csv done: ') and 'over 6 s' in \
+        answer.result.message
+    with probe.lock:
+        setpoints = [m.gauge_setpoint_pa for _, m in probe.states[start:]]
+    # Up to 120 kPa, held, rest at 0, again: two plateaus at 120 kPa with 0 Pa between.
+    runs = [value for value, _ in itertools.groupby(s == 120_000.0 for s in setpoints)]
+    assert runs.count(True) == 2, runs
+    for bad, words in (
+            (dict(profile='sine', sine_amplitude_pa=300e3, sine_offset_pa=300e3,
+                  sine_frequency_hz=0.1), 'the sine peaks at 600000 Pa, above the driver '
+                                          'ceiling'),
+            (dict(profile='ramp', max_gauge_pressure_pa=200e3, ramp_rate_pa_s=5e6),
+             'faster than 1000000 Pa/s'),
+            (dict(profile='csv', profile_time_s=[0.0, 1.0], profile_pressure_pa=[0.0]),
+             'profile_time_s has 2 points and profile_pressure_pa 1'),
+            (dict(max_gauge_pressure_pa=200e3, step_pa=100e3, forc_count=3),
+             "forc_count is set, but profile 'staircase' does not use it")):
+        answer = run_goal(probe.sweep, Sweep.Goal(cycles=1, **bad), timeout=10)
+        assert answer.status == GOAL_STATUS_ABORTED, answer
+        assert answer.result.message.startswith('goal refused: ') and words in \
+            answer.result.message, answer.result.message
+    assert driver.alive()
+
+
 def test_sweep_cancel_vents(rig, probe):
-    _, driver, _ = rig()
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=5.0, cycles=2)
     sent = probe.sweep.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
@@ -414,10 +471,7 @@ def test_sweep_cancel_vents(rig, probe):
 
 
 def test_sweep_aborts_and_vents_when_the_data_stops(rig, probe):
-    _, driver, _ = rig('--stall-after', '5', '--stall-for', '4')
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    sweep_ready(rig, probe, '--stall-after', '5', '--stall-for', '4')
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
     sent = probe.sweep.send_goal_async(goal)
     wait_until(sent.done, 10, 'goal answer')
@@ -717,10 +771,7 @@ def test_a_recording_sweep_asks_the_recorder_in_its_namespace(rig, procs, probe,
 
 def test_a_recording_sweep_without_a_recorder_aborts_at_once_and_says_how_to_start_one(
         rig, procs, probe, tmp_path):
-    _, driver, _ = rig(driver_params=('sweep.recorder_timeout_s:=1.0',))
-    driver.wait_for_line('active: publishing', 30)
-    probe.wait_states(3)
-    assert probe.sweep.wait_for_server(timeout_sec=10)
+    driver = sweep_ready(rig, probe, driver_params=('sweep.recorder_timeout_s:=1.0',))
     goal = Sweep.Goal(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1,
                       record=True)
     feedback: list[Sweep.Feedback] = []

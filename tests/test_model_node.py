@@ -357,9 +357,12 @@ def test_a_burst_of_200_requests_from_4_clients_is_answered_whole(procs, tmp_pat
 
 
 @pytest.mark.timeout(120)
-def test_a_half_second_stall_at_1khz_loses_no_state_and_no_prediction(procs, probe):
-    # A loaded machine stalls model_node now and then (up to 0.5 s seen in the 1 kHz soak);
-    # the 200-deep state queue then lost 0.4-5 % of the samples. SIGSTOP makes the stall.
+def test_a_stall_of_500_samples_loses_no_state_and_no_prediction(procs, probe):
+    # A loaded machine stalls model_node now and then (up to 0.5 s seen in the 1 kHz soak,
+    # 500 samples); the 200-deep state queue then lost 0.4-5 % of the samples. SIGSTOP makes
+    # the stall: 1 s at 500 Hz, so that on a loaded 2-core CI machine the publisher, model_node
+    # and this probe (three Python processes) catch up after it. Keeping up at 1 kHz is a
+    # throughput figure, measured by bench/bench_model_node.py's soak, not asserted here.
     import signal
     import time
 
@@ -367,7 +370,7 @@ def test_a_half_second_stall_at_1khz_loses_no_state_and_no_prediction(procs, pro
 
     from pma_interfaces.msg import PmaPrediction
 
-    count = 3000
+    count = 2000
     model = procs.ros2_run('pma_model', 'model_node')
     model.wait_for_line('model_node ready')
     latest, diag_sub = _model_diagnostics(probe)
@@ -377,10 +380,10 @@ def test_a_half_second_stall_at_1khz_loses_no_state_and_no_prediction(procs, pro
         wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,
                    'model_node publisher')
         procs.python(HELPERS / 'bag_state_publisher.py', '--topic', 'pma/state', '--rate',
-                     '1000', '--count', str(count), '--wait-subscribers', '1')
+                     '500', '--count', str(count), '--wait-subscribers', '1')
         wait_until(lambda: len(predictions) >= 300, 30, 'the stream under way')
         model.signal(signal.SIGSTOP)
-        time.sleep(0.5)
+        time.sleep(1.0)
         model.signal(signal.SIGCONT)
         wait_until(lambda: len(predictions) >= count, 30, f'{count} predictions')
         wait_until(lambda: latest() is not None and latest()[2]['samples'] == str(count), 10,

@@ -375,7 +375,7 @@ def test_refit_of_the_bag_writes_params_that_model_node_loads(swept, replayed, m
         # The simulated rig follows Table 1; the Hill branch fits it within the sensor noise.
         assert hill['rmse_cm'] < 0.3 and hill['r2'] > 0.99, hill
     assert sorted(p.name for p in (out / 'plots').glob('*.png')) == \
-        ['comparison.png', 'loop.png', 'residuals.png']
+        ['comparison.png', 'loop.png', 'residuals.png', 'timeseries.png']
 
     written = yaml.safe_load((out / 'params.yaml').read_text())['/**']['ros__parameters']
     stream = replayed['stream']

@@ -210,6 +210,29 @@ def test_services_drive_split_compressed_bags_with_custom_data(procs, probe, tmp
     assert recorder.popen.wait(20) == 0, recorder.output
 
 
+def test_start_waits_for_a_sample_of_a_silent_per_sample_topic(procs, probe, tmp_path):
+    """A matched reader does not prove that the writer knows it (each side of a DDS match
+    learns of it separately): ~/start answers for pma/state only once a sample of it reached
+    the bag. A publisher that sends nothing gets the 3 s, and the answer names it."""
+    recorder = procs.ros2_run('pma_bag', 'record', '--idle', '--topics', 'pma/state',
+                              cwd=tmp_path)
+    recorder.wait_for_line('recorder: idle', timeout=30)
+    watch = probe()
+    silent = procs.python(HELPERS / 'bag_state_publisher.py', '--topic', '/pma/state',
+                          '--count', '0', '--wait-subscribers', '1', '--linger', '60')
+    silent.wait_for_line('publisher: ready', timeout=30)
+    watch.wait_heard('/pma/state')
+    called = time.monotonic()
+    response = watch.call(StartRecording, '/recorder/start',
+                          StartRecording.Request(bag_path='silent'))
+    waited = time.monotonic() - called
+    assert response.success, response.message
+    assert list(response.topics) == [] and 'not heard yet: /pma/state' in response.message, \
+        response.message
+    assert waited >= 2.5, waited
+    assert watch.call(StopRecording, '/recorder/stop').success
+
+
 def test_start_of_a_new_bag_on_a_running_recorder_misses_nothing(procs, probe, tmp_path):
     """~/start on a recorder that is up returns with pma/state subscribed and matched; the
     bag holds every sample published after the call returned."""

@@ -36,11 +36,13 @@ from pathlib import Path
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
+from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from pma_bag import BagError, BagWriteError, BagWriter
@@ -53,7 +55,8 @@ from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 FLUSH_AGE_S = 0.75
 FLUSH_CHECK_S = 0.25
 GRAPH_PERIOD_S = 0.1         # rosbag2's default --topic-polling-interval
-START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its readers to match
+START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its topics to be heard
+START_POLL_S = 0.01
 DEFAULT_TOPICS = ['pma/state', 'pma/pressure', 'pma/range', 'pma/prediction',
                   'pma/model_params', 'pma/control_state', 'pma/pressure_setpoint',
                   'pma/length_setpoint', '/diagnostics']
@@ -71,6 +74,11 @@ KNOWN_TOPICS = {
     'pma/length_setpoint': ('pma_interfaces/msg/LengthSetpoint', False),
     '/diagnostics': (DIAGNOSTICS_TYPE, False),
 }
+# Published with every sample while the rig runs. A reader can match a writer before that
+# writer knows of it (discovery is per side), and only the writer's knowing delivers samples:
+# a message heard is the one proof, so ~/start waits for one on these (waiting for the
+# reader's side only, a bag on a loaded CI machine missed predictions after the sweep began).
+PER_SAMPLE_TOPICS = ('pma/state', 'pma/pressure', 'pma/range', 'pma/prediction')
 # Keys of the driver's /diagnostics copied into custom_data when the bag has none of its own.
 RIG_DIAGNOSTIC_KEYS = ('firmware', 'protocol')
 COMPRESSION_CHOICES = ('none', 'zstd', 'lz4')
@@ -155,6 +163,7 @@ class Bag:
         self.state_trackers: dict[str, SequenceTracker] = {}
         self.dds_lost = 0
         self.error = ''
+        self.heard: set[str] = set()       # topics with a message since the bag started
 
     def loss(self) -> dict[str, int]:
         stats = [t.stats() for t in self.state_trackers.values()]
@@ -189,7 +198,9 @@ class Recorder(Node):
         # at 1 kHz); the lock only guards against a signal-time finish_bag.
         self._lock = threading.RLock()
         self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_service(StartRecording, '~/start', self.on_start)
+        # ~/start awaits its topics while the messages' callbacks (default group) run on.
+        self.create_service(StartRecording, '~/start', self.on_start,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.create_service(StopRecording, '~/stop', self.on_stop)
         self.create_service(Trigger, '~/split_bagfile', self.on_split)
         self.create_service(Trigger, '~/pause', self.on_pause)
@@ -200,6 +211,7 @@ class Recorder(Node):
         self.create_timer(FLUSH_CHECK_S, self.flush)
         self.create_timer(1.0, self.publish_status)
         self.presubscribe()
+        self.per_sample_topics = set(self.resolve_topics(PER_SAMPLE_TOPICS))
 
     def resolve_topics(self, topics) -> list[str]:
         return list(dict.fromkeys(self.resolve_topic_name(t) for t in topics))
@@ -393,30 +405,27 @@ class Recorder(Node):
         if entry.type_name == STATE_TYPE:
             bag.state_trackers.setdefault(entry.topic, SequenceTracker())
 
-    def wait_for_matches(self, bag: Bag) -> tuple[list[str], list[str]]:
-        """(matched, not yet) topics of `bag`, after waiting a moment for the rest.
+    def start_status(self, bag: Bag) -> tuple[list[str], list[str]]:
+        """(ready, not yet) topics of `bag` whose publishers the graph shows.
 
-        A topic whose publishers the graph shows gets up to START_MATCH_TIMEOUT_S for its
-        reader to match them all. A publisher that discovery has not shown yet (it takes
-        0.2-3 s after a publisher starts) cannot be waited for: /diagnostics' 'topics heard'
-        says when the recorder hears a topic.
+        Ready: the reader matched every publisher and, for a per-sample topic, a message
+        arrived since the bag started. A publisher that discovery has not shown yet (0.2-3 s
+        after it starts) cannot be waited for: /diagnostics' 'topics heard' says when the
+        recorder hears a topic.
         """
-        start = time.monotonic()
-        while True:
-            matched, waiting = [], []
-            for topic in bag.topics:
-                entry = self.subscribed.get(topic)
-                if entry is None:
-                    continue
-                known = len(self.get_publishers_info_by_topic(topic))
-                count = entry.subscription.get_publisher_count()
-                if count >= max(known, 1):
-                    matched.append(topic)
-                elif known:
-                    waiting.append(topic)
-            if not waiting or time.monotonic() - start >= START_MATCH_TIMEOUT_S:
-                return matched, sorted(waiting)
-            time.sleep(0.01)
+        ready, waiting = [], []
+        for topic in bag.topics:
+            entry = self.subscribed.get(topic)
+            if entry is None:
+                continue
+            known = len(self.get_publishers_info_by_topic(topic))
+            matched = entry.subscription.get_publisher_count() >= max(known, 1)
+            heard = topic in bag.heard or topic not in self.per_sample_topics
+            if matched and heard:
+                ready.append(topic)
+            elif known:
+                waiting.append(topic)
+        return ready, sorted(waiting)
 
     # -- messages --------------------------------------------------------------------------
 
@@ -439,6 +448,7 @@ class Recorder(Node):
                     return
                 if entry.topic not in bag.writer.topics:
                     return
+            bag.heard.add(entry.topic)
             tracker = bag.state_trackers.get(entry.topic)
             if tracker is not None:   # counted while paused too: not recorded is not lost
                 tracker.add(pma_state_seq(data))
@@ -496,14 +506,12 @@ class Recorder(Node):
 
     # -- services --------------------------------------------------------------------------
 
-    def on_start(self, request, response):
-        """Open a bag; return once its topics' readers match their publishers (see below).
+    async def on_start(self, request, response):
+        """Open a bag; answer once its topics are heard (at most START_MATCH_TIMEOUT_S).
 
-        Matching happens in the middleware's own threads, so this waits without the
-        executor: messages queue in the readers meanwhile (reliable ones in full) and are
-        written, with their receive times, right after. Subscriptions outlive bags, so on a
-        recorder that has been up a moment the topics are matched already and this returns
-        at once. (A reader can match its writer before the writer knows of it; a caller
+        A coroutine in its own callback group: while it waits, the executor's one thread
+        writes the messages arriving into the new bag. Subscriptions outlive bags, so on a
+        recorder that has been up a moment this answers within a sample period. (A caller
         that must not miss a sample of its own also waits until its publishers count the
         recorder's readers, as the driver's Sweep does.)
         """
@@ -515,13 +523,29 @@ class Recorder(Node):
             response.success, response.message = False, str(exc)
             self.fail(None, str(exc))
             return response
-        matched, late = self.wait_for_matches(bag)
+        deadline = time.monotonic() + START_MATCH_TIMEOUT_S
+        ready, late = self.start_status(bag)
+        while late and time.monotonic() < deadline and self.bag is bag:
+            await self.pause(START_POLL_S)
+            ready, late = self.start_status(bag)
+        if self.bag is not bag:
+            response.success, response.message = False, f'{bag.path} was stopped while starting'
+            return response
         response.success = True
         response.bag_path = str(bag.path)
-        response.topics = matched
-        response.message = (f'recording {len(matched)} topics to {bag.path}'
-                            + (f'; not matched yet: {", ".join(late)}' if late else ''))
+        response.topics = ready
+        response.message = (f'recording {len(ready)} topics to {bag.path}'
+                            + (f'; not heard yet: {", ".join(late)}' if late else ''))
         return response
+
+    async def pause(self, seconds: float) -> None:
+        """Yield to the executor for `seconds` (a one-shot timer in the default group)."""
+        woken = Future()
+        timer = self.create_timer(seconds, lambda: woken.done() or woken.set_result(None))
+        try:
+            await woken
+        finally:
+            self.destroy_timer(timer)
 
     def on_stop(self, _request, response):
         bag, error = self.finish_bag()

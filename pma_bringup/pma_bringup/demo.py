@@ -3,8 +3,9 @@
 fake_arduino, driver_node, model_node, the recorder and foxglove_live (the live view: open its
 ws:// URL in Foxglove) run as separate processes, exactly as `ros2 run` starts them; this
 script is the operator: it runs the paper's experiment and a minor-loop run through the Sweep
-action, asks pressure_for_length on both branches, refits the model from the new bag, lets
-model_node hot-load the refit, and says where everything is.
+action, asks pressure_for_length on both branches, refits the model from the new bag (with
+the time series and the minor loops against every model's prediction among its figures, all
+stamped with the run id), lets model_node hot-load the refit, and says where everything is.
 Every process is stopped on success, failure and Ctrl-C.
 """
 
@@ -198,12 +199,17 @@ def set_parameter(node, target: str, name: str, value: str) -> str:
         node.destroy_client(client)
 
 
-def record_bag(node, path: Path | None) -> str:
-    """Start (path) or stop (None) a bag on the idle recorder; its answer's message."""
+def record_bag(node, path: Path | None, custom_data: dict[str, str] | None = None) -> str:
+    """Start (path, with its custom_data) or stop (None) a bag on the idle recorder; its
+    answer's message."""
+    from diagnostic_msgs.msg import KeyValue
+
     from pma_interfaces.srv import StartRecording, StopRecording
 
-    kind, request = ((StartRecording, StartRecording.Request(bag_path=str(path)))
-                     if path is not None else (StopRecording, StopRecording.Request()))
+    kind, request = ((StartRecording, StartRecording.Request(
+        bag_path=str(path),
+        custom_data=[KeyValue(key=k, value=v) for k, v in (custom_data or {}).items()]))
+        if path is not None else (StopRecording, StopRecording.Request()))
     client = node.create_client(kind, 'recorder/start' if path is not None else 'recorder/stop')
     try:
         if not client.wait_for_service(timeout_sec=10):
@@ -235,7 +241,7 @@ def move_to(node, client, length_m: float) -> str:
 
 def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tuple[str, Path]]:
     """Steps and a streamed sine through length_controller, recorded, plotted against the
-    simulated truth; the outputs."""
+    simulated truth (the run and the bag's metadata in the footer); the outputs."""
     import csv
 
     import numpy as np
@@ -245,6 +251,7 @@ def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tu
     from pma_control.plots import plot_control_run
     from pma_interfaces.action import MoveToLength
     from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+    from pma_model.provenance import input_run
 
     stroke_m = 0.0586
     steps: list = []
@@ -258,7 +265,8 @@ def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tu
     if not client.wait_for_server(timeout_sec=20):
         raise RuntimeError('no pma/move_to_length (see logs/length_controller.log)')
     bag = run_dir / 'control'
-    record_bag(node, bag)
+    record_bag(node, bag, {'run_id': run_dir.name,
+                           'note': 'demo: MoveToLength steps, then a streamed 0.1 Hz sine'})
     begin = len(steps)
     for length_m in (0.255, 0.285, 0.265):
         say(f'   move_to_length {move_to(node, client, length_m)}')
@@ -291,7 +299,7 @@ def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tu
         f'({100 * rmse / stroke_m:.2f} % of stroke), max {1000 * np.max(np.abs(error)):.2f} mm')
     plot = plot_control_run(run_dir / 'plots' / 'control.png', t_s=t - t[0], target_m=setpoint,
                             measured_m=measured, command_pa=command, pressure_pa=pressure,
-                            true_m=true,
+                            true_m=true, run=input_run(bag, run_dir.name),
                             title=f'length_controller: steps, then a 0.1 Hz sine '
                                   f'(simulated rig, {rate_hz:g} Hz)')
     return [('the control run (bag)', bag), ('the control run (plot)', plot)]
@@ -380,12 +388,14 @@ def main(argv: list[str] | None = None) -> int:
         say("3/8 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
         run_sweep(node, 'major loop', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1,
-            record=True, bag_path=str(major_bag)), 300)
+            record=True, bag_path=str(major_bag), note=f'demo {run_dir.name}: major loop'),
+            300)
         say('4/8 minor loops on both branches: 0 -> 300 -> 150 -> 500 -> 200 -> 350 -> 0 kPa')
         run_sweep(node, 'minor loops', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=100e3, hold_s=args.hold_s, cycles=1,
             reversal_pressures_pa=[300e3, 150e3, 500e3, 200e3, 350e3],
-            record=True, bag_path=str(minor_bag)), 300)
+            record=True, bag_path=str(minor_bag), note=f'demo {run_dir.name}: minor loops'),
+            300)
 
         say('5/8 pressure_for_length (the inverse model)')
         print('        length     branch             gauge pressure   reachable on that branch')
@@ -404,7 +414,7 @@ def main(argv: list[str] | None = None) -> int:
             [str(executable('pma_model', 'refit')), str(major_bag),
              '--memory-check', str(minor_bag),
              '--json', str(run_dir / 'refit.json'), '--params-out', str(params_out),
-             '--plots', str(run_dir / 'plots')],
+             '--plots', str(run_dir / 'plots'), '--run-id', run_dir.name],
             capture_output=True, text=True, check=False)
         (logs / 'refit.log').write_text(refit.stdout + refit.stderr)
         print(refit.stdout, end='')

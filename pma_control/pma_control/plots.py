@@ -3,17 +3,22 @@ against time. Paper units (cm, kPa) here only: this is for people, not for the i
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 
 def plot_control_run(path: Path, *, t_s, target_m, measured_m, command_pa, pressure_pa,
-                     true_m=None, title: str = 'length control') -> Path:
-    """Write a two-panel PNG; `true_m` (a simulation's truth) is drawn when given."""
+                     true_m=None, title: str = 'length control',
+                     run: Mapping | None = None) -> Path:
+    """Write a two-panel PNG; `true_m` (a simulation's truth) is drawn when given; `run`
+    (pma_model.provenance.run_info) is the footer, as on the refit's figures."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
+    from pma_model.plots import save
 
     t = np.asarray(t_s, dtype=float)
     figure, (lengths, pressures) = plt.subplots(2, 1, sharex=True, figsize=(10, 6.5))
@@ -36,9 +41,4 @@ def plot_control_run(path: Path, *, t_s, target_m, measured_m, command_pa, press
     pressures.set_xlabel('time [s]')
     pressures.legend(loc='upper right', fontsize=8)
     pressures.grid(alpha=0.3)
-    figure.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save(figure, path, run, dpi=110)

@@ -13,7 +13,7 @@ import logging
 import math
 import sys
 import time
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import rclpy
 import rclpy.exceptions
@@ -330,11 +330,10 @@ class PmaDriver(Node):
             feedback.step_count = progress.step_count
             goal_handle.publish_feedback(feedback)
 
+        # Field by field, by name: SweepGoal mirrors the action's goal.
+        goal = SweepGoal(**{f.name: getattr(request, f.name) for f in fields(SweepGoal)})
         report = self._sweeps.run(
-            SweepGoal(max_gauge_pressure_pa=request.max_gauge_pressure_pa,
-                      step_pa=request.step_pa, hold_s=request.hold_s, cycles=request.cycles,
-                      reversal_pressures_pa=tuple(request.reversal_pressures_pa),
-                      record=request.record, bag_path=request.bag_path, note=request.note),
+            goal,
             SweepSettings(values['sweep.tolerance_pa'], values['sweep.step_timeout_s']),
             cancel_requested=lambda: goal_handle.is_cancel_requested,
             feedback=publish_feedback,

@@ -5,9 +5,14 @@ Plain Python, no ROS: the driver node turns the action's goal into a `SweepGoal`
 `sleep`) and the recorder are injected, so the unit tests run whole sweeps against the
 simulated device in simulated time: timeouts, retries, cancels and vent-on-abort included.
 
-Safety: each step is checked against the ceiling at the moment it is sent (the parameter may
-be lowered mid-run), under the DeviceControl lock, so a deactivation's VENT is never
-overtaken. Once the first step has been commanded, every end but success vents.
+Stepped profiles (staircase, FORC) reach and hold each setpoint; streamed ones (ramp, sine,
+csv) reach their first point, then send a setpoint every 1/STREAM_RATE_HZ, each SET awaited
+(one in flight): when an answer comes late, the setpoints that fell due meanwhile are skipped
+and the newest goes, so the stream never builds a backlog. Every profile ends at 0 Pa.
+
+Safety: each setpoint is checked against the ceiling at the moment it is sent (the parameter
+may be lowered mid-run), under the DeviceControl lock, so a deactivation's VENT is never
+overtaken. Once the first setpoint has been commanded, every end but success vents.
 """
 
 from __future__ import annotations
@@ -17,31 +22,24 @@ import json
 import logging
 import time
 import traceback
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
 from pma_driver.control import DeviceControl
 from pma_driver.link import LinkError
 from pma_driver.protocol import Ack, Command, Hello
-from pma_driver.sweep import SweepError, SweepPlan, plan_sweep
+from pma_driver.sweep import (
+    PROFILE_FIELDS,
+    StreamPlan,
+    SweepError,
+    SweepGoal,
+    SweepPlan,
+    plan_goal,
+)
 
 SET_ATTEMPTS = 2            # SET is idempotent: sent once more when its reply got lost
 _log = logging.getLogger('pma_driver.sweep_runner')
-
-
-@dataclass(frozen=True)
-class SweepGoal:
-    """pma_interfaces/action/Sweep's goal, without ROS."""
-
-    max_gauge_pressure_pa: float
-    step_pa: float
-    hold_s: float
-    cycles: int
-    reversal_pressures_pa: Sequence[float] = ()
-    record: bool = False
-    bag_path: str = ''
-    note: str = ''
 
 
 @dataclass(frozen=True)
@@ -103,20 +101,34 @@ class Recorder(Protocol):
         """Finish the bag. Raises RecorderError."""
 
 
-def recording_metadata(goal: SweepGoal, plan: SweepPlan, hello: Hello | None,
+def _metadata_value(value) -> str:
+    """Text as is, numbers as Python float reprs, lists as JSON."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, int | float):
+        return repr(float(value))
+    return json.dumps([float(v) for v in value])
+
+
+def recording_metadata(goal: SweepGoal, plan: SweepPlan | StreamPlan, hello: Hello | None,
                        calibration: Mapping[str, float]) -> dict[str, str]:
     """The bag's custom_data: what was asked, of which device, read with which calibration."""
-    data = {
-        'note': goal.note,
-        'sweep.max_gauge_pressure_pa': repr(float(goal.max_gauge_pressure_pa)),
-        'sweep.step_pa': repr(float(goal.step_pa)),
-        'sweep.hold_s': repr(float(goal.hold_s)),
-        'sweep.cycles': str(goal.cycles),
-        'sweep.reversal_pressures_pa': json.dumps([float(r) for r in
-                                                   goal.reversal_pressures_pa]),
-        'sweep.step_count': str(plan.step_count),
-        'sweep.setpoints_pa': json.dumps([round(s) for s in plan.setpoints_pa]),
-    }
+    profile = goal.profile_name
+    data = {'note': goal.note, 'sweep.profile': profile}
+    for name in (*PROFILE_FIELDS[profile], 'rest_s'):
+        data[f'sweep.{name}'] = _metadata_value(getattr(goal, name))
+    data['sweep.cycles'] = str(goal.cycles)
+    if profile == 'forc':
+        data['sweep.forc_count'] = str(goal.forc_count)
+        data['sweep.forc_family'] = goal.forc_family or 'ascending'
+    if isinstance(plan, SweepPlan):
+        data['sweep.turning_points_pa'] = json.dumps([round(t) for t in plan.turning_points_pa])
+        data['sweep.step_count'] = str(plan.step_count)
+        data['sweep.setpoints_pa'] = json.dumps([round(s) for s in plan.setpoints_pa])
+    else:
+        data['sweep.duration_s'] = repr(plan.duration_s)
+        data['sweep.stream_rate_hz'] = repr(plan.rate_hz)
+        data['sweep.setpoint_count'] = str(plan.setpoint_count)
     if hello is not None:
         data.update({
             'device.firmware': hello.firmware,
@@ -135,7 +147,7 @@ class _Run:
     cancel_requested: Callable[[], bool]
     feedback: Callable[[SweepProgress], None]
     calibration: Mapping[str, float]
-    plan: SweepPlan | None = None
+    plan: SweepPlan | StreamPlan | None = None
     start_count: int = 0
     commanded: bool = False         # a step was sent: from here on, a failure vents
 
@@ -178,9 +190,7 @@ class SweepRunner:
     def _run(self, run: _Run) -> SweepReport:
         goal = run.goal
         try:
-            run.plan = plan_sweep(goal.max_gauge_pressure_pa, goal.step_pa, goal.hold_s,
-                                  goal.cycles, list(goal.reversal_pressures_pa),
-                                  ceiling_pa=self.control.ceiling_pa())
+            run.plan = plan_goal(goal, ceiling_pa=self.control.ceiling_pa())
         except SweepError as error:
             return self._finish(run, Outcome.ABORTED, f'goal refused: {error}')
         _, reason = self.control.not_commandable()
@@ -200,7 +210,10 @@ class SweepRunner:
             self.on_event(logging.INFO, f'sweep: recording to {bag_path}')
         run.start_count = self.sample_count()
         try:
-            outcome, message = self._follow(run)
+            if isinstance(run.plan, StreamPlan):
+                outcome, message = self._stream(run)
+            else:
+                outcome, message = self._follow(run)
         except Exception as error:   # a bug here must still vent and finish the bag
             self.on_event(logging.ERROR, f'sweep failed: {traceback.format_exc()}')
             outcome, message = Outcome.ABORTED, f'internal error: {error!r}'
@@ -241,26 +254,44 @@ class SweepRunner:
                                      'heartbeat loss)')
         return None
 
+    def _command(self, run: _Run, setpoint: float, what: str,
+                 attempts: int = SET_ATTEMPTS) -> tuple[tuple[Outcome, str] | None, str]:
+        """SET one setpoint, if nothing stops the run and it is within the ceiling now.
+
+        (how the run ends, '') when it must end here; (None, error) when no reply came;
+        (None, '') when the device took it.
+        """
+        with self.control.lock:
+            stop = self._stop_reason(run)
+            if stop:
+                return stop, ''
+            limit = self.control.ceiling_pa()
+            if setpoint > limit:
+                return (Outcome.ABORTED, (f'{what} {setpoint:.0f} Pa is above '
+                                          f'max_gauge_pressure_pa {limit} Pa (lowered '
+                                          'during the sweep)')), ''
+            run.commanded = True
+            reply, error = self._set(round(setpoint), attempts)
+        if reply is None:
+            return None, f'SET {setpoint:.0f} Pa failed: {error}'
+        if not isinstance(reply, Ack):
+            return (Outcome.ABORTED, f'device refused SET {setpoint:.0f} Pa: NAK '
+                                     f'{reply.reason}'), ''
+        return None, ''
+
+    def _step(self, run: _Run, setpoint: float, what: str) -> tuple[Outcome, str] | None:
+        """SET, sent once more if its reply got lost; how the run ends, if it must."""
+        stop, lost = self._command(run, setpoint, what)
+        return stop or ((Outcome.ABORTED, lost) if lost else None)
+
     def _follow(self, run: _Run) -> tuple[Outcome, str]:
         plan = run.plan
-        self.on_event(logging.INFO, f'sweep: {plan.step_count} steps up to '
-                      f'{max(plan.setpoints_pa):.0f} Pa, hold {plan.hold_s:g} s')
+        self.on_event(logging.INFO, f'sweep: {plan.profile}, {plan.step_count} steps up to '
+                      f'{plan.peak_pa:.0f} Pa, hold {plan.hold_s:g} s')
         for index, setpoint in enumerate(plan.setpoints_pa):
-            with self.control.lock:
-                stop = self._stop_reason(run)
-                if stop:
-                    return stop
-                limit = self.control.ceiling_pa()
-                if setpoint > limit:
-                    return Outcome.ABORTED, (f'step {setpoint:.0f} Pa is above '
-                                             f'max_gauge_pressure_pa {limit} Pa (lowered '
-                                             'during the sweep)')
-                run.commanded = True
-                reply, error = self._set(round(setpoint))
-            if reply is None:
-                return Outcome.ABORTED, f'SET {setpoint:.0f} Pa failed: {error}'
-            if not isinstance(reply, Ack):
-                return Outcome.ABORTED, f'device refused SET {setpoint:.0f} Pa: NAK {reply.reason}'
+            stop = self._step(run, setpoint, 'step')
+            if stop:
+                return stop
             self._feedback(run, index, setpoint, 0.0)
             stop = self._reach(run, index, setpoint) or self._hold(run, index, setpoint)
             if stop:
@@ -268,10 +299,63 @@ class SweepRunner:
         self._feedback(run, plan.step_count - 1, plan.setpoints_pa[-1], 1.0)
         return Outcome.SUCCEEDED, f'{plan.step_count} steps done'
 
-    def _set(self, gauge_pa: int):
-        """SET, once more if the reply got lost: (reply, '') or (None, error text)."""
+    def _stream(self, run: _Run) -> tuple[Outcome, str]:
+        plan, settings = run.plan, run.settings
+        count = plan.setpoint_count
+        self.on_event(logging.INFO, (
+            f'sweep: {plan.profile}, {plan.duration_s:g} s up to {plan.peak_pa:.0f} Pa, '
+            f'{count} setpoints at {plan.rate_hz:g} Hz'))
+        setpoint = plan.pressure_at(0.0)
+        stop = self._step(run, setpoint, 'setpoint')
+        if stop:
+            return stop
+        self._stream_feedback(run, 0, setpoint, 0.0)
+        stop = self._reach(run, 0, setpoint)       # the profile's clock starts there
+        if stop:
+            return stop
+        start = self.clock()
+        next_feedback = start + settings.feedback_period_s
+        skipped = lost_in_a_row = 0
+        index = 1
+        while index < count:
+            due = start + plan.time_of(index)
+            while (now := self.clock()) < due:
+                stop = self._stop_reason(run)
+                if stop:
+                    return stop
+                self.sleep(min(settings.poll_period_s, due - now))
+            newest = plan.index_at(now - start)
+            if newest > index:           # a late answer: never send what is already stale
+                skipped += newest - index
+                index = newest
+            t = plan.time_of(index)
+            setpoint = plan.pressure_at(t)
+            # A lost reply is not sent again: the next setpoint, newer, goes instead.
+            stop, lost = self._command(run, setpoint, 'setpoint', attempts=1)
+            if stop:
+                return stop
+            lost_in_a_row = lost_in_a_row + 1 if lost else 0
+            if lost_in_a_row >= SET_ATTEMPTS:
+                return Outcome.ABORTED, f'{lost} ({lost_in_a_row} in a row)'
+            if lost:
+                self.on_event(logging.WARNING, f'sweep: {lost}; the stream goes on')
+            if self.clock() >= next_feedback:
+                self._stream_feedback(run, index, setpoint, t)
+                next_feedback = self.clock() + settings.feedback_period_s
+            index += 1
+        if setpoint != 0.0:                 # every profile ends at rest
+            stop = self._step(run, 0.0, 'setpoint') or self._reach(run, count - 1, 0.0)
+            if stop:
+                return stop
+        self._stream_feedback(run, count - 1, 0.0, plan.duration_s)
+        late = f' ({skipped} skipped: the device answered late)' if skipped else ''
+        return Outcome.SUCCEEDED, (f'{plan.profile} done: {count - skipped} setpoints over '
+                                   f'{plan.duration_s:g} s{late}')
+
+    def _set(self, gauge_pa: int, attempts: int = SET_ATTEMPTS):
+        """SET, again while the reply gets lost: (reply, '') or (None, error text)."""
         error = ''
-        for _ in range(SET_ATTEMPTS):
+        for _ in range(attempts):
             try:
                 return self.control.send_and_wait(Command.SET, gauge_pa), ''
             except LinkError as failure:
@@ -297,7 +381,7 @@ class SweepRunner:
         return None
 
     def _hold(self, run: _Run, index: int, setpoint: float) -> tuple[Outcome, str] | None:
-        settings, hold_s = run.settings, run.plan.hold_s
+        settings, hold_s = run.settings, run.plan.hold_at(index)
         hold_end = self.clock() + hold_s
         next_feedback = self.clock() + settings.feedback_period_s
         while (now := self.clock()) < hold_end:
@@ -316,3 +400,9 @@ class SweepRunner:
             step_index=index, step_count=plan.step_count, gauge_setpoint_pa=setpoint,
             progress=plan.progress(index, hold_fraction),
             sample_count=self.sample_count() - run.start_count))
+
+    def _stream_feedback(self, run: _Run, index: int, setpoint: float, t_s: float) -> None:
+        plan = run.plan
+        run.feedback(SweepProgress(
+            step_index=index, step_count=plan.setpoint_count, gauge_setpoint_pa=setpoint,
+            progress=plan.progress(t_s), sample_count=self.sample_count() - run.start_count))

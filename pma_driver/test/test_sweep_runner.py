@@ -7,8 +7,10 @@ sweep runs in well under a second.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
+import math
 
 import pytest
 from sim_link import SimClock, SimLink
@@ -18,6 +20,7 @@ from pma_driver.control import DeviceControl
 from pma_driver.protocol import Command
 from pma_driver.sim.device import DeviceConfig, SimDevice
 from pma_driver.sim.pneumatics import PneumaticParams
+from pma_driver.sweep import STREAM_RATE_HZ, plan_goal
 from pma_driver.sweep_runner import (
     Outcome,
     RecorderError,
@@ -72,13 +75,16 @@ class Rig:
         self.on_feedback = None     # a test's hook into the run
         self.cancel_at_s = None
         self.recorder = None
+        self.trace: list[tuple[float, float, int]] = []   # (device s, measured Pa, device SET)
 
     def _event(self, level: int, message: str) -> None:
         self.events.append((level, message))
 
     def _on_sample(self, sample) -> None:
         self.samples += 1
-        self.control.note_sample(sample, SENSOR.adc_to_pa(sample.adc))
+        gauge_pa = SENSOR.adc_to_pa(sample.adc)
+        self.control.note_sample(sample, gauge_pa)
+        self.trace.append((sample.t_ms / 1000.0, gauge_pa, sample.setpoint_pa))
 
     def _on_feedback(self, progress: SweepProgress) -> None:
         self.feedback.append(progress)
@@ -86,8 +92,11 @@ class Rig:
             self.on_feedback(progress)
 
     def run(self, settings: SweepSettings = SETTINGS, **goal):
-        goal = {'max_gauge_pressure_pa': 200_000.0, 'step_pa': 100_000.0, 'hold_s': 1.0,
-                'cycles': 1, **goal}
+        """A staircase 0 -> 200 -> 0 kPa unless told otherwise; other profiles from scratch."""
+        if goal.get('profile', 'staircase') == 'staircase':
+            goal = {'max_gauge_pressure_pa': 200_000.0, 'step_pa': 100_000.0, 'hold_s': 1.0,
+                    **goal}
+        goal = {'cycles': 1, **goal}
         runner = SweepRunner(self.control, recorder=self.recorder,
                              sample_count=lambda: self.samples, clock=self.clock,
                              sleep=self.clock.sleep, on_event=self._event)
@@ -99,6 +108,10 @@ class Rig:
 
     def sets(self) -> list[int]:
         return [args[0] for args in self.link.commands('SET')]
+
+    def timed_sets(self) -> list[tuple[float, int]]:
+        """(device s, Pa) of every SET."""
+        return [(ms / 1000.0, args[0]) for ms, name, args in self.link.sent if name == 'SET']
 
     def settle(self, seconds: float = 5.0) -> None:
         self.clock.sleep(seconds)
@@ -323,3 +336,190 @@ def test_a_failing_recorder_is_an_abort_with_the_error_never_a_raise(rig):
     assert report.outcome is Outcome.ABORTED
     assert report.message == "internal error: ValueError('not enough values to unpack')"
     assert rig.link.sent == [] and not rig.control.sweep_running
+
+
+# -- the other profiles ----------------------------------------------------------------------
+
+RAMP = {'profile': 'ramp', 'max_gauge_pressure_pa': 400_000.0, 'ramp_rate_pa_s': 50_000.0}
+SINE = {'profile': 'sine', 'sine_amplitude_pa': 150_000.0, 'sine_offset_pa': 200_000.0,
+        'sine_frequency_hz': 0.2, 'cycles': 2}
+
+
+def plan_of(**goal):
+    return plan_goal(SweepGoal(**{'cycles': 1, **goal}), ceiling_pa=500_000.0)
+
+
+def streamed_start(rig: Rig) -> float:
+    """Device time at which the profile's clock started (its first point reached)."""
+    return round(rig.timed_sets()[1][0] - 1 / STREAM_RATE_HZ, 3)
+
+
+def test_a_ramp_is_streamed_at_20_hz_and_the_pressure_follows_it(rig):
+    report = rig.run(**RAMP)
+    assert report.success, report.message
+    assert report.message == 'ramp done: 321 setpoints over 16 s'
+    timed = rig.timed_sets()
+    values = [v for _, v in timed]
+    assert len(values) == 321 and values[0] == 0 and values[-1] == 0
+    top = values.index(400_000)
+    assert values[:top] == sorted(values[:top]) and values[top:] == sorted(values[top:])[::-1]
+    assert max(abs(b - a) for a, b in itertools.pairwise(values)) <= 50_000 / 20 + 1
+    # One SET every 50 ms of device time (to the ms), from when the first point was reached.
+    gaps = [b[0] - a[0] for a, b in itertools.pairwise(timed[1:])]
+    assert all(abs(gap - 0.05) <= 0.0011 for gap in gaps)
+    assert timed[-1][0] - timed[1][0] == pytest.approx(16.0 - 0.05, abs=0.0011)
+    start = streamed_start(rig)
+    tracking = [abs(p - plan_of(**RAMP).pressure_at(t - start)) for t, p, _ in rig.trace
+                if start + 1.0 <= t <= start + 16.0]
+    assert max(tracking) < 15_000            # the regulation band plus one setpoint's lag
+    assert not rig.link.commands('VENT') and not rig.warnings()
+    progress = [f.progress for f in rig.feedback]
+    assert progress == sorted(progress) and progress[-1] == 1.0
+    assert {f.step_count for f in rig.feedback} == {321}
+
+
+def test_a_sine_starts_at_its_trough_peaks_on_time_and_ends_vented(rig):
+    report = rig.run(**SINE)
+    assert report.success, report.message
+    assert report.message == 'sine done: 201 setpoints over 10 s'
+    values = rig.sets()
+    assert values[0] == 50_000 and max(values) == 350_000 and values[-2:] == [50_000, 0]
+    start = streamed_start(rig)
+    plan = plan_of(**SINE)
+    errors = [p - plan.pressure_at(t - start) for t, p, _ in rig.trace
+              if start + 0.5 <= t <= start + plan.duration_s]
+    rms = math.sqrt(sum(e * e for e in errors) / len(errors))
+    assert rms < 12_000, rms
+    peaks = [t - start for t, p, _ in rig.trace if p > 340_000]
+    assert peaks and all(min(abs(t - 2.5), abs(t - 7.5)) < 0.6 for t in peaks)
+    rig.settle()
+    assert rig.device.setpoint_pa == 0 and rig.device.rig.pressure_pa < 5_000
+
+
+def test_a_csv_profile_rests_at_0_pa_between_cycles(rig):
+    goal = {'profile': 'csv', 'profile_time_s': [0.0, 2.0, 4.0, 6.0],
+            'profile_pressure_pa': [0.0, 300_000.0, 300_000.0, 100_000.0], 'cycles': 2,
+            'rest_s': 3.0}
+    report = rig.run(**goal)
+    assert report.success, report.message
+    start = streamed_start(rig)
+    resting = [t - start for t, _, setpoint in rig.trace if setpoint == 0
+               and start + 1 < t < start + 14]
+    assert resting[0] == pytest.approx(6.0, abs=0.1)
+    assert resting[-1] == pytest.approx(9.0, abs=0.1)
+    assert len(resting) == pytest.approx(3.0 * 50, abs=4)
+    held = [p for t, p, _ in rig.trace if start + 3.0 <= t - 0 <= start + 4.0]
+    assert all(abs(p - 300_000) < 10_000 for p in held)
+
+
+def test_a_forc_set_runs_its_plan_step_by_step(rig):
+    goal = {'profile': 'forc', 'max_gauge_pressure_pa': 200_000.0, 'step_pa': 100_000.0,
+            'hold_s': 0.5, 'forc_count': 2, 'forc_family': 'both'}
+    report = rig.run(**goal)
+    assert report.success, report.message
+    plan = plan_of(**goal)
+    assert rig.sets() == [round(p) for p in plan.setpoints_pa]
+    assert report.message.startswith(f'{plan.step_count} steps done')
+
+
+def test_a_late_answer_skips_the_stale_setpoints_and_sends_the_newest(rig):
+    def lose_one(f: SweepProgress) -> None:
+        if f.progress > 0.3 and not getattr(rig, 'lost', False):
+            rig.lost = rig.link.lost_replies = 1
+    rig.on_feedback = lose_one
+    report = rig.run(**RAMP)
+    assert report.success, report.message
+    # The lost reply costs the link's 0.5 s timeout; then the newest point goes, not the
+    # stale one again, nor the nine that fell due meanwhile.
+    assert report.message == ('ramp done: 312 setpoints over 16 s (9 skipped: the device '
+                              'answered late)')
+    [warning] = rig.warnings()
+    assert warning.endswith('failed: no reply to SET within 0.5 s; the stream goes on')
+    start = streamed_start(rig)
+    plan = plan_of(**RAMP)
+    timed = rig.timed_sets()
+    assert max(b[0] - a[0] for a, b in itertools.pairwise(timed)) == pytest.approx(0.5)
+    # Every SET is the profile's value at the time it was sent.
+    for t, value in timed[1:-1]:
+        assert abs(value - plan.pressure_at(t - start)) <= 50_000 / 20 + 1, (t, value)
+
+
+def test_two_lost_replies_in_a_row_abort_a_stream_and_vent(rig):
+    rig.on_feedback = lambda f: f.progress > 0.3 and not rig.link.commands('VENT') and \
+        setattr(rig.link, 'lost_replies', 2)
+    report = rig.run(**RAMP)
+    assert report.outcome is Outcome.ABORTED and report.vented
+    assert report.message.endswith('failed: no reply to SET within 0.5 s (2 in a row); vented')
+
+
+def test_cancelling_a_stream_vents(rig):
+    rig.cancel_at_s = 3.0
+    report = rig.run(**SINE)
+    assert report.outcome is Outcome.CANCELED and report.message == 'canceled; vented'
+    assert rig.clock() == pytest.approx(3.0, abs=0.05)
+    rig.settle()
+    assert rig.device.setpoint_pa == 0 and rig.device.rig.pressure_pa < 5_000
+
+
+def test_a_ceiling_lowered_mid_stream_is_never_exceeded(rig):
+    def lower(f: SweepProgress) -> None:
+        if f.progress > 0.1:
+            rig.control.max_gauge_pressure_pa = 150_000.0
+    rig.on_feedback = lower
+    report = rig.run(**RAMP)
+    assert report.outcome is Outcome.ABORTED and report.vented
+    assert 'setpoint 152500 Pa is above max_gauge_pressure_pa 150000 Pa (lowered' in \
+        report.message
+    assert max(rig.sets()) == 150_000
+
+
+def test_a_deactivation_mid_stream_vents_and_no_set_follows_it(rig):
+    rig.clock.on_tick = lambda t: t >= 2.5 and rig.control.active and rig.control.deactivate()
+    report = rig.run(**SINE)
+    assert report.outcome is Outcome.ABORTED
+    assert report.message.startswith('driver deactivated; vented')
+    first_vent = next(i for i, (_, name, _) in enumerate(rig.link.sent) if name == 'VENT')
+    assert all(name != 'SET' for _, name, _ in rig.link.sent[first_vent:])
+
+
+@pytest.mark.parametrize(('goal', 'words'), [
+    ({**SINE, 'sine_offset_pa': 400_000.0}, 'goal refused: the sine peaks at 550000 Pa'),
+    ({**RAMP, 'ramp_rate_pa_s': 5e6}, 'goal refused: ramp_rate_pa_s 5000000 Pa/s is faster'),
+    ({'profile': 'csv', 'profile_time_s': [0.0, 1.0], 'profile_pressure_pa': [0.0, math.nan]},
+     'goal refused: profile_pressure_pa[1] must be a finite number'),
+    ({'profile': 'forc', 'max_gauge_pressure_pa': 200e3, 'step_pa': 50e3},
+     'goal refused: forc_count must be >= 1'),
+    ({'sine_amplitude_pa': 100e3}, "goal refused: sine_amplitude_pa is set, but profile "
+                                   "'staircase' does not use it"),
+])
+def test_a_bad_profile_goal_aborts_at_once_and_commands_nothing(rig, goal, words):
+    report = rig.run(**goal)
+    assert report.outcome is Outcome.ABORTED and not report.vented
+    assert report.message.startswith(words), report.message
+    assert rig.link.sent == [] and rig.clock() == 0.0
+
+
+def test_a_recorded_sine_keeps_its_profile_in_the_bag(rig):
+    rig.recorder = ListRecorder(rig)
+    report = rig.run(**SINE, record=True, note='sine')
+    assert report.success, report.message
+    data = rig.recorder.calls[0][3][1]
+    assert {k: v for k, v in data.items() if k.startswith('sweep.')} == {
+        'sweep.profile': 'sine', 'sweep.max_gauge_pressure_pa': '0.0',
+        'sweep.sine_amplitude_pa': '150000.0', 'sweep.sine_offset_pa': '200000.0',
+        'sweep.sine_frequency_hz': '0.2', 'sweep.cycles': '2', 'sweep.rest_s': '0.0',
+        'sweep.duration_s': '10.0', 'sweep.stream_rate_hz': '20.0',
+        'sweep.setpoint_count': '201'}
+
+
+def test_a_recorded_forc_set_keeps_its_turning_points(rig):
+    rig.recorder = ListRecorder(rig)
+    report = rig.run(profile='forc', max_gauge_pressure_pa=200e3, step_pa=100e3, forc_count=2,
+                     record=True)
+    assert report.success, report.message
+    data = rig.recorder.calls[0][3][1]
+    assert (data['sweep.profile'], data['sweep.forc_count'], data['sweep.forc_family']) == (
+        'forc', '2', 'ascending')
+    assert json.loads(data['sweep.turning_points_pa']) == [0, 200_000, 100_000, 200_000, 0,
+                                                           200_000, 0]
+    assert 'sweep.reversal_pressures_pa' not in data

@@ -1,12 +1,24 @@
-"""The paper's figures from a refit, in paper units (kPa, cm): PNG files, no display needed.
+"""The refit's figures, in paper units (kPa, cm): PNG files, no display needed.
 
-- loop.png (Fig. 6): the measured loop and the two fitted branches of the paper's form;
+- loop.png (Fig. 6): the measured loop, the paper's branch fit and the model written to
+  --params-out;
 - residuals.png (Fig. 7): measured minus model per branch, for each branch model;
-- comparison.png (Fig. 8): the data against every fitted model, Bouc-Wen included.
+- comparison.png (Fig. 8): the data against every fitted model, Bouc-Wen included;
+- timeseries.png: pressure and length against time (a bag or sample log, not a table);
+- minor_loops.png: the --memory-check path and each branch model's prediction along it
+  with its best memory rule.
+
+Every model has one colour in every figure (MODEL_COLOURS, Okabe-Ito: distinct for
+colour-blind readers too), increasing branches are solid and decreasing ones dashed, and the
+measured points are black and grey, never a model's colour. Every figure carries a footer:
+run id, source, recording and plotting dates, software version and the bag's metadata.
 """
 
 from __future__ import annotations
 
+import json
+import textwrap
+from collections.abc import Mapping
 from pathlib import Path
 
 import matplotlib
@@ -14,13 +26,100 @@ import matplotlib
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.lines import Line2D
 
 from pma_model import units
 from pma_model.report import BRANCH_MODEL_FORMS, DIRECTIONS, FittedModel
-from pma_model.samples import BranchData
+from pma_model.samples import BranchData, Samples, settled_holds
 
 PRESSURE_LABEL = 'gauge pressure P [kPa]'
 LENGTH_LABEL = 'muscle length L [cm]'
+MODEL_COLOURS = {'sigmoid_fixed_c': '#0072B2', 'sigmoid_free_c': '#E69F00', 'hill': '#009E73',
+                 'bouc_wen': '#D55E00', 'bouc_wen_nonlinear': '#CC79A7'}
+BRANCH_STYLES = {'increasing': '-', 'decreasing': '--'}
+DATA_STYLES = {'increasing': {'marker': 'o', 'color': 'black', 'mfc': 'black'},
+               'decreasing': {'marker': 's', 'color': '0.45', 'mfc': 'none'}}
+# Long custom_data values (every setpoint of a sweep, a CSV profile) are in the JSON, not here.
+FOOTER_VALUE_CHARS = 48
+FOOTER_LINES = 4
+FOOTER_FONT_PT = 6.5
+
+
+def model_colour(name: str) -> str:
+    return MODEL_COLOURS.get(name, '0.3')
+
+
+def _shortened(value) -> str:
+    text = str(value).replace('\n', ' ')
+    return text if len(text) <= FOOTER_VALUE_CHARS else text[:FOOTER_VALUE_CHARS - 3] + '...'
+
+
+def _fill(items: list[str], width: int, gap: str = '   ') -> list[str]:
+    """Items on lines of at most `width`, an item split only when it alone is wider."""
+    lines: list[str] = []
+    for item in items:
+        if lines and len(lines[-1]) + len(gap) + len(item) <= width:
+            lines[-1] += gap + item
+        else:
+            lines += textwrap.wrap(item, width, break_on_hyphens=False) or ['']
+    return lines
+
+
+def footer_text(run: Mapping, width: int = 150) -> str:
+    """The footer's lines (at most `width` characters): the run, then the bag's custom_data,
+    shortened to fit; the JSON has all of it."""
+    head = [f"run {run.get('run_id') or '-'}", f"recorded {run.get('recorded') or 'unknown'}",
+            f"plotted {run.get('date', '')}", f"software {run.get('software_version', '')}",
+            str(run.get('source', ''))]
+    items = [f'{key}={_shortened(value)}' for key, value in
+             (run.get('custom_data') or {}).items()]
+    lines = _fill(head, width)
+    metadata = _fill(items, width) if items else ['no bag metadata (custom_data)']
+    if len(lines) + len(metadata) > FOOTER_LINES:
+        metadata = metadata[:max(1, FOOTER_LINES - len(lines))]
+        suffix, last = '   (more in the JSON)', metadata[-1]
+        while len(last) + len(suffix) > width and '   ' in last:
+            last = last.rsplit('   ', 1)[0]       # whole items only
+        metadata[-1] = last[:width - len(suffix)] + suffix
+    return '\n'.join(lines + metadata)
+
+
+def add_footer(figure, run: Mapping | None) -> float:
+    """Write the footer at the figure's bottom; the height it takes, as a figure fraction."""
+    if not run:
+        return 0.0
+    # DejaVu Sans Mono's advance is 0.6 em; measured on the PNG, 0.65 with the spacing.
+    width = int(figure.get_figwidth() * 72 / (FOOTER_FONT_PT * 0.65)) - 2
+    text = footer_text(run, width)
+    figure.text(0.005, 0.004, text, fontsize=FOOTER_FONT_PT, color='0.3', ha='left',
+                va='bottom', family='monospace')
+    height_in = (text.count('\n') + 1) * FOOTER_FONT_PT * 1.3 / 72 + 0.08
+    return height_in / figure.get_figheight()
+
+
+def png_metadata(run: Mapping | None) -> dict[str, str]:
+    """The run in the PNG's text chunks too, for a program (or `exiftool`) to read."""
+    if not run:
+        return {}
+    return {'Software': f"pma {run.get('software_version', '')}",
+            'Source': str(run.get('source', '')),
+            'Creation Time': str(run.get('date', '')),
+            'Description': footer_text(run, 10_000),
+            'Comment': json.dumps(dict(run), sort_keys=True)}
+
+
+def save(figure, path: Path, run: Mapping | None = None, dpi: int = 120) -> Path:
+    """Footer, layout that leaves it room, PNG (the run and the titles in its text chunks),
+    close."""
+    bottom = add_footer(figure, run)
+    figure.tight_layout(rect=(0, bottom, 1, 1))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    titles = [ax.get_title() for ax in figure.axes if ax.get_title()]
+    metadata = png_metadata(run) | ({'Title': ' | '.join(titles)} if titles else {})
+    figure.savefig(path, dpi=dpi, metadata=metadata)
+    plt.close(figure)
+    return path
 
 
 def _curve_pressures(data: BranchData) -> np.ndarray:
@@ -29,74 +128,213 @@ def _curve_pressures(data: BranchData) -> np.ndarray:
 
 
 def _data(axes, data: BranchData) -> None:
-    axes.plot(units.pa_to_kpa(data.inc_pressure_pa), units.m_to_cm(data.inc_length_m), 'o',
-              color='tab:red', label='measured, increasing')
-    axes.plot(units.pa_to_kpa(data.dec_pressure_pa), units.m_to_cm(data.dec_length_m), 's',
-              color='tab:blue', mfc='none', label='measured, decreasing')
+    for direction, (p, length) in zip(DIRECTIONS, (
+            (data.inc_pressure_pa, data.inc_length_m),
+            (data.dec_pressure_pa, data.dec_length_m)), strict=True):
+        axes.plot(units.pa_to_kpa(p), units.m_to_cm(length), ls='none', ms=5,
+                  label=f'measured, {direction}', **DATA_STYLES[direction])
 
 
-def _finish(figure, axes, path: Path) -> Path:
-    for ax in np.atleast_1d(axes):
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=120)
-    plt.close(figure)
-    return path
+def _branches(axes, model: FittedModel, p: np.ndarray, label: str, **style) -> None:
+    """Both branches of a model, each on its own: no segment joins them at the top.
+
+    Along the path 0 -> top -> 0, as a loop model (Bouc-Wen) must be run.
+    """
+    path = np.concatenate([p, p[::-1]])
+    rising = np.concatenate([np.ones(p.size, bool), np.zeros(p.size, bool)])
+    lengths = units.m_to_cm(model.predict(path, rising))
+    for direction, part in zip(DIRECTIONS, (slice(0, p.size), slice(p.size, None)),
+                               strict=True):
+        axes.plot(units.pa_to_kpa(path[part]), lengths[part], BRANCH_STYLES[direction],
+                  color=style.get('color', model_colour(model.name)),
+                  lw=style.get('lw', 1.4), alpha=style.get('alpha', 0.95),
+                  label=label if direction == 'increasing' else None)
 
 
-def plot_loop(data: BranchData, model: FittedModel, path: Path) -> Path:
-    figure, axes = plt.subplots(figsize=(6.4, 4.8))
+def _branch_key() -> list[Line2D]:
+    return [Line2D([], [], color='0.2', ls=BRANCH_STYLES[d], lw=1.2, label=f'{d} branch')
+            for d in DIRECTIONS]
+
+
+def _legend(axes, extra: list | None = None, **kwargs) -> None:
+    handles, _ = axes.get_legend_handles_labels()
+    axes.legend(handles=handles + (extra or []), fontsize=8, framealpha=0.9, **kwargs)
+
+
+def plot_loop(data: BranchData, models: dict[str, FittedModel], path: Path, *,
+              chosen: str | None, run: Mapping | None = None, chosen_note: str = '') -> Path:
+    return save(loop_figure(data, models, chosen=chosen, chosen_note=chosen_note), path, run)
+
+
+def loop_figure(data: BranchData, models: dict[str, FittedModel], *, chosen: str | None,
+                chosen_note: str = ''):
+    """The paper's branch fit (sigmoid, c fixed) and the chosen model, on the measured loop."""
+    figure, axes = plt.subplots(figsize=(7.2, 5.4))
     _data(axes, data)
     p = _curve_pressures(data)
-    for rising, colour, label in ((True, 'tab:red', 'increasing'),
-                                  (False, 'tab:blue', 'decreasing')):
-        lengths = model.predict(p, np.full(p.size, rising))
-        axes.plot(units.pa_to_kpa(p), units.m_to_cm(lengths), '-', color=colour,
-                  label=f'{model.name} fit, {label}')
-    axes.set(xlabel=PRESSURE_LABEL, ylabel=LENGTH_LABEL,
-             title='Hysteresis loop and branch fits (paper Fig. 6)')
-    return _finish(figure, axes, path)
+    paper = models.get('sigmoid_fixed_c')
+    if paper is not None and paper.name != chosen:
+        _branches(axes, paper, p, "sigmoid_fixed_c (the paper's form)", lw=1.2)
+    title = 'Hysteresis loop and branch fits (paper Fig. 6)'
+    if chosen in models:
+        _branches(axes, models[chosen], p, chosen, lw=2.2)
+        title += f'\nthe chosen model: {chosen}' + (f' ({chosen_note})' if chosen_note else '')
+    axes.set(xlabel=PRESSURE_LABEL, ylabel=LENGTH_LABEL, title=title)
+    axes.grid(alpha=0.3)
+    _legend(axes, _branch_key(), loc='lower left')
+    return figure
 
 
-def plot_residuals(data: BranchData, models: dict[str, FittedModel], path: Path) -> Path:
-    figure, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+def plot_residuals(data: BranchData, models: dict[str, FittedModel], path: Path,
+                   run: Mapping | None = None) -> Path:
+    figure, axes = plt.subplots(1, 2, figsize=(10.5, 4.4), sharey=True)
     for ax, direction, (p, length) in zip(axes, DIRECTIONS, (
             (data.inc_pressure_pa, data.inc_length_m),
             (data.dec_pressure_pa, data.dec_length_m)), strict=True):
         rising = np.full(p.size, direction == 'increasing')
+        order = np.argsort(p, kind='stable')
         for name, model in models.items():
             if name in BRANCH_MODEL_FORMS:
                 residual = units.m_to_cm(length - model.predict(p, rising))
-                ax.plot(units.pa_to_kpa(p), residual, 'o-', ms=4, label=name)
+                ax.plot(units.pa_to_kpa(p[order]), residual[order], 'o-', ms=3.5, lw=1.0,
+                        color=model_colour(name), label=name)
         ax.axhline(0.0, color='k', lw=0.8)
         ax.set(xlabel=PRESSURE_LABEL, title=f'{direction} pressure (paper Fig. 7)')
+        ax.grid(alpha=0.3)
+        _legend(ax)
     axes[0].set_ylabel('measured - model [cm]')
-    return _finish(figure, axes, path)
+    return save(figure, path, run)
 
 
-def plot_comparison(data: BranchData, models: dict[str, FittedModel], path: Path) -> Path:
-    figure, axes = plt.subplots(figsize=(7, 5))
+def plot_comparison(data: BranchData, models: dict[str, FittedModel], path: Path,
+                    run: Mapping | None = None) -> Path:
+    return save(comparison_figure(data, models), path, run)
+
+
+def comparison_figure(data: BranchData, models: dict[str, FittedModel]):
+    """Every model's two branches (its colour, solid rising, dashed falling) on the loop, and
+    below, each model's error at the measured points, where models a line-width apart on
+    the loop still differ."""
+    figure, (axes, errors) = plt.subplots(2, 1, sharex=True, figsize=(7.8, 7.4),
+                                          gridspec_kw={'height_ratios': [3, 1.3]})
     _data(axes, data)
     p = _curve_pressures(data)
-    loop_p = np.concatenate([p, p[::-1]])
-    rising = np.concatenate([np.ones(p.size, bool), np.zeros(p.size, bool)])
+    p_loop, l_loop, rising = data.loop()
     for name, model in models.items():
-        axes.plot(units.pa_to_kpa(loop_p), units.m_to_cm(model.predict(loop_p, rising)), '-',
-                  lw=1.2, label=name)
-    axes.set(xlabel=PRESSURE_LABEL, ylabel=LENGTH_LABEL,
-             title='Model comparison on the loop (paper Fig. 8)')
-    return _finish(figure, axes, path)
+        _branches(axes, model, p, name)
+        error = units.m_to_cm(model.predict(p_loop, rising) - l_loop)
+        for direction, mask in zip(DIRECTIONS, (rising, ~rising), strict=True):
+            order = np.argsort(p_loop[mask], kind='stable')
+            errors.plot(units.pa_to_kpa(p_loop[mask][order]), error[mask][order],
+                        BRANCH_STYLES[direction], marker='.', ms=4, lw=1.0,
+                        color=model_colour(name))
+    axes.set(ylabel=LENGTH_LABEL, title='Model comparison on the loop (paper Fig. 8)')
+    errors.axhline(0.0, color='k', lw=0.8)
+    errors.set(xlabel=PRESSURE_LABEL, ylabel='model - measured [cm]')
+    for ax in (axes, errors):
+        ax.grid(alpha=0.3)
+    _legend(axes, _branch_key(), loc='lower left', ncols=2)
+    return figure
 
 
-def write_plots(data: BranchData, models: dict[str, FittedModel], directory) -> list[Path]:
+def plot_timeseries(samples: Samples, path: Path, run: Mapping | None = None,
+                    title: str = '') -> Path:
+    return save(timeseries_figure(samples, title), path, run)
+
+
+def timeseries_figure(samples: Samples, title: str = ''):
+    """Pressure (and setpoint) and length against time."""
+    figure, (pressure, length) = plt.subplots(2, 1, sharex=True, figsize=(10, 5.6))
+    t = samples.time_s - samples.time_s[0]
+    if samples.setpoint_pa is not None:
+        pressure.plot(t, units.pa_to_kpa(samples.setpoint_pa), color='0.2', lw=1.0, ls='--',
+                      label='setpoint')
+    pressure.plot(t, units.pa_to_kpa(samples.pressure_pa), color='#0072B2', lw=0.9,
+                  label='measured')
+    pressure.set_ylabel('gauge pressure [kPa]')
+    length.plot(t, units.m_to_cm(samples.length_m), color='#D55E00', lw=0.6,
+                label='measured (HC-SR04)')
+    length.set(ylabel='length [cm]', xlabel='time [s]')
+    pressure.set_title(title or f'Pressure and length against time: {samples.source}')
+    for ax in (pressure, length):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc='best')
+    return figure
+
+
+def plot_minor_loops(samples: Samples, predictions: Mapping[str, np.ndarray],
+                     memory: Mapping, path: Path, *, run: Mapping | None = None,
+                     chosen: str | None = None) -> Path:
+    return save(minor_loops_figure(samples, predictions, memory, chosen=chosen), path, run)
+
+
+def minor_loops_figure(samples: Samples, predictions: Mapping[str, np.ndarray],
+                       memory: Mapping, *, chosen: str | None = None):
+    """The memory-check path: measured, and each branch model with its best memory rule
+    (`memory`: the report's memory_check)."""
+    best_memory, scores = memory['best_memory'], memory['models']
+    figure, (loop, trace) = plt.subplots(1, 2, figsize=(12.5, 5.2),
+                                         gridspec_kw={'width_ratios': [1, 1.3]})
+    p_kpa, t = units.pa_to_kpa(samples.pressure_pa), samples.time_s - samples.time_s[0]
+    measured_cm = units.m_to_cm(samples.length_m)
+    loop.plot(p_kpa, measured_cm, '.', color='0.7', ms=2, label='measured samples')
+    trace.plot(t, measured_cm, '.', color='0.7', ms=2, label='measured samples')
+    holds, on_holds = settled_holds(samples)
+    if on_holds:
+        means = np.array([[p_kpa[a:b].mean(), measured_cm[a:b].mean(), t[a:b].mean()]
+                          for a, b in holds])
+        loop.plot(means[:, 0], means[:, 1], 'o', color='black', ms=4, label='hold means')
+        trace.plot(means[:, 2], means[:, 1], 'o', color='black', ms=3, label='hold means')
+    # The chosen model last, on top.
+    for name, rule in sorted(best_memory.items(), key=lambda item: item[0] == chosen):
+        key = f'{name}/{rule}'
+        if key not in predictions:
+            continue
+        predicted = units.m_to_cm(predictions[key])
+        rmse = scores.get(key, {}).get('rmse_cm')
+        label = f'{key}' + (f' (RMSE {rmse:.3f} cm)' if rmse is not None else '')
+        if name == chosen:
+            label += ', params-out'
+        width = 2.2 if name == chosen else 1.2
+        loop.plot(p_kpa, predicted, '-', color=model_colour(name), lw=width, label=label)
+        trace.plot(t, predicted, '-', color=model_colour(name), lw=width, label=label)
+    loop.set(xlabel=PRESSURE_LABEL, ylabel=LENGTH_LABEL,
+             title='Minor loops: measured and predicted (best memory rule per model)')
+    trace.set(xlabel='time [s]', ylabel=LENGTH_LABEL, title=f'along {samples.source}')
+    for ax in (loop, trace):
+        ax.grid(alpha=0.3)
+    twin = trace.twinx()
+    twin.plot(t, p_kpa, color='0.35', lw=0.7, ls=':')
+    twin.set_ylabel('gauge pressure [kPa], dotted', color='0.35')
+    # One legend for both panels: the same lines.
+    loop.legend(fontsize=7.5, loc='lower left', framealpha=0.9)
+    return figure
+
+
+def write_plots(data: BranchData, models: dict[str, FittedModel], directory, *,
+                run: Mapping | None = None, chosen: str | None = None, chosen_note: str = '',
+                samples: Samples | None = None, memory: Mapping | None = None,
+                memory_samples: Samples | None = None, memory_run: Mapping | None = None,
+                predictions: Mapping[str, np.ndarray] | None = None) -> list[Path]:
+    """Every figure the inputs allow. `chosen`: the model --params-out writes (or would);
+    `memory`, `memory_samples`, `memory_run`, `predictions`: the memory check's report,
+    path, its bag's run_info, and the predicted lengths."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    branch_model = models.get('sigmoid_fixed_c') or next(
-        (m for n, m in models.items() if n in BRANCH_MODEL_FORMS), None)
     written = []
-    if branch_model is not None:
-        written.append(plot_loop(data, branch_model, directory / 'loop.png'))
-        written.append(plot_residuals(data, models, directory / 'residuals.png'))
-    written.append(plot_comparison(data, models, directory / 'comparison.png'))
+    if chosen is None or chosen not in models:
+        chosen = 'sigmoid_fixed_c' if 'sigmoid_fixed_c' in models else next(
+            (n for n in models if n in BRANCH_MODEL_FORMS), None)
+        chosen_note = ''
+    if chosen is not None:
+        written.append(plot_loop(data, models, directory / 'loop.png', chosen=chosen, run=run,
+                                 chosen_note=chosen_note))
+        written.append(plot_residuals(data, models, directory / 'residuals.png', run))
+    written.append(plot_comparison(data, models, directory / 'comparison.png', run))
+    if samples is not None and samples.time_s.size:
+        written.append(plot_timeseries(samples, directory / 'timeseries.png', run))
+    if memory is not None and memory_samples is not None and predictions:
+        written.append(plot_minor_loops(memory_samples, predictions, memory,
+                                        directory / 'minor_loops.png', run=memory_run or run,
+                                        chosen=chosen))
     return written

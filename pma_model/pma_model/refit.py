@@ -2,10 +2,12 @@
 
 Prints the paper-style table (kPa, cm) on stdout; --json writes the full report, --params-out
 the params file model_node loads (the best-AICc branch form it supports, or --model), --plots
-the paper's Figs. 6-8. Bad input gives one line on stderr and exit code 2. A model that does
-not converge is reported as failed (table and JSON) and the others stand; the exit code is 2
-only when the model asked for with --model, or every branch model --params-out could use,
-failed. A truncated bag is refitted on what it holds before the damage, with a warning line.
+the paper's Figs. 6-8, the time series and the minor loops; the JSON and every figure say
+which run (--run-id), when, by which software, and carry the bag's metadata. Bad input
+gives one line on stderr and exit code 2. A model that does not converge is reported as
+failed (table and JSON) and the others stand; the exit code is 2 only when the model asked
+for with --model, or every branch model --params-out could use, failed. A truncated bag is
+refitted on what it holds before the damage, with a warning line.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from pma_model.detector import DEFAULT_DEADBAND_PA
+from pma_model.provenance import input_run
 from pma_model.report import (
     BRANCH_MODEL_FORMS,
     MODEL_NAMES,
@@ -25,7 +28,7 @@ from pma_model.report import (
     format_table,
     memory_check,
 )
-from pma_model.samples import STATE_TOPIC, SamplesError, load_branch_data, load_samples
+from pma_model.samples import STATE_TOPIC, SamplesError, load_fit_input, load_samples
 
 EXIT_BAD_INPUT = 2
 
@@ -43,6 +46,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument('--params-out', type=Path, metavar='FILE.yaml',
                         help='write a model_node params file with the chosen branch model')
     parser.add_argument('--plots', type=Path, metavar='DIR', help='write PNG figures here')
+    parser.add_argument('--run-id', metavar='ID',
+                        help='the run these data belong to, in the JSON and on every figure '
+                        "(default: the bag's custom_data run_id, else the input's name)")
     parser.add_argument('--model', choices=sorted(BRANCH_MODEL_FORMS),
                         help='branch model for --params-out (default: best loop AICc)')
     parser.add_argument('--steady-state', action=argparse.BooleanOptionalAction, default=None,
@@ -129,22 +135,17 @@ def check_data(data) -> None:
                                'at least 5 per branch')
 
 
-def bag_custom_data(path) -> dict[str, str] | None:
-    """The experiment metadata a bag input carries (rig, muscle, firmware, note, ...)."""
-    path = Path(path)
-    if not (path.is_dir() or path.suffix == '.mcap'):
-        return None
-    import warnings
-
-    from pma_bag import BagError, BagReader
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore')
-            with BagReader(path) as reader:
-                return reader.custom_data
-    except BagError:
-        return None
+def plotted_choice(report: dict, name: str | None,
+                   params_written: bool) -> tuple[str | None, str]:
+    """The model the loop figure shows as chosen, and why: the one written to params-out,
+    else the one asked for, else (none asked for, or it failed) what --params-out would
+    write; with its best memory rule when a memory check ran."""
+    if name is not None and name not in failed_models(report):
+        note = 'written to params-out' if params_written else 'asked for with --model'
+    else:
+        name, note = choose_params_model(report, None), 'best loop AICc: what params-out takes'
+    rule = report.get('memory_check', {}).get('best_memory', {}).get(name)
+    return name, note + (f', memory {rule}' if rule else '')
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -166,7 +167,8 @@ def warn_if_truncated(what) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        data = load_branch_data(args.input, args.deadband_pa, args.steady_state, args.topic)
+        data, samples = load_fit_input(args.input, args.deadband_pa, args.steady_state,
+                                       args.topic)
         warn_if_truncated(data)
         check_data(data)
 
@@ -175,14 +177,22 @@ def run(args: argparse.Namespace) -> int:
 
         report, fitted = build_report(data, MODEL_NAMES, holdout=not args.no_holdout,
                                       on_model=announce)
-        experiment = bag_custom_data(args.input)
-        if experiment is not None:
-            report['custom_data'] = experiment   # the bag's metadata.yaml custom_data
+        provenance = input_run(args.input, args.run_id)
+        report['run'] = {k: v for k, v in provenance.items() if k != 'custom_data'}
+        if provenance['custom_data']:
+            report['custom_data'] = provenance['custom_data']   # the bag's metadata.yaml
+        path = memory_run = None
+        predictions: dict = {}
         if args.memory_check:
             announce(f'the memory rules along {args.memory_check}')
             path = load_samples(args.memory_check, args.topic)
             warn_if_truncated(path)
-            report['memory_check'] = memory_check(path, fitted, args.deadband_pa)
+            report['memory_check'] = memory_check(path, fitted, args.deadband_pa,
+                                                  predictions if args.plots else None)
+            memory_run = input_run(args.memory_check, provenance['run_id'])
+            report['memory_check']['recorded'] = memory_run['recorded']
+            if memory_run['custom_data']:
+                report['memory_check']['custom_data'] = memory_run['custom_data']
     except SamplesError as error:
         print(f'refit: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -215,10 +225,16 @@ def run(args: argparse.Namespace) -> int:
             print(f'wrote {args.params_out} ({name}, branch_form '
                   f'{BRANCH_MODEL_FORMS[name]})')
         if args.plots:
+            chosen, note = plotted_choice(report, name,
+                                          args.params_out is not None and refusal is None)
             from pma_model.plots import write_plots
 
-            for path in write_plots(data, fitted, args.plots):
-                print(f'wrote {path}')
+            for written in write_plots(
+                    data, fitted, args.plots, run=provenance, chosen=chosen, chosen_note=note,
+                    samples=samples,
+                    memory=report.get('memory_check'), memory_samples=path,
+                    memory_run=memory_run, predictions=predictions):
+                print(f'wrote {written}')
     except (OSError, ValueError) as error:
         print(f'refit: cannot write output: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT

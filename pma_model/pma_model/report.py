@@ -308,7 +308,8 @@ def failed_models(report: dict) -> dict[str, str]:
 
 
 def memory_check(samples: Samples, fitted: dict[str, FittedModel],
-                 deadband_pa: float = DEFAULT_DEADBAND_PA) -> dict:
+                 deadband_pa: float = DEFAULT_DEADBAND_PA,
+                 predictions: dict[str, np.ndarray] | None = None) -> dict:
     """Each memory rule, with each fitted branch pair, run along a recorded pressure path.
 
     The major loop cannot tell the rules apart (they differ only inside it); a path with
@@ -320,7 +321,8 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
     written by --params-out when it wins. A staircase is scored on its hold means (the
     settled half of each hold, as the refit reduces holds), so the ultrasonic noise does not
     swamp the differences; the models still run along every sample, since the memory
-    depends on the whole path.
+    depends on the whole path. `predictions`, when given, receives every predicted length
+    path by "<model>/<memory>" (for the minor-loop figure).
     """
     stroke_cm = float(units.m_to_cm(np.ptp(samples.length_m)))
     holds, on_holds = settled_holds(samples)
@@ -351,6 +353,8 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
             else:
                 predicted = HysteresisModel(*branches, memory=memory,
                                             deadband_pa=deadband_pa).predict(samples.pressure_pa)
+            if predictions is not None:
+                predictions[f'{name}/{memory}'] = predicted
             entry = metrics_cm(measured, scored(predicted), 0, stroke_cm)
             models[f'{name}/{memory}'] = {key: entry[key] for key in (
                 'rmse_cm', 'max_cm', 'rmse_pct_stroke', 'max_pct_stroke', 'n')}

@@ -378,13 +378,21 @@ def load_branch_data(path, deadband_pa: float = DEFAULT_DEADBAND_PA,
                      steady_state: bool | None = None, topic: str = STATE_TOPIC,
                      progress: bool = True) -> BranchData:
     """Whatever the input is (bag, sample log, branch table), its fit data per branch."""
+    return load_fit_input(path, deadband_pa, steady_state, topic, progress)[0]
+
+
+def load_fit_input(path, deadband_pa: float = DEFAULT_DEADBAND_PA,
+                   steady_state: bool | None = None, topic: str = STATE_TOPIC,
+                   progress: bool = True) -> tuple[BranchData, Samples | None]:
+    """(fit data per branch, the sample path it came from): the path is None for a branch
+    table, which has no time. One read of the input for the fit and the time-series plot."""
     path = Path(path)
     if not is_bag(path) and is_branch_table(path):
-        return read_branch_table(path)
+        return read_branch_table(path), None
     samples = load_samples(path, topic, progress)
     data = split_branches(samples, deadband_pa, steady_state)
     data.truncated = samples.truncated
-    return data
+    return data, samples
 
 
 def load_samples(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:

@@ -99,6 +99,9 @@ def test_table_output_params_file_and_plots(table_run):
     assert params.increasing.sigmoid.a == pytest.approx(paper['a'])
     fitted = report['branches']['increasing']['models']['hill']['params']
     assert params.increasing.hill.k_pa == pytest.approx(units.kpa_to_pa(fitted['k_kpa']))
+    # A branch table has no time: no time series, and no memory check asked for.
+    assert sorted(p.name for p in (out / 'plots').iterdir()) == [
+        'comparison.png', 'loop.png', 'residuals.png']
     for name in ('loop.png', 'residuals.png', 'comparison.png'):
         png = (out / 'plots' / name).read_bytes()
         assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 10_000

@@ -45,14 +45,15 @@ def staircase(rate_hz=20.0, hold_s=2.0, noise_m=2e-4, nan_every=0, seed=1):
 
 
 def write_state_bag(path, t, pressure, setpoint, length, *, start_s=1_700_000_000.0,
-                    topics=('/pma/state',)):
-    """A rosbag2 MCAP bag of PmaState on /pma/state (or these topics), stamped start_s + t."""
+                    topics=('/pma/state',), custom_data=None):
+    """A rosbag2 MCAP bag of PmaState on /pma/state (or these topics), stamped start_s + t,
+    with the experiment's custom_data (as the Sweep action writes it)."""
     from rclpy.serialization import serialize_message
 
     from pma_bag import BagWriter
     from pma_interfaces.msg import PmaState
 
-    with BagWriter(path) as writer:
+    with BagWriter(path, custom_data=custom_data) as writer:
         for topic in topics:
             writer.add_topic(topic, 'pma_interfaces/msg/PmaState')
         message = PmaState()

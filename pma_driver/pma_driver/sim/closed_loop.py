@@ -9,6 +9,7 @@ never sees it. Used by pma_control's tests and benchmarks, and by nothing at run
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -39,8 +40,17 @@ class Trace:
 
 def run_closed_loop(controller: Controller, duration_s: float, *, rate_hz: int = 20,
                     seed: int = 0, rig: Rig | None = None,
-                    config: DeviceConfig | None = None) -> Trace:
-    """Run `controller` on every sample of a simulated device for `duration_s`."""
+                    config: DeviceConfig | None = None, command_delay_s: float = 0.0) -> Trace:
+    """Run `controller` on every sample of a simulated device for `duration_s`.
+
+    `command_delay_s`: how long a setpoint takes from the controller to the device (on the
+    real rig: DDS to the driver, the serial line, the firmware's next loop; 10-150 ms
+    depending on the machine's load). Gains that hold at zero delay can ring at 0.1 s.
+    """
+    delay_ms = round(command_delay_s * 1000)
+    if delay_ms < 0:
+        raise ValueError(f'command_delay_s must be >= 0, got {command_delay_s!r}')
+    in_flight: deque[tuple[int, bytes]] = deque()        # (device time due, SET line)
     config = config or DeviceConfig(rate_hz=rate_hz, max_rate_hz=max(rate_hz, 20),
                                     heartbeat_check=False, seed=seed)
     device = SimDevice(config, rig=rig or Rig(config))
@@ -50,6 +60,10 @@ def run_closed_loop(controller: Controller, duration_s: float, *, rate_hz: int =
     sent_pa: int | None = None
     end_ms = int(duration_s * 1000)
     while device.t_ms < end_ms:
+        while in_flight and in_flight[0][0] <= device.next_sample_ms:
+            due_ms, line = in_flight.popleft()
+            device.advance_to(due_ms)
+            device.receive(line)
         device.advance_to(device.next_sample_ms)
         for frame in decoder.feed(b''.join(device.take_output())):
             if not isinstance(frame, protocol.Sample):
@@ -60,7 +74,11 @@ def run_closed_loop(controller: Controller, duration_s: float, *, rate_hz: int =
             command = float(controller(t_s, pressure, measured))
             setpoint = max(0, min(round(command), device.ceiling_pa))
             if setpoint != sent_pa:
-                device.receive(protocol.encode_command(Command.SET, setpoint))
+                line = protocol.encode_command(Command.SET, setpoint)
+                if delay_ms:
+                    in_flight.append((device.t_ms + delay_ms, line))
+                else:
+                    device.receive(line)
                 sent_pa = setpoint
             trace.t_s.append(t_s)
             trace.pressure_pa.append(pressure)
