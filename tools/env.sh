@@ -49,6 +49,17 @@ if [ -f "${PMA_WS}/install/setup.bash" ]; then
     # shellcheck disable=SC1091
     . "${PMA_WS}/install/setup.bash"
 fi
+# The `pma` command line (pma_cli). colcon installs it where `ros2 run pma_cli pma` looks,
+# install/pma_cli/lib/pma_cli, which no setup script puts on PATH; that directory holds `pma`
+# alone, so adding it puts nothing else on PATH.
+__pma_cli="${PMA_WS}/install/pma_cli/lib/pma_cli"
+if [ -x "${__pma_cli}/pma" ]; then
+    case ":${PATH}:" in
+        *":${__pma_cli}:"*) ;;
+        *) export PATH="${__pma_cli}:${PATH}" ;;
+    esac
+fi
+unset __pma_cli
 
 [ "${__pma_nounset}" = 1 ] && set -u
 unset __pma_nounset

@@ -1,0 +1,448 @@
+"""`pma set`, `vent`, `tare`, `length` and `param`: one request each, answered in one line."""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import statistics
+import sys
+import time
+
+import yaml
+from action_msgs.srv import CancelGoal
+from rcl_interfaces.msg import Log, ParameterType
+from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64
+from std_srvs.srv import Trigger
+
+from pma_cli import quantities as q
+from pma_cli.observe import BRANCHES
+from pma_cli.session import NO_ANSWER, OK, CliError, Session
+from pma_interfaces.msg import ControlState, PmaState
+from pma_interfaces.srv import PressureForLength
+
+DRIVER = 'driver_node'
+SETPOINT_TOPIC = 'pma/pressure_setpoint'
+ROSOUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+ABSENT_AFTER_S = 4.0        # a node not in the graph by then (which shows others) is not running
+REST_PA = 25_000.0          # below this a vented muscle may be tared (the device's own bound)
+
+
+# -- setpoints -----------------------------------------------------------------------------
+
+class Setpoints:
+    """Publish setpoints to the driver and see what became of them.
+
+    A topic has no answer, so the device's own report is the confirmation (pma/state carries
+    the setpoint the device regulates to) and the driver's log line on /rosout, `refused
+    setpoint: ...`, is the refusal with its reason.
+    """
+
+    def __init__(self, session: Session):
+        self.session = session
+        self.publisher = session.node.create_publisher(Float64, SETPOINT_TOPIC, 10)
+        self.state = session.latest(PmaState, 'pma/state', keep=200)
+        self.control = session.latest(ControlState, 'pma/control_state')
+        self.refusals: list[tuple[float, str]] = []
+        namespace = session.namespace.strip('/').replace('/', '.')
+        self._driver_logger = f'{namespace}.{DRIVER}' if namespace else DRIVER
+        session.node.create_subscription(Log, '/rosout', self._on_log, ROSOUT_QOS)
+
+    def _on_log(self, log: Log) -> None:
+        if log.name == self._driver_logger and log.msg.startswith('refused setpoint: '):
+            self.refusals.append((time.monotonic(), log.msg.removeprefix('refused setpoint: ')))
+
+    def wait_for_driver(self, timeout_s: float) -> None:
+        """Until the driver's subscription is matched by our publisher (else NO_ANSWER)."""
+        node = self.session.node
+        topic = self.session.resolve(SETPOINT_TOPIC)
+
+        def matched() -> bool:
+            readers = node.get_subscriptions_info_by_topic(topic)
+            driver = [r for r in readers if r.node_name == DRIVER
+                      and r.node_namespace == self.session.namespace]
+            return bool(driver) and self.publisher.get_subscription_count() >= len(readers) \
+                and self.state.message is not None
+
+        if not self.session.spin_until(matched, timeout_s):
+            raise CliError(f'no driver takes setpoints on {topic} (waited {timeout_s:g} s): '
+                           + self.session.where_hint('pma/state', DRIVER), NO_ANSWER)
+
+    def command(self, gauge_pa: float, timeout_s: float) -> PmaState:
+        """Send one setpoint; the first state that shows the device took it. CliError: why not."""
+        target = round(gauge_pa)
+        sent_at = time.monotonic()
+        seen = self.state.count
+        self.publisher.publish(Float64(data=float(gauge_pa)))
+
+        def answered() -> bool:
+            if any(at >= sent_at for at, _ in self.refusals):
+                return True
+            state = self.state.message
+            return self.state.count > seen and abs(state.gauge_setpoint_pa - target) < 0.5
+
+        if not self.session.spin_until(answered, timeout_s):
+            raise CliError(f'the device did not report setpoint {q.kpa(gauge_pa)} within '
+                           f'{timeout_s:g} s (the driver log says why)')
+        refused = [reason for at, reason in self.refusals if at >= sent_at]
+        if refused:
+            raise CliError(f'the driver refused {q.kpa(gauge_pa)}: {refused[-1]}')
+        return self.state.message
+
+    def controller_warning(self) -> str:
+        """A warning when the length controller would overwrite a setpoint of ours."""
+        control = self.control.message
+        if control is not None and control.mode in (ControlState.MODE_GOAL,
+                                                    ControlState.MODE_STREAM):
+            return ('warning: the length controller follows a target and commands its own '
+                    'pressure; cancel its goal (`pma vent` does) or stop the length stream')
+        return ''
+
+    def settle(self, target_pa: float, tolerance_pa: float, timeout_s: float,
+               show=None) -> PmaState:
+        """Until the measured pressure stays within tolerance of the target for 0.5 s."""
+        inside_since = [None]
+
+        def settled() -> bool:
+            state = self.state.message
+            if show is not None:
+                show(state)
+            if abs(state.gauge_pressure_pa - target_pa) > tolerance_pa:
+                inside_since[0] = None
+                return False
+            inside_since[0] = inside_since[0] or time.monotonic()
+            return time.monotonic() - inside_since[0] >= 0.5
+
+        if not self.session.spin_until(settled, timeout_s):
+            raise CliError(f'pressure {q.kpa(self.state.message.gauge_pressure_pa)} did not '
+                           f'settle within {q.kpa(tolerance_pa)} of {q.kpa(target_pa)} in '
+                           f'{timeout_s:g} s')
+        return self.state.message
+
+    def steady(self, window_s: float = 1.0, timeout_s: float = 20.0) -> PmaState:
+        """Until the pressure stops moving: two successive windows agree within noise.
+
+        Only states from now on count (the history may hold a steady hold just left).
+        """
+        self.state.history.clear()
+
+        def still() -> bool:
+            history = self.state.history
+            if len(history) < 8:
+                return False
+            newest = ros_stamp(history[-1])
+            recent = [s.gauge_pressure_pa for s in history if newest - ros_stamp(s) < window_s]
+            before = [s.gauge_pressure_pa for s in history
+                      if window_s <= newest - ros_stamp(s) < 2 * window_s]
+            if len(recent) < 4 or len(before) < 4:
+                return False
+            noise = max(statistics.pstdev(recent), statistics.pstdev(before), 500.0)
+            return abs(statistics.fmean(recent) - statistics.fmean(before)) < 3 * noise \
+                / math.sqrt(len(recent))
+        if not self.session.spin_until(still, timeout_s):
+            raise CliError(f'the pressure did not settle within {timeout_s:g} s (a leak, or '
+                           'the supply still changing?)')
+        return self.state.message
+
+
+def ros_stamp(state: PmaState) -> float:
+    return state.header.stamp.sec + 1e-9 * state.header.stamp.nanosec
+
+
+def set_pressure(session: Session, gauge_pa: float, wait: bool, tolerance_pa: float,
+                 timeout_s: float) -> int:
+    if gauge_pa < 0:
+        raise CliError(f'{q.kpa(gauge_pa)} is negative: setpoints are gauge pressure, 0 or more')
+    setpoints = Setpoints(session)
+    setpoints.wait_for_driver(timeout_s)
+    state = setpoints.command(gauge_pa, timeout_s)
+    print(f'setpoint {q.kpa(gauge_pa)} taken by the device (pressure now '
+          f'{q.kpa(state.gauge_pressure_pa)})')
+    warning = setpoints.controller_warning()
+    if warning:
+        print(f'pma set: {warning}', file=sys.stderr)
+    if wait:
+        started = time.monotonic()
+        state = setpoints.settle(gauge_pa, tolerance_pa, timeout_s)
+        print(f'reached {q.kpa(state.gauge_pressure_pa)} in {time.monotonic() - started:.1f} s')
+    return OK
+
+
+def cancel_all_goals(session: Session, action: str, timeout_s: float = 1.0) -> int:
+    """Cancel every goal of an action (zero id and stamp: all, by the action protocol).
+
+    Returns how many goals were cancelling; 0 when no server answers (none running).
+    """
+    client = session.node.create_client(CancelGoal, f'{action}/_action/cancel_goal')
+    try:
+        if not session.spin_until(client.service_is_ready, timeout_s):
+            return 0
+        response = session.wait_future(client.call_async(CancelGoal.Request()), 5.0,
+                                       client.srv_name)
+        return len(response.goals_canceling)
+    finally:
+        session.node.destroy_client(client)
+
+
+def release_controller(session: Session, control: ControlState, timeout_s: float) -> bool:
+    """Make a length controller that holds a target stop commanding.
+
+    A MoveToLength goal that succeeded (or a stream that stopped) leaves the controller
+    holding its target, and it has no "release"; cancelling a goal clears the target
+    (docs/control.md). So: a goal for the target it holds anyway, cancelled at once. A stream
+    still being sent sets a target again with its next message (then `pma vent` warns).
+    """
+    from rclpy.action import ActionClient
+
+    from pma_interfaces.action import MoveToLength
+
+    client = ActionClient(session.node, MoveToLength, 'pma/move_to_length')
+    try:
+        if not session.spin_until(client.server_is_ready, timeout_s):
+            return False
+        goal = MoveToLength.Goal(length_m=control.target_length_m)
+        handle = session.wait_future(client.send_goal_async(goal), timeout_s,
+                                     'the length controller')
+        result = handle.get_result_async()
+        session.wait_future(handle.cancel_goal_async(), timeout_s, 'the length controller')
+        session.wait_future(result, timeout_s, 'the length controller')
+        return True
+    finally:
+        client.destroy()
+
+
+def vent(session: Session, wait: bool, timeout_s: float) -> int:
+    """Cancel any sweep or move, release a holding controller, then command 0 Pa."""
+    setpoints = Setpoints(session)
+    setpoints.wait_for_driver(timeout_s)
+    cancelled = {action: cancel_all_goals(session, action)
+                 for action in ('pma/sweep', 'pma/move_to_length')}
+    for action, count in cancelled.items():
+        if count:
+            print(f'cancelled {count} goal(s) of {session.resolve(action)}')
+    session.spin_for(0.3)                       # the controller's state after the cancel
+    control = setpoints.control.message
+    if control is not None and control.mode in (ControlState.MODE_GOAL,
+                                                ControlState.MODE_STREAM) \
+            and math.isfinite(control.target_length_m) \
+            and release_controller(session, control, timeout_s):
+        print(f'released the length controller (it held {q.cm(control.target_length_m)})')
+        session.spin_for(0.3)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            state = setpoints.command(0.0, max(1.0, deadline - time.monotonic()))
+            break
+        except CliError as error:
+            # A cancelled sweep lets go of the device once its thread has vented.
+            if 'a sweep is running' not in str(error) or time.monotonic() > deadline:
+                raise
+            session.spin_for(0.2)
+    print(f'venting: setpoint 0 kPa taken by the device (pressure now '
+          f'{q.kpa(state.gauge_pressure_pa)})')
+    warning = setpoints.controller_warning()
+    if warning:
+        print(f'pma vent: {warning}', file=sys.stderr)
+    if wait:
+        state = setpoints.settle(0.0, REST_PA / 5, timeout_s)
+        print(f'vented: {q.kpa(state.gauge_pressure_pa)}')
+    return OK
+
+
+def tare(session: Session, vent_first: bool, timeout_s: float) -> int:
+    client = session.node.create_client(Trigger, f'{DRIVER}/tare')
+    if vent_first:
+        setpoints = Setpoints(session)
+        setpoints.wait_for_driver(timeout_s)
+        setpoints.command(0.0, timeout_s)
+        print('venting; waiting for the pressure to settle')
+        state = setpoints.steady()
+        print(f'settled at {q.kpa(state.gauge_pressure_pa)}')
+    response = session.call(client, Trigger.Request(), timeout_s,
+                            session.where_hint('pma/state', DRIVER))
+    if not response.success:
+        hint = ' (`pma tare --vent` vents and waits first)' if 'not vented' in response.message \
+            else ''
+        raise CliError(f'tare refused: {response.message}{hint}')
+    print(response.message)
+    return OK
+
+
+# -- the inverse model ---------------------------------------------------------------------
+
+BRANCH_CHOICES = {'auto': PressureForLength.Request.BRANCH_AUTO,
+                  'inc': PressureForLength.Request.BRANCH_INCREASING,
+                  'increasing': PressureForLength.Request.BRANCH_INCREASING,
+                  'dec': PressureForLength.Request.BRANCH_DECREASING,
+                  'decreasing': PressureForLength.Request.BRANCH_DECREASING}
+
+
+def pressure_for_length(session: Session, length_m: float, branch: str, si: bool,
+                        timeout_s: float) -> int:
+    client = session.node.create_client(PressureForLength, 'pressure_for_length')
+    request = PressureForLength.Request(length_m=length_m, branch=BRANCH_CHOICES[branch])
+    answer = session.call(client, request, timeout_s,
+                          session.where_hint('pma/prediction', 'model_node'))
+    reach = f'{q.cm(answer.min_length_m)} .. {q.cm(answer.max_length_m)}'
+    if not answer.success:
+        raise CliError(f'no pressure for {q.cm(length_m)}: {answer.message} (reachable: {reach})')
+    if si:
+        print(f'{answer.gauge_pressure_pa:.1f}')
+        return OK
+    print(f'{q.cm(length_m)} on the {BRANCHES.get(answer.branch, "?")} branch: '
+          f'{q.kpa(answer.gauge_pressure_pa)} ({answer.gauge_pressure_pa:.0f} Pa; '
+          f'reachable there: {reach})' + (f'; {answer.message}' if answer.message else ''))
+    return OK
+
+
+# -- parameters ----------------------------------------------------------------------------
+
+TYPE_NAMES = {ParameterType.PARAMETER_BOOL: 'bool', ParameterType.PARAMETER_INTEGER: 'integer',
+              ParameterType.PARAMETER_DOUBLE: 'double', ParameterType.PARAMETER_STRING: 'string',
+              ParameterType.PARAMETER_BYTE_ARRAY: 'byte array',
+              ParameterType.PARAMETER_BOOL_ARRAY: 'bool array',
+              ParameterType.PARAMETER_INTEGER_ARRAY: 'integer array',
+              ParameterType.PARAMETER_DOUBLE_ARRAY: 'double array',
+              ParameterType.PARAMETER_STRING_ARRAY: 'string array'}
+
+
+class Parameters:
+    """A node's parameter services (what `ros2 param` calls)."""
+
+    def __init__(self, session: Session, node: str, timeout_s: float):
+        self.session = session
+        self.node = session.node_name(node)
+        self.timeout_s = timeout_s
+        make = session.node.create_client
+        self._get = make(GetParameters, f'{self.node}/get_parameters')
+        self._set = make(SetParameters, f'{self.node}/set_parameters')
+        self._list = make(ListParameters, f'{self.node}/list_parameters')
+        self._describe = make(DescribeParameters, f'{self.node}/describe_parameters')
+
+    def _call(self, client, request):
+        graph = self.session.node
+
+        def running() -> set[str]:
+            return {f'{ns.rstrip("/")}/{name}'
+                    for name, ns in graph.get_node_names_and_namespaces()
+                    if not name.startswith('_')}
+
+        started = time.monotonic()
+
+        def ready_or_absent() -> bool:
+            # Discovery takes a moment; after it, a node that is not in the graph is a typo or
+            # another namespace, and waiting out the whole timeout would not help.
+            if client.service_is_ready():
+                return True
+            if time.monotonic() - started < ABSENT_AFTER_S:
+                return False
+            nodes = running()
+            return bool(nodes) and self.node not in nodes
+
+        self.session.spin_until(ready_or_absent, self.timeout_s)
+        if not client.service_is_ready():
+            nodes = sorted(running())
+            close = difflib.get_close_matches(self.node, nodes, n=1, cutoff=0.5)
+            raise CliError(f'no node {self.node} answers'
+                           + (f' (did you mean {close[0]}?)' if close else '')
+                           + f'; nodes running: {", ".join(nodes) or "none"}', NO_ANSWER)
+        return self.session.wait_future(client.call_async(request), self.timeout_s,
+                                        client.srv_name)
+
+    def names(self) -> list[str]:
+        return sorted(self._call(self._list, ListParameters.Request()).result.names)
+
+    def get(self, name: str):
+        """(value message, description) of one parameter; CliError if it has none by this name."""
+        values = self._call(self._get, GetParameters.Request(names=[name])).values
+        value = values[0] if values else None
+        if value is None or value.type == ParameterType.PARAMETER_NOT_SET:
+            close = difflib.get_close_matches(name, self.names(), n=3, cutoff=0.5)
+            raise CliError(f'{self.node} has no parameter {name}'
+                           + (f' (did you mean {", ".join(close)}?)' if close else
+                              f'; `pma param list {self.node}` lists them'))
+        return value
+
+    def values(self, names: list[str]) -> dict:
+        """Python values of these parameters (CliError naming any the node lacks)."""
+        answer = self._call(self._get, GetParameters.Request(names=names)).values
+        missing = names if len(answer) != len(names) else [
+            n for n, v in zip(names, answer, strict=True)
+            if v.type == ParameterType.PARAMETER_NOT_SET]
+        if missing:
+            raise CliError(f'{self.node} has no parameter(s) {", ".join(missing)}')
+        return {n: parameter_value_to_python(v) for n, v in zip(names, answer, strict=True)}
+
+    def describe(self, names: list[str]):
+        return self._call(self._describe, DescribeParameters.Request(names=names)).descriptors
+
+    def set(self, name: str, value) -> tuple[bool, str]:
+        message = Parameter(name, value=value).to_parameter_msg()
+        result = self._call(self._set, SetParameters.Request(parameters=[message])).results[0]
+        return result.successful, result.reason
+
+
+def typed_value(name: str, text: str, current_type: int):
+    """`text` as the type the parameter has now; units allowed where the name has one."""
+    kind = q.unit_of_name(name)
+    try:
+        if current_type == ParameterType.PARAMETER_DOUBLE:
+            return q.parse(text, kind) if kind else float(text)
+        if current_type == ParameterType.PARAMETER_INTEGER:
+            return int(text)
+        if current_type == ParameterType.PARAMETER_BOOL:
+            lowered = text.strip().lower()
+            if lowered not in ('true', 'false'):
+                raise ValueError('give true or false')
+            return lowered == 'true'
+        if current_type == ParameterType.PARAMETER_STRING:
+            if name.endswith('_file') and text and not os.path.isabs(text):
+                # The node resolves a relative path against its own working directory.
+                return os.path.abspath(text)
+            return text
+        value = yaml.safe_load(text)
+        if not isinstance(value, list):
+            raise ValueError('give a YAML list, e.g. [1.0, 2.0]')
+        return value
+    except (ValueError, yaml.YAMLError) as error:
+        raise CliError(f'{text!r} is not a {TYPE_NAMES.get(current_type, "value")} for {name}: '
+                       f'{error}', 2) from None
+
+
+def shown(name: str, value) -> str:
+    """`500000.0 (500.0 kPa)`: SI as stored, the human unit beside it."""
+    python = parameter_value_to_python(value)
+    text = repr(python) if isinstance(python, str) else str(python).lower() \
+        if isinstance(python, bool) else str(python)
+    if isinstance(python, float):
+        human = q.human(python, q.unit_of_name(name))
+        if human:
+            text += f' ({human})'
+    return text
+
+
+def param(session: Session, action: str, node: str, name: str | None, value: str | None, *,
+          timeout_s: float) -> int:
+    params = Parameters(session, node, timeout_s)
+    if action == 'list':
+        names = params.names()
+        descriptors = {d.name: d for d in params.describe(names)}
+        values = params._call(params._get, GetParameters.Request(names=names)).values
+        for item, current in zip(names, values, strict=True):
+            description = descriptors[item].description if item in descriptors else ''
+            print(f'{item} = {shown(item, current)}' + (f'   # {description}' if description
+                                                         else ''))
+        return OK
+    if action == 'get':
+        print(f'{name} = {shown(name, params.get(name))}')
+        return OK
+    current = params.get(name)
+    new = typed_value(name, value, current.type)
+    ok, reason = params.set(name, new)
+    if not ok:
+        raise CliError(f'{params.node} refused {name} = {new!r}: {reason or "no reason given"}')
+    print(f'{params.node}: {name} = {shown(name, params.get(name))}')
+    return OK

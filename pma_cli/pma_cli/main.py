@@ -1,0 +1,248 @@
+"""`pma VERB ...`: the rig from a shell, with or without the `ros2` command line.
+
+Every verb is a small client of the project's own topics, services and actions (docs/cli.md
+lists what each one calls, beside its `ros2` spelling). Quantities are typed the way people
+say them (200kPa, 26.5cm, 5s; a plain number is SI) and printed in kPa and cm. Exit codes:
+0 done, 1 refused or failed (the message says why), 2 bad arguments, 3 nothing answered (not
+running, or another namespace), 130 interrupted (the goal was cancelled first).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from pma_cli import quantities as q
+from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted
+
+DEFAULT_TIMEOUT_S = 10.0
+
+
+def _quantity(kind: str):
+    def convert(text: str) -> float:
+        try:
+            return q.parse(text, kind)
+        except q.QuantityError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    convert.__name__ = kind
+    return convert
+
+
+def _quantities(kind: str):
+    def convert(text: str) -> list[float]:
+        try:
+            return q.parse_list(text, kind)
+        except q.QuantityError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    convert.__name__ = f'{kind} list'
+    return convert
+
+
+def parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument('-n', '--namespace', default=os.environ.get('PMA_NAMESPACE', ''),
+                        help="the muscle's namespace (left, /right; default: $PMA_NAMESPACE, "
+                             'else none)')
+    common.add_argument('--timeout', type=_quantity('time'), default=DEFAULT_TIMEOUT_S,
+                        metavar='TIME', help='how long to wait for the node to answer '
+                        f'(default {DEFAULT_TIMEOUT_S:g}s)')
+    top = argparse.ArgumentParser(
+        prog='pma', description='The PMA rig from a shell: status, setpoints, sweeps, the '
+        'inverse model, parameters, calibration and CSV export. Quantities: 200kPa, 2bar, '
+        '26.5cm, 5s; a plain number is SI (Pa, m, s).',
+        epilog='exit codes: 0 done, 1 refused or failed, 2 bad arguments, 3 nothing answered, '
+               '130 interrupted. docs/cli.md has the details and the ros2 equivalents.')
+    verbs = top.add_subparsers(dest='verb', required=True, metavar='VERB')
+
+    def verb(name: str, text: str, **kwargs) -> argparse.ArgumentParser:
+        return verbs.add_parser(name, help=text, description=text, parents=[common], **kwargs)
+
+    p = verb('status', 'link, rate, pressure, length, model and controller, from /diagnostics '
+             'and the topics; exit 0 when the driver streams without an error')
+    p.add_argument('--wait', type=_quantity('time'), nargs='?', const=30.0, default=0.0,
+                   metavar='TIME', help='first wait until the driver streams (default 30s)')
+    p = verb('watch', 'one line per sample: pressure, setpoint, length, the model\'s prediction '
+             '(Ctrl-C ends it)')
+    p.add_argument('--count', type=int, default=0, help='stop after this many lines')
+    p.add_argument('--max-rate', type=float, default=20.0, metavar='HZ',
+                   help='at most this many lines a second (default 20; 0 = every sample)')
+    p.add_argument('--si', action='store_true', help='columns in Pa and m instead of kPa and cm')
+    p = verb('set', 'command a gauge pressure (pma/pressure_setpoint) and confirm the device '
+             'took it')
+    p.add_argument('pressure', type=_quantity('pressure'), help='e.g. 200kPa, 2bar, 200000')
+    p.add_argument('--wait', action='store_true', help='also wait until the pressure is there')
+    p.add_argument('--tolerance', type=_quantity('pressure'), default=10_000.0,
+                   help='for --wait (default 10kPa)')
+    p = verb('vent', 'cancel any sweep or move and command 0 Pa')
+    p.add_argument('--wait', action='store_true', help='wait until the pressure is near 0')
+    p = verb('tare', "zero the pressure reading at rest (the driver's ~/tare)")
+    p.add_argument('--vent', action='store_true',
+                   help='vent first and wait until the pressure is steady')
+    p = verb('sweep', 'run a pressure staircase (the Sweep action) with a progress bar; '
+             'Ctrl-C cancels it and the driver vents')
+    p.add_argument('--max', type=_quantity('pressure'), required=True, dest='max_pa',
+                   metavar='PRESSURE', help='top of the staircase, e.g. 500kPa')
+    p.add_argument('--step', type=_quantity('pressure'), required=True, dest='step_pa',
+                   metavar='PRESSURE', help='step height, e.g. 50kPa')
+    p.add_argument('--hold', type=_quantity('time'), default=5.0, dest='hold_s', metavar='TIME',
+                   help='hold at each step (default 5s)')
+    p.add_argument('--cycles', type=int, default=1, help='up-and-down cycles (default 1)')
+    p.add_argument('--reversals', type=_quantities('pressure'), default=[],
+                   help='minor loops: turn at these pressures, e.g. 300kPa,150kPa')
+    p.add_argument('--record', nargs='?', const='', metavar='BAG',
+                   help='record the run to its own bag (a relative path is taken from here; '
+                        'no path = auto-named); needs a recorder: pma run pma_bag record --idle')
+    p.add_argument('--note', default='', help="operator's note for the bag's metadata")
+    p = verb('length', 'which pressure gives this length? (the inverse model service)')
+    p.add_argument('length', type=_quantity('length'), help='e.g. 26.5cm, 0.265')
+    p.add_argument('--branch', choices=('auto', 'inc', 'dec', 'increasing', 'decreasing'),
+                   default='auto', help='inc/dec: that major branch; auto (default): from the '
+                   'current state along the path the muscle will follow')
+    p.add_argument('--si', action='store_true', help='print only the pressure in Pa')
+    p = verb('move', 'move to a length and hold it (the length controller\'s MoveToLength); '
+             'Ctrl-C cancels')
+    p.add_argument('length', type=_quantity('length'), help='e.g. 26.5cm')
+    p.add_argument('--tolerance', type=_quantity('length'), default=0.0,
+                   help='settled within this (default: the action\'s 2mm)')
+    p.add_argument('--settle', type=_quantity('time'), default=0.0,
+                   help='for this long (default: the action\'s 1s)')
+    p.add_argument('--goal-timeout', type=_quantity('time'), default=0.0,
+                   help='abort if not settled by then (default: the action\'s 30s)')
+    p = verb('param', "get, set or list a node's parameters (what `ros2 param` does)")
+    p.add_argument('action', choices=('get', 'set', 'list'))
+    p.add_argument('node', help='driver_node, model_node, length_controller, recorder, ... '
+                   '(relative to --namespace, or absolute)')
+    p.add_argument('name', nargs='?', help='parameter name (get, set)')
+    p.add_argument('value', nargs='?', help='new value (set); units where the name has one: '
+                   'max_gauge_pressure_pa 450kPa')
+    p = verb('calibrate', 'guided calibration: pressure zero and span against a reference '
+             'gauge, length offset from a tape measurement; writes a driver params file')
+    p.add_argument('-o', '--params-out', type=Path, default=Path('pma_calibration.yaml'),
+                   help='params file to write (default pma_calibration.yaml)')
+    p.add_argument('--check-pressure', type=_quantity('pressure'), default=None,
+                   help='span check pressure (default 60 %% of max_gauge_pressure_pa)')
+    p.add_argument('--skip-pressure', action='store_true', help='no tare, no span check')
+    p.add_argument('--skip-length', action='store_true', help='no length offset')
+    p.add_argument('--bag', type=Path, help='also record the calibration run to this bag, '
+                   'with the result in its metadata')
+    p.add_argument('-y', '--yes', action='store_true', help='do not ask for confirmations '
+                   '(the gauge and tape readings are still asked)')
+    p = verb('export', 'a bag as CSV: one row per pma/state with its prediction, SI columns')
+    p.add_argument('bag', type=Path, help='bag directory or .mcap')
+    p.add_argument('--csv', type=Path, required=True, metavar='OUT',
+                   help="CSV file to write ('-' = standard output)")
+    p.add_argument('--topic', default='pma/state', help='PmaState topic (default pma/state, in '
+                   'any namespace)')
+    p.add_argument('--no-comments', action='store_true',
+                   help='no # metadata lines above the header: the metadata goes to '
+                        'OUT.metadata.yaml instead')
+    p = verbs.add_parser('run', help='`ros2 run` without the ros2 CLI: run PACKAGE EXECUTABLE',
+                         description='Start ros2_ws/install/PACKAGE/lib/PACKAGE/EXECUTABLE with '
+                         'ARGS, exactly what `ros2 run PACKAGE EXECUTABLE ARGS` starts.')
+    p.add_argument('package')
+    p.add_argument('executable')
+    p.add_argument('args', nargs=argparse.REMAINDER)
+    return top
+
+
+def run_executable(package: str, executable: str, args: list[str]) -> int:
+    """exec the installed executable, as `ros2 run` does (same process: signals go to it)."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+    try:
+        prefix = Path(get_package_prefix(package))
+    except PackageNotFoundError:
+        print(f'pma run: no package {package} (is the workspace sourced: . tools/env.sh?)',
+              file=sys.stderr)
+        return USAGE
+    path = prefix / 'lib' / package / executable
+    if not os.access(path, os.X_OK):
+        found = sorted(p.name for p in (prefix / 'lib' / package).glob('*')
+                       if os.access(p, os.X_OK))
+        print(f'pma run: {package} has no executable {executable} (it has: '
+              f'{", ".join(found) or "none"})', file=sys.stderr)
+        return USAGE
+    sys.stdout.flush()
+    os.execv(path, [str(path), *args])
+    return FAILED    # not reached
+
+
+def dispatch(args, session) -> int:
+    from pma_cli import calibrate, commands, goals, observe
+    if args.verb == 'status':
+        return observe.status(session, args.wait, listen_s=3.0)
+    if args.verb == 'watch':
+        return observe.Watch(session, args.si, args.max_rate).run(args.count, args.timeout)
+    if args.verb == 'set':
+        return commands.set_pressure(session, args.pressure, args.wait, args.tolerance,
+                                     args.timeout if not args.wait else max(args.timeout, 30.0))
+    if args.verb == 'vent':
+        return commands.vent(session, args.wait, args.timeout)
+    if args.verb == 'tare':
+        return commands.tare(session, args.vent, args.timeout)
+    if args.verb == 'sweep':
+        return goals.sweep(session, max_pa=args.max_pa, step_pa=args.step_pa,
+                           hold_s=args.hold_s, cycles=args.cycles, reversals_pa=args.reversals,
+                           record=args.record, note=args.note, timeout_s=args.timeout)
+    if args.verb == 'length':
+        return commands.pressure_for_length(session, args.length, args.branch, args.si,
+                                            args.timeout)
+    if args.verb == 'move':
+        return goals.move(session, length_m=args.length, tolerance_m=args.tolerance,
+                          settle_s=args.settle, goal_timeout_s=args.goal_timeout,
+                          timeout_s=args.timeout)
+    if args.verb == 'param':
+        if args.action in ('get', 'set') and not args.name:
+            raise CliError(f'pma param {args.action} needs NODE NAME'
+                           + (' VALUE' if args.action == 'set' else ''), USAGE)
+        if args.action == 'set' and args.value is None:
+            raise CliError('pma param set needs NODE NAME VALUE', USAGE)
+        return commands.param(session, args.action, args.node, args.name, args.value,
+                              timeout_s=args.timeout)
+    if args.verb == 'calibrate':
+        return calibrate.calibrate(session, params_out=args.params_out,
+                                   check_pa=args.check_pressure,
+                                   skip_pressure=args.skip_pressure,
+                                   skip_length=args.skip_length, bag=args.bag,
+                                   assume_yes=args.yes, timeout_s=args.timeout)
+    raise CliError(f'unknown verb {args.verb}', USAGE)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    if args.verb == 'run':
+        return run_executable(args.package, args.executable, args.args)
+    if args.verb == 'export':
+        from pma_cli.export import ExportError, export_csv
+        out = None if str(args.csv) == '-' else args.csv
+        try:
+            summary = export_csv(args.bag, out, args.topic, comments=not args.no_comments)
+        except ExportError as error:
+            print(f'pma export: {error}', file=sys.stderr)
+            return FAILED
+        if out is not None:
+            print(f'{out}: {summary.rows} rows from {summary.state_topic}, {summary.predicted} '
+                  'with a prediction' + ('' if summary.prediction_topic else
+                                         ' (the bag has no pma/prediction)')
+                  + (f'; metadata in {summary.metadata_path}' if summary.metadata_path else ''))
+        if summary.truncated:
+            print(f'pma export: warning: the bag is truncated ({summary.truncated}); exported '
+                  'what it holds before the damage', file=sys.stderr)
+        return 0
+
+    from pma_cli.session import Session
+    from pma_common.node import ros_context
+    with ros_context([]) as stop:
+        session = Session(args.namespace, stop)
+        try:
+            return dispatch(args, session)
+        except CliError as error:
+            print(f'pma {args.verb}: {error}', file=sys.stderr)
+            return error.code
+        except Interrupted:
+            print(f'pma {args.verb}: interrupted', file=sys.stderr)
+            return INTERRUPTED
+        finally:
+            session.close()
+

@@ -1,0 +1,312 @@
+"""`pma status` and `pma watch`: what the rig does now, from /diagnostics and the topics."""
+
+from __future__ import annotations
+
+import collections
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+
+from pma_cli import quantities as q
+from pma_cli.session import FAILED, NO_ANSWER, OK, CliError, Interrupted, Session, ros_time_s
+from pma_common.sequence import SequenceTracker
+from pma_interfaces.msg import ControlState, ModelParams, PmaPrediction, PmaState
+
+LEVELS = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
+VALVES = {PmaState.VALVE_HOLD: 'hold', PmaState.VALVE_FILL: 'fill', PmaState.VALVE_VENT: 'vent'}
+BRANCHES = {PmaPrediction.BRANCH_INCREASING: 'increasing',
+            PmaPrediction.BRANCH_DECREASING: 'decreasing'}
+MODES = {ControlState.MODE_IDLE: 'idle', ControlState.MODE_GOAL: 'goal',
+         ControlState.MODE_STREAM: 'stream', ControlState.MODE_FAULT: 'fault'}
+STATUS_BITS = {PmaState.STATUS_OVERPRESSURE: 'OVERPRESSURE',
+               PmaState.STATUS_HEARTBEAT_LOST: 'HEARTBEAT_LOST',
+               PmaState.STATUS_ECHO_TIMEOUT: 'ECHO_TIMEOUT',
+               PmaState.STATUS_SENSOR_RANGE: 'SENSOR_RANGE'}
+DIAGNOSTICS_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+DIAGNOSTICS_PERIOD_S = 1.0      # every node of the project publishes at 1 Hz
+
+
+def level_name(level) -> str:
+    value = level[0] if isinstance(level, bytes | bytearray) else int(level)
+    return LEVELS.get(value, str(value))
+
+
+def status_text(bits: int) -> str:
+    return '+'.join(name for bit, name in STATUS_BITS.items() if bits & bit) or 'ok'
+
+
+@dataclass
+class NodeStatus:
+    """The newest diagnostic status of one node of our namespace."""
+
+    node: str
+    what: str
+    level: str
+    message: str
+    values: dict[str, str]
+
+
+def split_status_name(name: str) -> tuple[str, str, str]:
+    """'/left/driver_node: serial link' -> ('/left', 'driver_node', 'serial link')."""
+    fqn, _, what = name.partition(': ')
+    namespace, _, node = fqn.rpartition('/')
+    return namespace or '/', node, what
+
+
+class Diagnostics:
+    """The newest status per node of one namespace, from /diagnostics."""
+
+    def __init__(self, session: Session):
+        self.namespace = session.namespace
+        self.by_node: dict[str, NodeStatus] = {}
+        self.namespaces_seen: set[str] = set()
+        session.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_array,
+                                         DIAGNOSTICS_QOS)
+
+    def _on_array(self, array: DiagnosticArray) -> None:
+        for status in array.status:
+            namespace, node, what = split_status_name(status.name)
+            self.namespaces_seen.add(namespace)
+            if namespace == self.namespace:
+                self.by_node[node] = NodeStatus(
+                    node, what, level_name(status.level), status.message,
+                    {'hardware_id': status.hardware_id,
+                     **{kv.key: kv.value for kv in status.values}})
+
+    def get(self, node: str) -> NodeStatus | None:
+        return self.by_node.get(node)
+
+
+def _nodes_in(session: Session) -> list[str]:
+    return sorted(name for name, namespace in session.node.get_node_names_and_namespaces()
+                  if namespace == session.namespace and not name.startswith('_'))
+
+
+def driver_line(status: NodeStatus | None) -> str:
+    if status is None:
+        return 'no diagnostics from driver_node'
+    values = status.values
+    parts = [status.message, values.get('lifecycle state', '?')]
+    if 'sample rate [Hz]' in values:
+        parts.append(f'{float(values["sample rate [Hz]"]):.1f} Hz')
+    if values.get('firmware', '-') != '-':
+        parts.append(values['firmware'])
+    parts.append(f'port {values.get("hardware_id", "?")}')
+    if values.get('lost samples', '0') != '0':
+        parts.append(f'{values["lost samples"]} samples lost')
+    if values.get('sweep running') == 'yes':
+        parts.append('sweep running')
+    return ' | '.join(parts)
+
+
+def state_lines(state: PmaState | None) -> list[str]:
+    if state is None:
+        return ['pressure  - (no pma/state received)']
+    return [f'pressure  {q.kpa(state.gauge_pressure_pa)} (setpoint '
+            f'{q.kpa(state.gauge_setpoint_pa)}, valve {VALVES.get(state.valve_state, "?")}, '
+            f'device {status_text(state.status)})',
+            f'length    {q.cm(state.length_m)}' + ('' if math.isfinite(state.length_m)
+                                                     else ' (no echo)')]
+
+
+def model_line(status: NodeStatus | None, prediction: PmaPrediction | None,
+               params: ModelParams | None) -> str | None:
+    if status is None and prediction is None:
+        return None
+    parts = []
+    if status is not None:
+        parts.append(f'{status.level} {status.message}')
+    if params is not None:
+        parts.append(f'{params.form} branches, {params.memory} memory')
+    if prediction is not None:
+        parts.append(f'predicts {q.cm(prediction.predicted_length_m)} on the '
+                     f'{BRANCHES.get(prediction.branch, "?")} branch')
+    if status is not None and status.values.get('params_file', '(none)') != '(none)':
+        parts.append(f'params_file {status.values["params_file"]}')
+    return 'model     ' + ' | '.join(parts)
+
+
+def control_line(status: NodeStatus | None, control: ControlState | None) -> str | None:
+    if status is None and control is None:
+        return None
+    parts = []
+    if status is not None:
+        parts.append(f'{status.level} {status.message}')
+    if control is not None:
+        parts.append(f'mode {MODES.get(control.mode, control.mode)}')
+        if control.mode in (ControlState.MODE_GOAL, ControlState.MODE_STREAM):
+            parts.append(f'target {q.cm(control.target_length_m)}, command '
+                         f'{q.kpa(control.gauge_pressure_command_pa)}')
+    return 'control   ' + ' | '.join(parts)
+
+
+def status(session: Session, wait_s: float, listen_s: float) -> int:
+    """Print the rig's state; OK when the driver streams without an error."""
+    diagnostics = Diagnostics(session)
+    state = session.latest(PmaState, 'pma/state')
+    prediction = session.latest(PmaPrediction, 'pma/prediction')
+    control = session.latest(ControlState, 'pma/control_state')
+    params = session.latest(ModelParams, 'pma/model_params', LATCHED_QOS)
+
+    def streaming() -> bool:
+        driver = diagnostics.get('driver_node')
+        return driver is not None and driver.values.get('link state') == 'streaming' \
+            and state.message is not None
+
+    if wait_s > 0 and not session.spin_until(streaming, wait_s):
+        driver = diagnostics.get('driver_node')
+        why = (f'the driver says: {driver.message}' if driver is not None else
+               session.where_hint('pma/state', 'driver_node'))
+        print(f'pma status: no streaming driver within {wait_s:g} s; {why}', file=sys.stderr)
+        return NO_ANSWER
+
+    listening_since = time.monotonic()
+
+    def heard_everyone() -> bool:
+        # Graph discovery lags behind a fresh node: one diagnostics period heard in full.
+        if time.monotonic() - listening_since < DIAGNOSTICS_PERIOD_S + 0.2:
+            return False
+        if diagnostics.get('driver_node') is None or state.message is None:
+            return False
+        nodes = set(_nodes_in(session)) & {'model_node', 'length_controller'}
+        return nodes <= set(diagnostics.by_node)
+
+    session.spin_until(heard_everyone, listen_s)
+    session.spin_for(0.1)                  # the prediction of the last state
+    nodes = _nodes_in(session)
+    driver = diagnostics.get('driver_node')
+    print(f'namespace {session.namespace}   nodes: {", ".join(nodes) or "none"}')
+    print(f'driver    {driver.level + " " if driver else ""}{driver_line(driver)}')
+    for line in state_lines(state.message):
+        print(line)
+    for line in (model_line(diagnostics.get('model_node'), prediction.message, params.message),
+                 control_line(diagnostics.get('length_controller'), control.message)):
+        if line:
+            print(line)
+    if driver is None:
+        others = sorted(diagnostics.namespaces_seen - {session.namespace})
+        hint = session.where_hint('pma/state', 'driver_node')
+        if others:
+            hint += f' (diagnostics came from {", ".join(others)})'
+        print(f'pma status: no driver in {session.namespace}: {hint}', file=sys.stderr)
+        return NO_ANSWER
+    errors = [s for s in diagnostics.by_node.values() if s.level == 'ERROR']
+    for item in errors:
+        print(f'pma status: {item.node}: {item.message}', file=sys.stderr)
+    return FAILED if errors or driver.values.get('link state') != 'streaming' else OK
+
+
+# -- watch ---------------------------------------------------------------------------------
+
+WATCH_COLUMNS_HUMAN = ('t [s]', 'seq', 'p [kPa]', 'set [kPa]', 'L [cm]', 'model [cm]',
+                       'branch', 'valve', 'status')
+WATCH_COLUMNS_SI = ('time_s', 'seq', 'gauge_pressure_pa', 'gauge_setpoint_pa', 'length_m',
+                    'predicted_length_m', 'branch', 'valve', 'status')
+PREDICTION_WAIT_S = 0.3     # a state's line waits this long for its prediction
+
+
+def _number(value: float, fmt: str) -> str:
+    return format(value, fmt) if math.isfinite(value) else 'nan'
+
+
+class Watch:
+    """One line per sample (at most `max_rate_hz`), each with the model's prediction if any."""
+
+    def __init__(self, session: Session, si: bool, max_rate_hz: float, out=sys.stdout):
+        self.session = session
+        self.si = si
+        self.min_interval_s = 1.0 / max_rate_hz if max_rate_hz > 0 else 0.0
+        self.out = out
+        self.pending: collections.deque[tuple[float, PmaState]] = collections.deque()
+        self.predictions: dict[tuple[int, int], PmaPrediction] = {}
+        self.sequence = SequenceTracker()
+        self.shown = 0
+        self.received = 0
+        self.t0: float | None = None
+        self.last_shown_stamp = -math.inf
+        qos = QoSProfile(depth=200, reliability=qos_profile_sensor_data.reliability)
+        session.node.create_subscription(PmaState, 'pma/state', self._on_state, qos)
+        session.node.create_subscription(PmaPrediction, 'pma/prediction', self._on_prediction,
+                                         qos)
+
+    def _on_state(self, state: PmaState) -> None:
+        self.received += 1
+        self.sequence.add(state.seq)
+        self.pending.append((time.monotonic(), state))
+
+    def _on_prediction(self, prediction: PmaPrediction) -> None:
+        stamp = prediction.header.stamp
+        self.predictions[(stamp.sec, stamp.nanosec)] = prediction
+        if len(self.predictions) > 2000:
+            for key in list(self.predictions)[:1000]:
+                del self.predictions[key]
+
+    def header(self) -> str:
+        columns = WATCH_COLUMNS_SI if self.si else WATCH_COLUMNS_HUMAN
+        widths = (9, 8, 10, 10, 9, 10, 10, 5, 0)
+        return ' '.join(f'{c:>{w}}' if w else c for c, w in zip(columns, widths, strict=True))
+
+    def line(self, state: PmaState, prediction: PmaPrediction | None) -> str:
+        t = ros_time_s(state.header.stamp)
+        if self.t0 is None:
+            self.t0 = t
+        predicted = prediction.predicted_length_m if prediction else math.nan
+        branch = BRANCHES.get(prediction.branch, '-') if prediction else '-'
+        if self.si:
+            numbers = (f'{t - self.t0:9.3f}', f'{state.seq:8d}',
+                       f'{_number(state.gauge_pressure_pa, ".1f"):>10}',
+                       f'{_number(state.gauge_setpoint_pa, ".1f"):>10}',
+                       f'{_number(state.length_m, ".5f"):>9}', f'{_number(predicted, ".5f"):>10}')
+        else:
+            numbers = (f'{t - self.t0:9.3f}', f'{state.seq:8d}',
+                       f'{_number(state.gauge_pressure_pa / 1e3, ".1f"):>10}',
+                       f'{_number(state.gauge_setpoint_pa / 1e3, ".1f"):>10}',
+                       f'{_number(state.length_m * 100, ".2f"):>9}',
+                       f'{_number(predicted * 100, ".2f"):>10}')
+        return ' '.join((*numbers, f'{branch:>10}', f'{VALVES.get(state.valve_state, "?"):>5}',
+                         status_text(state.status)))
+
+    def flush(self, everything: bool = False, limit: int = 0) -> None:
+        now = time.monotonic()
+        while self.pending and not (limit and self.shown >= limit):
+            received, state = self.pending[0]
+            stamp = state.header.stamp
+            prediction = self.predictions.pop((stamp.sec, stamp.nanosec), None)
+            if prediction is None and not everything and now - received < PREDICTION_WAIT_S:
+                return
+            self.pending.popleft()
+            t = ros_time_s(stamp)
+            if t - self.last_shown_stamp < self.min_interval_s:
+                continue
+            self.last_shown_stamp = t
+            print(self.line(state, prediction), file=self.out, flush=True)
+            self.shown += 1
+
+    def run(self, count: int, first_timeout_s: float) -> int:
+        print(self.header(), file=self.out, flush=True)
+        hinted = False
+        started = time.monotonic()
+        try:
+            while count <= 0 or self.shown < count:
+                self.session.spin_until(lambda: False, 0.05)
+                self.flush(limit=count)
+                if self.received == 0 and time.monotonic() - started > first_timeout_s:
+                    hint = self.session.where_hint('pma/state', 'driver_node')
+                    if count > 0:
+                        raise CliError(f'no pma/state within {first_timeout_s:g} s: {hint}',
+                                       NO_ANSWER)
+                    if not hinted:
+                        print(f'pma watch: no pma/state yet: {hint}', file=sys.stderr)
+                        hinted = True
+        except Interrupted:
+            self.flush(everything=True, limit=count)
+        stats = self.sequence.stats()
+        print(f'pma watch: {self.shown} lines, {self.received} samples received, '
+              f'{stats.lost} lost by sequence number', file=sys.stderr)
+        return OK

@@ -1,0 +1,112 @@
+"""Quantities the way people type and read them: `200kPa`, `2bar`, `26.5cm`, `5s`; plain = SI.
+
+Every ROS interface of the project is SI with the unit in the name (gauge_pressure_pa,
+length_m); only what a person types or reads goes through here. kPa and cm take their factors
+from pma_model.units, the project's one home of the paper's units.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+from pma_model.units import M_PER_CM, PA_PER_KPA
+
+# Lower-case unit -> SI factor. Case is ignored: "mpa" is MPa (nobody means millipascal), and
+# "mbar" is the millibar.
+PRESSURE_UNITS = {'pa': 1.0, 'kpa': PA_PER_KPA, 'mpa': 1000.0 * PA_PER_KPA,
+                  'bar': 100.0 * PA_PER_KPA, 'mbar': 0.1 * PA_PER_KPA,
+                  'psi': 6894.757293168361}          # lbf/in^2, exact by definition
+LENGTH_UNITS = {'m': 1.0, 'cm': M_PER_CM, 'mm': 0.1 * M_PER_CM}
+TIME_UNITS = {'s': 1.0, 'ms': 1e-3, 'min': 60.0, 'h': 3600.0}
+KINDS = {'pressure': (PRESSURE_UNITS, 'Pa', '200kPa, 2bar, 29psi'),
+         'length': (LENGTH_UNITS, 'm', '26.5cm, 265mm, 0.265m'),
+         'time': (TIME_UNITS, 's', '5s, 500ms, 2min')}
+
+_QUANTITY = re.compile(r'^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zA-Z]*)\s*$')
+
+
+class QuantityError(ValueError):
+    """Text that is not a quantity of the kind asked for; the message says what would be."""
+
+
+def parse(text: str, kind: str) -> float:
+    """SI value of `text`: a number with a unit of `kind`, or a plain number in SI."""
+    units, si_unit, examples = KINDS[kind]
+    match = _QUANTITY.match(text)
+    if match is None:
+        raise QuantityError(f'{text!r} is not a {kind}: give a number with a unit ({examples}) '
+                            f'or a plain number in {si_unit}')
+    number, unit = float(match.group(1)), match.group(2).lower()
+    if unit and unit not in units:
+        known = ', '.join(sorted({_spelling(u) for u in units}))
+        raise QuantityError(f'{text!r}: {match.group(2)!r} is not a unit of {kind} '
+                            f'(known: {known}; a plain number is {si_unit})')
+    value = number * units[unit] if unit else number
+    if not math.isfinite(value):
+        raise QuantityError(f'{text!r} is not a finite {kind}')
+    return value
+
+
+def parse_list(text: str, kind: str) -> list[float]:
+    """`300kPa,150kPa` (commas or spaces) as SI values."""
+    parts = [part for part in re.split(r'[,\s]+', text.strip()) if part]
+    if not parts:
+        raise QuantityError(f'{text!r} has no {kind} in it')
+    return [parse(part, kind) for part in parts]
+
+
+def _spelling(unit: str) -> str:
+    return {'pa': 'Pa', 'kpa': 'kPa', 'mpa': 'MPa'}.get(unit, unit)
+
+
+def unit_of_name(name: str) -> str | None:
+    """The kind a parameter's SI suffix names ('pressure' for *_pa, ...), None for others.
+
+    A suffix after another unit (`_pa_s`, `_m_s`, `_per_s`) is a rate, which takes plain SI.
+    """
+    tokens = name.rsplit('.', 1)[-1].split('_')
+    if len(tokens) < 2:
+        return None
+    if tokens[-2] in ('pa', 'm', 'per', 's'):
+        return None
+    return {'pa': 'pressure', 'm': 'length', 's': 'time'}.get(tokens[-1])
+
+
+def kpa(pressure_pa: float, digits: int = 1) -> str:
+    """`212.3 kPa` (what a person reads); NaN as `-`."""
+    if not math.isfinite(pressure_pa):
+        return '-'
+    return f'{pressure_pa / PA_PER_KPA:.{digits}f} kPa'
+
+
+def cm(length_m: float, digits: int = 2) -> str:
+    """`26.50 cm`; NaN (no echo) as `-`."""
+    if not math.isfinite(length_m):
+        return '-'
+    return f'{length_m / M_PER_CM:.{digits}f} cm'
+
+
+def seconds(duration_s: float) -> str:
+    """`4 s`, `2 min 05 s`, `1 h 02 min`."""
+    if not math.isfinite(duration_s):
+        return '-'
+    whole = round(duration_s)
+    if whole < 60:
+        return f'{duration_s:.1f} s' if duration_s < 10 else f'{whole} s'
+    minutes, secs = divmod(whole, 60)
+    if minutes < 60:
+        return f'{minutes} min {secs:02d} s'
+    hours, minutes = divmod(minutes, 60)
+    return f'{hours} h {minutes:02d} min'
+
+
+def human(value: float, kind: str | None) -> str:
+    """A parameter value with its human unit beside it, when its name has one."""
+    if kind == 'pressure':
+        return kpa(value, 3 if abs(value) < 1000 else 1)
+    if kind == 'length':
+        return cm(value, 2)
+    if kind == 'time':
+        return seconds(value)
+    return ''

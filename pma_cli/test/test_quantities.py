@@ -1,0 +1,87 @@
+"""Quantities typed the way people say them become SI, and SI prints the way people read it."""
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pma_cli import quantities as q
+
+
+@pytest.mark.parametrize(('text', 'kind', 'si'), [
+    ('200kPa', 'pressure', 200_000.0), ('200 kPa', 'pressure', 200_000.0),
+    ('200KPA', 'pressure', 200_000.0), ('0.2MPa', 'pressure', 200_000.0),
+    ('2bar', 'pressure', 200_000.0), ('150mbar', 'pressure', 15_000.0),
+    ('1psi', 'pressure', 6894.757293168361), ('200000', 'pressure', 200_000.0),
+    ('2e5', 'pressure', 200_000.0), ('.5bar', 'pressure', 50_000.0),
+    ('26.5cm', 'length', 0.265), ('265mm', 'length', 0.265), ('0.265m', 'length', 0.265),
+    ('0.265', 'length', 0.265), ('5s', 'time', 5.0), ('500ms', 'time', 0.5),
+    ('2min', 'time', 120.0), ('1h', 'time', 3600.0), ('-3kPa', 'pressure', -3000.0),
+])
+def test_parse_gives_si(text, kind, si):
+    assert math.isclose(q.parse(text, kind), si, rel_tol=1e-12)
+
+
+@pytest.mark.parametrize(('text', 'kind', 'words'), [
+    ('200', 'length', None),                  # plain = SI: valid (200 m), checked elsewhere
+    ('200kpa5', 'pressure', 'not a pressure'),
+    ('26.5cm', 'pressure', "'cm' is not a unit of pressure"),
+    ('5kPa', 'time', "'kPa' is not a unit of time"),
+    ('', 'length', 'not a length'),
+    ('1e999', 'pressure', 'not a finite'),
+    ('kPa', 'pressure', 'not a pressure'),
+])
+def test_parse_refuses_with_a_reason(text, kind, words):
+    if words is None:
+        assert q.parse(text, kind) == 200.0
+        return
+    with pytest.raises(q.QuantityError, match=words):
+        q.parse(text, kind)
+
+
+def test_the_refusal_names_the_known_units():
+    with pytest.raises(q.QuantityError) as error:
+        q.parse('3atm', 'pressure')
+    assert 'kPa' in str(error.value) and 'psi' in str(error.value) and 'Pa' in str(error.value)
+
+
+def test_lists_split_on_commas_and_spaces():
+    assert q.parse_list('300kPa,150kPa', 'pressure') == [300_000.0, 150_000.0]
+    assert q.parse_list(' 3bar  1.5bar ', 'pressure') == [300_000.0, 150_000.0]
+    with pytest.raises(q.QuantityError):
+        q.parse_list(' , ', 'pressure')
+
+
+@given(st.floats(min_value=0.0, max_value=1e7, allow_nan=False))
+def test_kpa_round_trip(pressure_pa):
+    shown = q.kpa(pressure_pa, digits=6).replace(' ', '')
+    assert math.isclose(q.parse(shown, 'pressure'), pressure_pa, abs_tol=1e-3)
+
+
+@given(st.floats(min_value=0.0, max_value=10.0, allow_nan=False))
+def test_cm_round_trip(length_m):
+    shown = q.cm(length_m, digits=6).replace(' ', '')
+    assert math.isclose(q.parse(shown, 'length'), length_m, abs_tol=1e-8)
+
+
+def test_missing_values_print_as_a_dash():
+    assert q.kpa(math.nan) == '-' and q.cm(math.nan) == '-' and q.seconds(math.inf) == '-'
+
+
+def test_durations_read_naturally():
+    assert q.seconds(4.25) == '4.2 s'
+    assert q.seconds(42) == '42 s'
+    assert q.seconds(125) == '2 min 05 s'
+    assert q.seconds(3720) == '1 h 02 min'
+
+
+@pytest.mark.parametrize(('name', 'kind'), [
+    ('max_gauge_pressure_pa', 'pressure'), ('calibration.length_offset_m', 'length'),
+    ('sweep.step_timeout_s', 'time'), ('calibration.tare_offset_pa', 'pressure'),
+    ('calibration.speed_of_sound_m_s', None), ('max_pressure_rate_pa_s', None),
+    ('ki_per_s', None), ('fb_kp_pa_per_m', None), ('heartbeat_timeout_ms', None),
+    ('sample_rate_hz', None), ('port', None), ('params_file', None),
+])
+def test_parameter_names_say_their_unit(name, kind):
+    assert q.unit_of_name(name) == kind

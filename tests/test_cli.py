@@ -1,0 +1,413 @@
+"""Every `pma` verb against the simulated rig: real processes over DDS, no ros2 CLI.
+
+The rig (fake_arduino, driver_node, model_node, an idle recorder, length_controller) runs in
+namespace /cli, as `ros2 run` starts it; `pma` runs as a user types it, from the installed
+console script, and what it claims is checked on the rig itself: the device's own setpoint in
+pma/state, the controller's mode, the bag on disk read by rosbags (an independent reader).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import signal
+import statistics
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from rclpy.qos import qos_profile_sensor_data
+from rosbags.highlevel import AnyReader
+
+from pma_interfaces.msg import ControlState, PmaState
+from pma_interfaces.srv import PressureForLength
+from support.procs import INSTALL
+from support.ros import SpinningNode, shutdown, wait_until
+
+pytestmark = pytest.mark.integration
+
+PMA = INSTALL / 'pma_cli' / 'lib' / 'pma_cli' / 'pma'
+NS = 'cli'
+
+
+def pma(*args: str, namespace: str = NS, cwd: Path | None = None, timeout: float = 90.0):
+    """Run `pma VERB ARGS --namespace NS` to its end; the CompletedProcess."""
+    argv = [str(PMA), *args]
+    if args[0] not in ('export', 'run') and namespace is not None:
+        argv += ['--namespace', namespace]
+    return subprocess.run(argv, check=False, capture_output=True, text=True, timeout=timeout,
+                          cwd=cwd, stdin=subprocess.DEVNULL)
+
+
+def ok(result: subprocess.CompletedProcess) -> str:
+    assert result.returncode == 0, f'exit {result.returncode}\n{result.stdout}\n{result.stderr}'
+    assert 'Traceback' not in result.stderr, result.stderr
+    return result.stdout
+
+
+class Probe:
+    """The rig as seen from the test: its states and the controller's."""
+
+    def __init__(self):
+        self.spinning = SpinningNode('cli_probe')
+        self.states: list[PmaState] = []
+        self.control: list[ControlState] = []
+        node = self.spinning.node
+        node.create_subscription(PmaState, f'/{NS}/pma/state', self.states.append,
+                                 qos_profile_sensor_data)
+        node.create_subscription(ControlState, f'/{NS}/pma/control_state', self.control.append,
+                                 10)
+
+    def fresh_state(self) -> PmaState:
+        count = len(self.states)
+        wait_until(lambda: len(self.states) > count + 1, 10, 'a fresh pma/state')
+        return self.states[-1]
+
+    def close(self):
+        self.spinning.close()
+
+
+@pytest.fixture(scope='module')
+def rig(module_procs, tmp_path_factory):
+    work = tmp_path_factory.mktemp('cli_rig')
+    port = work / 'pma'
+    recorder_cwd = work / 'recorder_cwd'
+    recorder_cwd.mkdir()
+    ns = ['-r', f'__ns:=/{NS}']
+    truth = work / 'truth.csv'        # what a reference gauge and a tape would read
+    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed', '5',
+                                 '--truth', str(truth))
+    fake.wait_for_line('device at', 20)
+    driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[*ns, '-p',
+                                                                          f'port:={port}'])
+    model = module_procs.ros2_run('pma_model', 'model_node', ros_args=ns)
+    recorder = module_procs.ros2_run('pma_bag', 'record', '--idle', ros_args=ns,
+                                     cwd=recorder_cwd)
+    controller = module_procs.ros2_run('pma_control', 'length_controller', ros_args=ns)
+    driver.wait_for_line('active: publishing', 30)
+    model.wait_for_line('model_node ready', 30)
+    recorder.wait_for_line('idle', 30)
+    controller.wait_for_line('length_controller ready', 30)
+    probe = Probe()
+    wait_until(lambda: len(probe.states) > 10 and probe.control, 20, 'the rig streaming')
+    yield {'work': work, 'probe': probe, 'recorder_cwd': recorder_cwd, 'driver': driver,
+           'truth': truth}
+    probe.close()
+    shutdown()
+
+
+def test_status_reports_the_rig_and_points_at_the_right_namespace(rig):
+    out = ok(pma('status', '--wait', '30s'))
+    assert 'OK streaming' in out and '| active |' in out and 'fake_arduino' in out
+    assert 'pressure ' in out and ' kPa' in out and 'length ' in out and ' cm' in out
+    assert 'model ' in out and 'predicting' in out
+    assert 'control ' in out
+    elsewhere = pma('status', namespace='nowhere')
+    assert elsewhere.returncode == 3, elsewhere
+    assert '--namespace cli' in elsewhere.stderr, elsewhere.stderr
+
+
+def test_set_is_confirmed_by_the_device_and_a_refusal_says_why(rig):
+    probe = rig['probe']
+    out = ok(pma('set', '150kPa', '--wait'))
+    assert 'setpoint 150.0 kPa taken by the device' in out and 'reached' in out
+    state = probe.fresh_state()
+    assert state.gauge_setpoint_pa == 150_000.0
+    assert abs(state.gauge_pressure_pa - 150_000.0) < 10_000.0
+    too_high = pma('set', '6bar')
+    assert too_high.returncode == 1
+    assert 'refused 600.0 kPa' in too_high.stderr and 'max_gauge_pressure_pa' in too_high.stderr
+    assert probe.fresh_state().gauge_setpoint_pa == 150_000.0      # nothing reached the device
+    bad = pma('set', '150cm')
+    assert bad.returncode == 2 and "'cm' is not a unit of pressure" in bad.stderr
+
+
+def test_tare_wants_a_vented_muscle_and_vent_gives_one(rig):
+    ok(pma('set', '100kPa'))
+    refused = pma('tare')
+    assert refused.returncode == 1
+    assert 'not vented' in refused.stderr and 'pma tare --vent' in refused.stderr
+    out = ok(pma('vent', '--wait'))
+    assert 'setpoint 0 kPa taken' in out and 'vented:' in out
+    assert rig['probe'].fresh_state().gauge_setpoint_pa == 0.0
+    assert 'tared: ADC' in ok(pma('tare'))
+    assert 'tared: ADC' in ok(pma('tare', '--vent'))
+
+
+def test_length_answers_what_the_service_answers(rig):
+    node = rig['probe'].spinning.node
+    client = node.create_client(PressureForLength, f'/{NS}/pressure_for_length')
+    assert client.wait_for_service(timeout_sec=10)
+
+    def direct() -> float:
+        answer = client.call(PressureForLength.Request(length_m=0.27, branch=1), timeout_sec=10)
+        assert answer.success, answer.message
+        return answer.gauge_pressure_pa
+
+    # The model identifies online, so its inverse moves a little between calls: pma's answer
+    # lies where the service's own answers just before and just after it lie.
+    before = direct()
+    out = ok(pma('length', '27cm', '--branch', 'inc', '--si'))
+    after = direct()
+    node.destroy_client(client)
+    assert min(before, after) - 500.0 <= float(out) <= max(before, after) + 500.0
+    human = ok(pma('length', '270mm', '--branch', 'increasing'))
+    assert '27.00 cm on the increasing branch' in human and ' kPa ' in human
+    unreachable = pma('length', '10cm')
+    assert unreachable.returncode == 1 and 'reachable' in unreachable.stderr
+
+
+def test_param_get_set_with_units_and_refusals_with_the_reason(rig):
+    assert 'max_gauge_pressure_pa = 500000.0 (500.0 kPa)' in ok(
+        pma('param', 'get', 'driver_node', 'max_gauge_pressure_pa'))
+    out = ok(pma('param', 'set', 'driver_node', 'sweep.step_timeout_s', '12s'))
+    assert 'sweep.step_timeout_s = 12.0' in out
+    refused = pma('param', 'set', 'driver_node', 'calibration.tare_offset_pa', '90kPa')
+    assert refused.returncode == 1
+    assert 'more than 10 % of full_scale_pa' in refused.stderr
+    missing = pma('param', 'set', 'model_node', 'params_file', 'no_such_refit.yaml',
+                  cwd=rig['work'])
+    assert missing.returncode == 1
+    assert f'{rig["work"]}/no_such_refit.yaml' in missing.stderr       # made absolute here
+    assert 'No such file' in missing.stderr
+    typo = pma('param', 'get', 'driver_node', 'max_gauge_pressure')
+    assert typo.returncode == 1 and 'did you mean max_gauge_pressure_pa' in typo.stderr
+    listing = ok(pma('param', 'list', 'length_controller'))
+    assert 'max_gauge_pressure_pa = ' in listing and '#' in listing
+    absent = pma('param', 'get', 'no_such_node', 'x', '--timeout', '8s')
+    assert absent.returncode == 3 and 'no node /cli/no_such_node' in absent.stderr
+
+
+def test_sweep_records_where_the_user_asked_and_exports_to_csv(rig, tmp_path):
+    result = pma('sweep', '--max', '100kPa', '--step', '50kPa', '--hold', '0.5s',
+                 '--record', 'runs/s1', '--note', 'cli test', cwd=tmp_path)
+    out = ok(result)
+    bag = tmp_path / 'runs' / 's1'
+    assert 'sweep succeeded' in out and f'bag: {bag}' in out
+    assert '100.0 %' in result.stderr or '80.0 %' in result.stderr     # the progress lines
+    assert not (rig['recorder_cwd'] / 'runs').exists()
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())
+    custom = meta['rosbag2_bagfile_information']['custom_data']
+    assert custom['note'] == 'cli test' and 'calibration.volts_at_full' in custom
+    with AnyReader([bag]) as reader:
+        states = sum(1 for c, _, _ in reader.messages() if c.topic == f'/{NS}/pma/state')
+    export = ok(pma('export', str(bag), '--csv', str(tmp_path / 's1.csv')))
+    assert f'{states} rows from /{NS}/pma/state' in export
+    lines = (tmp_path / 's1.csv').read_text().splitlines()
+    assert any(line.startswith('#   note: cli test') for line in lines)
+    rows = list(csv.DictReader(line for line in lines if not line.startswith('#')))
+    assert len(rows) == states
+    predicted = [r for r in rows if r['predicted_length_m']]
+    assert len(predicted) > 0.8 * len(rows)
+    assert max(float(r['gauge_setpoint_pa']) for r in rows) == 100_000.0
+    for row in predicted:
+        assert math.isclose(float(row['residual_m']),
+                            float(row['length_m']) - float(row['predicted_length_m']),
+                            abs_tol=1e-12) if row['length_m'] else True
+
+
+def test_ctrl_c_cancels_the_sweep_and_the_driver_vents(rig):
+    proc = subprocess.Popen([str(PMA), 'sweep', '--max', '300kPa', '--step', '100kPa',
+                             '--hold', '3s', '--namespace', NS], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        probe = rig['probe']
+        wait_until(lambda: probe.states[-1].gauge_setpoint_pa >= 100_000.0, 30,
+                   'the sweep at its second step')
+        os.killpg(proc.pid, signal.SIGINT)                   # what Ctrl-C sends
+        time.sleep(0.02)
+        proc.send_signal(signal.SIGINT)                      # impatient: a second one
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, out
+    assert 'cancelling the driver goal' in out and 'sweep cancelled' in out and 'vented' in out
+    assert 'Traceback' not in out
+    wait_until(lambda: probe.states[-1].gauge_setpoint_pa == 0.0, 10, 'the device vented')
+
+
+def test_move_then_vent_releases_the_controller(rig):
+    out = ok(pma('move', '27.5cm', '--goal-timeout', '20s'))
+    assert 'move succeeded' in out
+    probe = rig['probe']
+    wait_until(lambda: probe.control[-1].mode != ControlState.MODE_IDLE, 5, 'a target held')
+    out = ok(pma('vent', '--wait'))
+    assert 'released the length controller (it held 27.50 cm)' in out
+    wait_until(lambda: probe.control[-1].mode == ControlState.MODE_IDLE, 5, 'the controller idle')
+    assert probe.fresh_state().gauge_setpoint_pa == 0.0
+
+
+def test_watch_prints_one_line_per_sample(rig):
+    out = ok(pma('watch', '--count', '5', '--si', '--max-rate', '0'))
+    lines = out.splitlines()
+    assert lines[0].split()[:3] == ['time_s', 'seq', 'gauge_pressure_pa']
+    seqs = [int(line.split()[1]) for line in lines[1:]]
+    assert len(seqs) == 5 and seqs == sorted(seqs) and seqs[-1] - seqs[0] <= 6
+    assert all(len(line.split()) == 9 for line in lines[1:])
+
+
+def test_run_is_ros2_run(rig, tmp_path):
+    out = ok(pma('run', 'pma_bag', 'info', '--help'))
+    assert 'usage:' in out
+    missing = pma('run', 'pma_bag', 'no_such_exe')
+    assert missing.returncode == 2 and 'record' in missing.stderr
+
+
+def test_export_errors_are_one_line(tmp_path):
+    result = pma('export', str(tmp_path / 'missing'), '--csv', str(tmp_path / 'x.csv'))
+    assert result.returncode == 1 and result.stderr.strip().count('\n') == 0
+    assert 'no such bag' in result.stderr
+
+
+# -- calibration -----------------------------------------------------------------------------
+
+class Typist:
+    """`pma calibrate` at a terminal: reads its prompts, types what the instruments show."""
+
+    def __init__(self, argv: list[str], cwd: Path):
+        self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, cwd=cwd, start_new_session=True)
+        self.output = ''
+        self._read = 0                  # what was answered: prompts after it are new
+        self._cond = threading.Condition()
+        self._reader = threading.Thread(target=self._pump, daemon=True)
+        self._reader.start()
+
+    def _pump(self) -> None:
+        while chunk := os.read(self.proc.stdout.fileno(), 4096):
+            with self._cond:
+                self.output += chunk.decode('utf-8', errors='replace')
+                self._cond.notify_all()
+        with self._cond:
+            self._cond.notify_all()
+
+    def expect(self, prompt: str, timeout: float = 60.0) -> None:
+        """Until `prompt` is on the screen after what was answered last."""
+        with self._cond:
+            found = self._cond.wait_for(
+                lambda: prompt in self.output[self._read:] or not self._reader.is_alive(),
+                timeout)
+            at = self.output.find(prompt, self._read)
+            assert found and at >= 0, f'no {prompt!r}:\n{self.output}'
+            self._read = at + len(prompt)
+
+    def type(self, answer: str) -> None:
+        self.proc.stdin.write(f'{answer}\n'.encode())
+        self.proc.stdin.flush()
+
+    def finish(self, timeout: float = 60.0) -> tuple[int, str]:
+        try:
+            self.proc.wait(timeout)
+        finally:
+            if self.proc.poll() is None:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+        self._reader.join(5)
+        return self.proc.returncode, self.output
+
+
+def truth_now(truth: Path, samples: int) -> tuple[float, float]:
+    """Mean true (length_m, gauge_pressure_pa) of the rig's latest samples: tape and gauge."""
+    rows = list(csv.DictReader(truth.read_text().splitlines()))[-samples:]
+    return (statistics.fmean(float(r['true_length_m']) for r in rows),
+            statistics.fmean(float(r['true_gauge_pressure_pa']) for r in rows))
+
+
+def driver_parameter(name: str, namespace: str = NS) -> float:
+    out = ok(pma('param', 'get', 'driver_node', name, '--timeout', '20s', namespace=namespace))
+    return float(out.split(' = ', 1)[1].split()[0])
+
+
+WRONG_SPAN = {'calibration.volts_at_full': '4.3'}       # reads 5 % high: 316 kPa at 300 kPa
+WRONG_OFFSET = {'calibration.length_offset_m': '0.42'}  # every length 2 cm long
+TRUE_SENSORS = {'calibration.volts_at_full': 4.5, 'calibration.length_offset_m': 0.40}
+
+
+@pytest.fixture
+def miscalibrated(rig):
+    """The rig's driver with a wrong span and offset; set back to the true sensors after."""
+    for name, value in {**WRONG_SPAN, **WRONG_OFFSET}.items():
+        ok(pma('param', 'set', 'driver_node', name, value))
+    yield rig
+    for name, value in TRUE_SENSORS.items():
+        ok(pma('param', 'set', 'driver_node', name, repr(value)))
+    ok(pma('param', 'set', 'driver_node', 'calibration.tare_offset_pa', '0'))
+
+
+def test_calibrate_finds_the_true_sensors_from_a_gauge_and_a_tape(miscalibrated, tmp_path,
+                                                                   module_procs):
+    rig = miscalibrated
+    params_out, bag = tmp_path / 'rig_calibration.yaml', tmp_path / 'runs' / 'calibration'
+    typist = Typist([str(PMA), 'calibrate', '--namespace', NS, '--yes', '--check-pressure',
+                     '300kPa', '-o', 'rig_calibration.yaml', '--bag', 'runs/calibration'],
+                    cwd=tmp_path)
+    samples = 40                                   # the 2 s the routine averages, at 20 Hz
+    typist.expect('Reference gauge reading')
+    typist.expect(': ')
+    _, gauge_pa = truth_now(rig['truth'], samples)
+    assert 280_000.0 < gauge_pa < 320_000.0
+    typist.type(f'{gauge_pa / 1e3:.2f}kPa')
+    typist.expect('Muscle length at rest by tape')
+    typist.expect(': ')
+    tape_m, at_rest_pa = truth_now(rig['truth'], samples)
+    assert abs(at_rest_pa) < 5_000.0
+    typist.type(f'{tape_m * 100:.2f}cm')
+    code, out = typist.finish()
+    assert code == 0, out
+    assert 'Traceback' not in out and f'applied; wrote {params_out}' in out
+
+    # The file holds the true sensors, found back from what the instruments read.
+    written = yaml.safe_load(params_out.read_text())['/**']['ros__parameters']
+    assert abs(written['calibration.volts_at_full'] - 4.5) < 0.01, written   # 0.25 % of span
+    assert abs(written['calibration.length_offset_m'] - 0.40) < 0.002, written
+    assert 'calibration.tare_offset_pa' not in written          # per session: not in a file
+    # The driver took it, and its lengths are the true ones again.
+    for name in ('calibration.volts_at_full', 'calibration.length_offset_m'):
+        assert driver_parameter(name) == written[name]
+    probe = rig['probe']
+    count = len(probe.states)
+    wait_until(lambda: len(probe.states) > count + samples, 10, 'fresh states')
+    truth = {int(r['seq']): float(r['true_length_m'])
+             for r in csv.DictReader(rig['truth'].read_text().splitlines())}
+    errors = [s.length_m - truth[s.seq] for s in probe.states[count:]
+              if s.seq in truth and math.isfinite(s.length_m)]
+    assert len(errors) > samples / 2 and abs(statistics.fmean(errors)) < 0.002
+
+    # The bag of the run says what was measured, what it was before and where the file is.
+    custom = yaml.safe_load((bag / 'metadata.yaml').read_text())[
+        'rosbag2_bagfile_information']['custom_data']
+    assert float(custom['calibration.volts_at_full']) == written['calibration.volts_at_full']
+    assert float(custom['previous.calibration.volts_at_full']) == 4.3
+    assert float(custom['previous.calibration.length_offset_m']) == 0.42
+    assert custom['calibration_params_file'] == str(params_out)
+    assert any('reference gauge' in v for k, v in custom.items()
+               if k.startswith('calibration_note.'))
+    with AnyReader([bag]) as reader:
+        assert sum(1 for c, _, _ in reader.messages() if c.topic == f'/{NS}/pma/state') > 100
+
+    # A driver started with the file (port absent: parameters are there before the device).
+    loader = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[
+        '-r', '__ns:=/cal_load', '-p', f'port:={tmp_path}/no_device', '--params-file',
+        str(params_out)])
+    try:
+        for name in ('calibration.volts_at_full', 'calibration.length_offset_m'):
+            assert driver_parameter(name, namespace='cal_load') == written[name]
+    finally:
+        loader.stop()
+
+
+def test_calibrate_refuses_a_result_out_of_bounds_and_changes_nothing(rig, tmp_path):
+    before = driver_parameter('calibration.length_offset_m')
+    # Typed on stdin as a user would: first a wrong unit (asked again), then 5 m at rest.
+    result = subprocess.run(
+        [str(PMA), 'calibrate', '--skip-pressure', '--yes', '-o', 'out.yaml', '--namespace', NS],
+        check=False, input='30kPa\n5m\n', capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert result.returncode == 1, result
+    assert "'kPa' is not a unit of length" in result.stdout
+    assert 'refused: 500.0 cm is not a muscle at rest' in result.stderr
+    assert not (tmp_path / 'out.yaml').exists()
+    assert driver_parameter('calibration.length_offset_m') == before

@@ -1,0 +1,149 @@
+"""The README's and the user guide's shell blocks, run as written, in order, in one shell.
+
+Every ```bash block of README.md, then of docs/user-guide.md, runs in one bash (`set -e`, so a
+failing documented command fails the test), unless the line before its fence is a marker
+
+    <!-- docs-test: skip: REASON -->
+
+for what cannot run here (the rig, root, the `ros2` CLI of a full install, a server that runs
+until stopped); a marker without a reason, or one not followed by a block, fails. The shell
+runs in a scratch directory that links the repository's entries, so `runs/` lands there, on
+the test's own ROS_DOMAIN_ID; background jobs the documents start are ended at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from support.procs import ROOT
+
+pytestmark = pytest.mark.integration
+
+DOCUMENTS = ('README.md', 'docs/user-guide.md')
+MARKER = re.compile(r'^<!--\s*docs-test:\s*skip:\s*(?P<reason>.*?)\s*-->\s*$')
+FENCE = re.compile(r'^```(?P<lang>\S*)')
+PORT = Path('/tmp/pma0')        # the documents' simulated device
+TIMEOUT_S = 240.0
+
+
+@dataclass(frozen=True)
+class Block:
+    document: str
+    line: int          # of the opening fence, 1-based
+    lang: str
+    text: str
+    skip: str | None   # the marker's reason
+
+
+def blocks(document: str) -> list[Block]:
+    lines = (ROOT / document).read_text(encoding='utf-8').splitlines()
+    found, index = [], 0
+    while index < len(lines):
+        fence = FENCE.match(lines[index])
+        if not fence:
+            marker = MARKER.match(lines[index])
+            if marker and not (index + 1 < len(lines) and FENCE.match(lines[index + 1])):
+                raise AssertionError(f'{document}:{index + 1}: a docs-test marker must be the '
+                                     'line right before a code fence')
+            index += 1
+            continue
+        end = next(i for i in range(index + 1, len(lines)) if lines[i].startswith('```'))
+        marker = MARKER.match(lines[index - 1]) if index else None
+        found.append(Block(document, index + 1, fence['lang'],
+                           '\n'.join(lines[index + 1:end]), marker['reason'] if marker else None))
+        index = end + 1
+    return found
+
+
+def shell_blocks() -> list[Block]:
+    return [b for doc in DOCUMENTS for b in blocks(doc) if b.lang in ('bash', 'sh', 'shell')]
+
+
+def script(selected: list[Block]) -> str:
+    parts = ['set -e -o pipefail']
+    for block in selected:
+        parts.append(f'echo "### {block.document}:{block.line} at ${{SECONDS}} s" >&2')
+        parts.append(block.text)
+    parts.append('echo "### all documented commands ran" >&2')
+    return '\n'.join(parts) + '\n'
+
+
+def run_script(text: str, cwd: Path, timeout_s: float) -> tuple[int, str]:
+    """bash -c TEXT in its own process group; every process left in it ends with it."""
+    proc = subprocess.Popen(['bash', '-c', text], cwd=cwd, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
+                            start_new_session=True)
+    try:
+        out, _ = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGTERM)
+        out, _ = proc.communicate(timeout=10)
+        out += f'\n### timed out after {timeout_s} s'
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+    return proc.returncode, out
+
+
+def scratch_checkout(tmp_path: Path) -> Path:
+    """A directory whose entries are the repository's, without its runs/."""
+    work = tmp_path / 'repo'
+    work.mkdir()
+    for entry in ROOT.iterdir():
+        if entry.name not in ('runs', '.git'):
+            (work / entry.name).symlink_to(entry)
+    return work
+
+
+def test_every_block_is_run_or_says_why_not():
+    selected = shell_blocks()
+    assert {b.document for b in selected} == set(DOCUMENTS)
+    for block in selected:
+        assert block.skip is None or len(block.skip) > 10, f'{block}: say why it is skipped'
+    # What each document promises to run here: the ways without a full install.
+    runnable = [b for b in selected if b.skip is None]
+    for document in DOCUMENTS:
+        text = '\n'.join(b.text for b in runnable if b.document == document)
+        for needed in ('pma status', 'pma sweep', 'pma length', 'pma param set', 'refit'):
+            assert needed in text, f'{document} runs no {needed!r}'
+    for block in runnable:
+        assert not re.search(r'^\s*ros2 ', block.text, re.MULTILINE), \
+            f'{block.document}:{block.line} runs the ros2 CLI: mark it'
+    for block in selected:
+        assert not re.search(r'^\s*cd ', block.text, re.MULTILINE), \
+            f'{block.document}:{block.line}: a bare cd leaves later lines elsewhere: a subshell'
+
+
+def test_a_failing_documented_command_fails_the_run(tmp_path):
+    block = Block('x.md', 1, 'bash', 'true\nfalse\necho never', None)
+    code, out = run_script(script([block]), tmp_path, 20)
+    assert code != 0 and 'never' not in out and 'all documented commands ran' not in out
+
+
+def test_the_documented_commands_run_in_order_in_one_shell(tmp_path):
+    if PORT.exists():
+        pytest.fail(f'{PORT} exists: another simulated rig runs here; the documents use it')
+    runnable = [b for b in shell_blocks() if b.skip is None]
+    work = scratch_checkout(tmp_path)
+    code, out = run_script(script(runnable), work, TIMEOUT_S)
+    last = [line for line in out.splitlines() if line.startswith('### ')][-1:]
+    assert code == 0, f'failed in the block after {last}:\n{out[-6000:]}'
+    assert out.rstrip().endswith('### all documented commands ran'), out[-3000:]
+    # What the documents said would be there, is.
+    runs = work / 'runs'
+    assert (runs / 'day1' / 'metadata.yaml').exists()
+    assert (runs / 'day1.csv').read_text().count('\n') > 100
+    assert (runs / 'day1' / 'refit.yaml').exists()
+    assert (runs / 'day2_recovered' / 'metadata.yaml').exists()
+    assert (runs / 'sweep1' / 'refit.yaml').exists()
+    assert not PORT.exists(), 'the documents left their simulated device running'
