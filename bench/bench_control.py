@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchlib import check, isolate_ros_graph, load_row, print_table, read_line, stop
+from benchlib import check, isolate_ros_graph, load_row, print_table, read_line, serve, stop
 
 from pma_control.controller import ControllerSettings, LengthController
 from pma_driver.sim.closed_loop import run_closed_loop
@@ -164,7 +164,6 @@ def tracking_table(families: dict[str, object]) -> tuple[list[tuple[str, str, st
 def publisher_main(rate_hz: float) -> None:
     """PmaState on pma/state at rate_hz, like driver_node (reliable, depth 10)."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
 
     from pma_interfaces.msg import PmaState
 
@@ -182,20 +181,12 @@ def publisher_main(rate_hz: float) -> None:
         seq += 1
 
     node.create_timer(1.0 / rate_hz, tick)
-    print('ready', flush=True)
-    try:
-        import rclpy.executors
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    node.destroy_node()
-    rclpy.try_shutdown()
+    serve(node)
 
 
 def relay_main() -> None:
     """Baseline: every state straight back out as a Float64, nothing else in the node."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
     from rclpy.qos import qos_profile_sensor_data
     from std_msgs.msg import Float64
 
@@ -207,13 +198,7 @@ def relay_main() -> None:
     node.create_subscription(PmaState, 'pma/state',
                              lambda msg: publisher.publish(Float64(data=msg.gauge_pressure_pa)),
                              qos_profile_sensor_data)
-    print('ready', flush=True)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    node.destroy_node()
-    rclpy.try_shutdown()
+    serve(node)
 
 
 def measure_latency(argv: list[str], seconds: float, needs_target: bool) -> np.ndarray:

@@ -45,7 +45,16 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from benchlib import check, cpu_seconds, isolate_ros_graph, load_row, print_table, read_line, stop
+from benchlib import (
+    check,
+    cpu_seconds,
+    isolate_ros_graph,
+    load_row,
+    print_table,
+    read_line,
+    serve,
+    stop,
+)
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -84,13 +93,7 @@ def trigger_server_main() -> None:
         return response
 
     node.create_service(Trigger, TRIGGER_SERVICE, on_trigger, qos_profile=SERVICE_QOS)
-    print('ready', flush=True)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    node.destroy_node()
-    rclpy.try_shutdown()
+    serve(node)
 
 
 def publisher_main(rate_hz: float, seconds: float, out: str) -> None:

@@ -51,6 +51,20 @@ def read_line(proc: subprocess.Popen, timeout: float, what: str) -> str:
     return line
 
 
+def serve(node) -> None:
+    """A helper process's main: say 'ready', spin until Ctrl-C or SIGTERM, clean up."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    print('ready', flush=True)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
 def check(ok: bool, target: str) -> str:
     return target if ok else f'MISSED ({target})'
 
