@@ -24,11 +24,18 @@ lint: setup
 firmware:
 	@bash tools/firmware.sh
 
+# Two workers (pytest-xdist), a test module per worker so module fixtures are shared; each
+# worker has its own range of ROS domains (conftest.py). Tests that measure timing or loss
+# (marked `serial`) run afterwards, alone on the machine.
+PARALLEL := -n 2 --dist loadfile
+
+# (Exit code 5: PYTEST_ARGS selected no test of that part.)
 test: setup lint firmware
-	@$(ENV) python -m pytest $(PYTEST_ARGS)
+	@$(ENV) python -m pytest $(PARALLEL) -m "not serial" $(PYTEST_ARGS) || [ $$? -eq 5 ]
+	@$(ENV) python -m pytest -m serial $(PYTEST_ARGS) || [ $$? -eq 5 ]
 
 unit: setup
-	@$(ENV) python -m pytest -m "not integration" $(PYTEST_ARGS)
+	@$(ENV) python -m pytest $(PARALLEL) -m "not integration" $(PYTEST_ARGS)
 
 integration: setup
 	@$(ENV) python -m pytest -m integration $(PYTEST_ARGS)

@@ -115,6 +115,7 @@ def true_lengths(path) -> dict[int, float]:
         return {int(row['seq']): float(row['true_length_m']) for row in csv.DictReader(stream)}
 
 
+@pytest.mark.serial
 def test_a_streamed_sine_is_tracked_end_to_end(rig):
     """A 0.1 Hz sine over DDS: RMSE against the true length, better than feedback alone can.
 

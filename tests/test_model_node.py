@@ -332,6 +332,7 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
         probe.node.destroy_subscription(sub)
 
 
+@pytest.mark.serial
 @pytest.mark.timeout(180)
 def test_a_burst_of_200_requests_from_4_clients_is_answered_whole(procs, tmp_path):
     # With the default service queue (10 deep) only 11-20 of 200 were answered, the rest
@@ -356,6 +357,7 @@ def test_a_burst_of_200_requests_from_4_clients_is_answered_whole(procs, tmp_pat
     (tmp_path / 'stop').touch()
 
 
+@pytest.mark.serial
 @pytest.mark.timeout(120)
 def test_a_stall_of_500_samples_loses_no_state_and_no_prediction(procs, probe):
     # A loaded machine stalls model_node now and then (up to 0.5 s seen in the 1 kHz soak,

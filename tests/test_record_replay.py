@@ -291,6 +291,7 @@ def no_loss_at_1khz(procs, tmp_path, seconds: int) -> None:
     assert got == sorted(got)
 
 
+@pytest.mark.serial
 def test_no_loss_at_1khz_for_10_s(procs, tmp_path):
     # Rare losses need longer: bench/bench_model_node.py soaks the recorder and model_node at
     # 1 kHz for minutes (`make bench`); a 60 s copy of this test cost a minute of every run.

@@ -71,6 +71,10 @@ _SHORT_RUN = 32
 # below 0 Pa): the curve is then B shifted through O instead.
 _FLAT_SPAN_M = 1e-15
 
+# Lengths this close [m] count as equal when deciding whether a curve reaches a target: a
+# curve evaluated at its own origin can differ from the stored length in the last bit.
+ROUNDING_M = 1e-12
+
 
 @dataclass(frozen=True)
 class InverseResult:
@@ -563,7 +567,7 @@ class HysteresisModel:
         ends = [value for piece in pieces for value in piece[3:]]
         min_length_m, max_length_m = min(ends), max(ends)
         for curve, low_pa, high_pa, l_low, l_high in pieces:
-            if min(l_low, l_high) <= length_m <= max(l_low, l_high):
+            if min(l_low, l_high) - ROUNDING_M <= length_m <= max(l_low, l_high) + ROUNDING_M:
                 pressure = curve.pressure(length_m)
                 if math.isnan(pressure):
                     pressure = low_pa if abs(length_m - l_low) <= abs(length_m - l_high) \

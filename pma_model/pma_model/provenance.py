@@ -74,8 +74,10 @@ def default_run_id(path, custom_data: Mapping[str, str] | None) -> str:
     return path.name if path.is_dir() else path.stem
 
 
-def input_run(path, run_id: str | None = None) -> dict:
-    """run_info of an input file or bag (run_id: given, else default_run_id)."""
+def input_run(path, run_id: str | None = None,
+              made: datetime.datetime | None = None) -> dict:
+    """run_info of an input file or bag (run_id: given, else default_run_id). `made`: the
+    run's one date, when several inputs' figures must say the same."""
     custom_data, recorded_ns = bag_metadata(path)
     return run_info(run_id=run_id or default_run_id(path, custom_data), source=str(path),
-                    recorded_ns=recorded_ns, custom_data=custom_data)
+                    recorded_ns=recorded_ns, custom_data=custom_data, made=made)

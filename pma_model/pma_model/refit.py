@@ -13,6 +13,7 @@ refitted on what it holds before the damage, with a warning line.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import sys
 from dataclasses import replace
@@ -177,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
 
         report, fitted = build_report(data, MODEL_NAMES, holdout=not args.no_holdout,
                                       on_model=announce)
-        provenance = input_run(args.input, args.run_id)
+        made = datetime.datetime.now(datetime.timezone.utc)    # one date for every output
+        provenance = input_run(args.input, args.run_id, made)
         report['run'] = {k: v for k, v in provenance.items() if k != 'custom_data'}
         if provenance['custom_data']:
             report['custom_data'] = provenance['custom_data']   # the bag's metadata.yaml
@@ -189,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
             warn_if_truncated(path)
             report['memory_check'] = memory_check(path, fitted, args.deadband_pa,
                                                   predictions if args.plots else None)
-            memory_run = input_run(args.memory_check, provenance['run_id'])
+            memory_run = input_run(args.memory_check, provenance['run_id'], made)
             report['memory_check']['recorded'] = memory_run['recorded']
             if memory_run['custom_data']:
                 report['memory_check']['custom_data'] = memory_run['custom_data']

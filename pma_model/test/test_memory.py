@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
@@ -190,6 +190,10 @@ def test_inverse_round_trip_on_a_scanning_curve(form):
        fraction=st.floats(0.0, 1.0), rising=st.booleans(),
        form=st.sampled_from(['sigmoid', 'hill']),
        memory=st.sampled_from(['identify', 'madelung', 'play']))
+# Found by hypothesis in a `make test` run: the play curve evaluated at its origin came out
+# one ulp longer than the stored length, so the current length was "not reachable".
+@example(turns=[0.0, 459.18291072702135], fraction=0.0, rising=False, form='hill',
+         memory='play')
 def test_inverse_round_trip_property(turns, fraction, rising, form, memory):
     model = model_of(form, memory)
     model.advance(ramp(*turns, step_kpa=5.0))
