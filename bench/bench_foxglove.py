@@ -32,7 +32,16 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from benchlib import check, cpu_seconds, isolate_ros_graph, load_row, print_table, read_line, stop
+from benchlib import (
+    Processes,
+    check,
+    cpu_seconds,
+    isolate_ros_graph,
+    load_row,
+    print_table,
+    read_line,
+    stop,
+)
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -102,17 +111,9 @@ def main() -> None:
         sys.exit(f'{BRIDGE} not found: run `make setup`')
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     work = Path(tempfile.mkdtemp(prefix='bench_foxglove_'))
-    procs: list[subprocess.Popen] = []
-    logs = []
+    procs = Processes(work)
+    start = procs.start
     client = None
-
-    def start(argv: list[str], name: str) -> subprocess.Popen:
-        log = open(work / f'{name}.log', 'w')  # closed in the finally below
-        logs.append(log)
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, text=True,
-                                start_new_session=True)
-        procs.append(proc)
-        return proc
 
     def publish(first: int, rate: float, count: int) -> subprocess.Popen:
         """A publisher that starts once the viewer is subscribed to both channels."""
@@ -167,10 +168,7 @@ def main() -> None:
     finally:
         if client is not None:
             client.close()
-        for proc in reversed(procs):
-            stop(proc)
-        for log in logs:
-            log.close()
+        procs.close()
 
     base_steady = {t: base[t][:steady_count] for t in TOPICS}
     base_burst = {t: len(base[t]) - len(base_steady[t]) for t in TOPICS}

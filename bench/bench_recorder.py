@@ -20,14 +20,22 @@ import argparse
 import re
 import shutil
 import signal
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import rclpy
-from benchlib import check, cpu_seconds, isolate_ros_graph, load_row, print_table, read_line, stop
+from benchlib import (
+    Processes,
+    check,
+    cpu_seconds,
+    isolate_ros_graph,
+    load_row,
+    print_table,
+    read_line,
+    stop,
+)
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -75,16 +83,8 @@ def run(seconds: float, work: Path, compression: str = 'none',
         kill: bool = False) -> tuple[list[tuple[str, str, str]], float]:
     bag = work / f'bag_{compression}{"_killed" if kill else ""}'
     count = round(RATE_HZ * (SETTLE_S + seconds + TAIL_S))
-    procs: list[subprocess.Popen] = []
-    logs = []
-
-    def start(argv: list[str], name: str) -> subprocess.Popen:
-        log = open(work / f'{name}.log', 'w')  # closed in the finally below
-        logs.append(log)
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, text=True,
-                                start_new_session=True)
-        procs.append(proc)
-        return proc
+    procs = Processes(work)
+    start = procs.start
 
     try:
         options = ['--compression', compression] + (['--max-bag-size', '65536'] if kill else [])
@@ -123,10 +123,7 @@ def run(seconds: float, work: Path, compression: str = 'none',
         if kill:
             return killed_rows(bag, published_at_kill), cpu['recorder']
     finally:
-        for proc in reversed(procs):
-            stop(proc)
-        for log in logs:
-            log.close()
+        procs.close()
     if received[:1] != ['received']:
         raise RuntimeError(f'baseline subscriber: {received}')
     first_ns, last_ns = int(received[2]), int(received[3])

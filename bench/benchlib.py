@@ -36,6 +36,30 @@ def stop(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
+class Processes:
+    """The processes a benchmark starts: stdout piped, stderr in WORK/NAME.log, each in its
+    own session (a Ctrl-C at the terminal reaches the benchmark only); close() stops them."""
+
+    def __init__(self, work: Path):
+        self.work = work
+        self._procs: list[subprocess.Popen] = []
+        self._logs = []
+
+    def start(self, argv: list[str], name: str) -> subprocess.Popen:
+        log = open(self.work / f'{name}.log', 'w')  # closed in close()
+        self._logs.append(log)
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, text=True,
+                                start_new_session=True)
+        self._procs.append(proc)
+        return proc
+
+    def close(self) -> None:
+        for proc in reversed(self._procs):
+            stop(proc)
+        for log in self._logs:
+            log.close()
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of a live process, from /proc (no psutil needed)."""
     fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()

@@ -106,7 +106,7 @@ def span_from_reference(values: Mapping[str, float], adc: Measurement,
             f'{reference_pa / 1e3:.1f} kPa ({100 * (factor - 1):+.0f} %): more than '
             f'{100 * MAX_SPAN_ERROR:.0f} % is a misread gauge, a wrong full_scale_pa or '
             'another sensor, not a span error; nothing changed')
-    pa_per_volt = reference_pa / (counts * pressure.adc_reference_v / ADC_FULL_SCALE)
+    pa_per_volt = reference_pa / pressure.adc_to_volts(counts)
     volts_at_full = pressure.volts_at_zero + full_scale / pa_per_volt
     tare = (zero_volts - pressure.volts_at_zero) * pa_per_volt
     return SpanResult(reading, reference_pa, volts_at_full, tare)
