@@ -526,7 +526,7 @@ class Recorder(Node):
         deadline = time.monotonic() + START_MATCH_TIMEOUT_S
         ready, late = self.start_status(bag)
         while late and time.monotonic() < deadline and self.bag is bag:
-            await self.pause(START_POLL_S)
+            await self.yield_to_executor(START_POLL_S)
             ready, late = self.start_status(bag)
         if self.bag is not bag:
             response.success, response.message = False, f'{bag.path} was stopped while starting'
@@ -538,7 +538,7 @@ class Recorder(Node):
                             + (f'; not heard yet: {", ".join(late)}' if late else ''))
         return response
 
-    async def pause(self, seconds: float) -> None:
+    async def yield_to_executor(self, seconds: float) -> None:
         """Yield to the executor for `seconds` (a one-shot timer in the default group)."""
         woken = Future()
         timer = self.create_timer(seconds, lambda: woken.done() or woken.set_result(None))
