@@ -45,7 +45,7 @@ def run_closed_loop(controller: Controller, duration_s: float, *, rate_hz: int =
 
     `command_delay_s`: how long a setpoint takes from the controller to the device (on the
     real rig: DDS to the driver, the serial line, the firmware's next loop; 10-150 ms
-    depending on the machine's load). Gains that hold at zero delay can ring at 0.1 s.
+    depending on the machine's load); bench_control measures what it costs the tracking.
     """
     delay_ms = round(command_delay_s * 1000)
     if delay_ms < 0:
@@ -74,11 +74,9 @@ def run_closed_loop(controller: Controller, duration_s: float, *, rate_hz: int =
             command = float(controller(t_s, pressure, measured))
             setpoint = max(0, min(round(command), device.ceiling_pa))
             if setpoint != sent_pa:
-                line = protocol.encode_command(Command.SET, setpoint)
-                if delay_ms:
-                    in_flight.append((device.t_ms + delay_ms, line))
-                else:
-                    device.receive(line)
+                # Delivered before the device runs on (at once when there is no delay).
+                in_flight.append((device.t_ms + delay_ms,
+                                  protocol.encode_command(Command.SET, setpoint)))
                 sent_pa = setpoint
             trace.t_s.append(t_s)
             trace.pressure_pa.append(pressure)
