@@ -23,6 +23,7 @@ import yaml
 from rclpy.qos import qos_profile_sensor_data
 from rosbags.highlevel import AnyReader
 
+from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
 from support.procs import INSTALL
@@ -371,8 +372,7 @@ def test_calibrate_finds_the_true_sensors_from_a_gauge_and_a_tape(miscalibrated,
     probe = rig['probe']
     count = len(probe.states)
     wait_until(lambda: len(probe.states) > count + samples, 10, 'fresh states')
-    truth = {int(r['seq']): float(r['true_length_m'])
-             for r in csv.DictReader(rig['truth'].read_text().splitlines())}
+    truth = TruthLog.true_lengths(rig['truth'])
     errors = [s.length_m - truth[s.seq] for s in probe.states[count:]
               if s.seq in truth and math.isfinite(s.length_m)]
     assert len(errors) > samples / 2 and abs(statistics.fmean(errors)) < 0.002

@@ -7,7 +7,6 @@ send_goal` and `ros2 topic pub -r 50` would, and reads the measured length from 
 
 from __future__ import annotations
 
-import csv
 import math
 import threading
 import time
@@ -16,6 +15,7 @@ import numpy as np
 import pytest
 from rclpy.action import ActionClient
 
+from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.action import MoveToLength
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
 from support.ros import SpinningNode, shutdown, wait_until
@@ -109,18 +109,13 @@ def test_an_unreachable_target_is_refused_with_the_reachable_range(rig):
     assert 'reachable [' in result.message and '0.20' in result.message
 
 
-def true_lengths(path) -> dict[int, float]:
-    """seq -> the simulated true length (fake_arduino --truth; the controller never sees it)."""
-    with open(path, newline='', encoding='utf-8') as stream:
-        return {int(row['seq']): float(row['true_length_m']) for row in csv.DictReader(stream)}
-
-
 @pytest.mark.serial
 def test_a_streamed_sine_is_tracked_end_to_end(rig):
     """A 0.1 Hz sine over DDS: RMSE against the true length, better than feedback alone can.
 
     The issue's 2 % of stroke is the controller's target, met in bench/bench_control.py on
-    every muscle family with 0-150 ms of command delay, in simulated time. Over DDS, five
+    every muscle family with up to 50 ms of command delay, in simulated time (150 ms:
+    2.6-3.1 %, docs/control.md). Over DDS, five
     Python processes share the machine: 1.1 % on a quiet one, 1.9 % beside four busy loops,
     2.8 % in a loaded CI run. Feedback alone ('fb') measured 4.2-4.4 % here whatever the load,
     so the bound (3.5 %) still fails a controller whose model feedforward does not work.
@@ -142,7 +137,7 @@ def test_a_streamed_sine_is_tracked_end_to_end(rig):
         states = [(s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec, s.seq)
                   for _, s in probe.states]
     states = [(t, seq) for t, seq in states if start + 10.0 <= t <= reference[-1][0]]
-    truth = true_lengths(rig['truth'])                # from the second period on
+    truth = TruthLog.true_lengths(rig['truth'])       # the controller never sees it
     times = np.array([t for t, _ in states])
     true = np.array([truth[seq] for _, seq in states])
     ref = np.interp(times, *map(np.array, zip(*reference, strict=True)))

@@ -242,13 +242,12 @@ def move_to(node, client, length_m: float) -> str:
 def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tuple[str, Path]]:
     """Steps and a streamed sine through length_controller, recorded, plotted against the
     simulated truth (the run and the bag's metadata in the footer); the outputs."""
-    import csv
-
     import numpy as np
     from rclpy.action import ActionClient
     from rclpy.qos import qos_profile_sensor_data
 
     from pma_control.plots import plot_control_run
+    from pma_driver.fake_arduino import TruthLog
     from pma_interfaces.action import MoveToLength
     from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
     from pma_model.provenance import input_run
@@ -280,8 +279,7 @@ def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tu
         time.sleep(0.02)
     time.sleep(0.5)
     say(f'   {record_bag(node, None)}')
-    with open(truth_csv, newline='', encoding='utf-8') as stream:
-        truth = {int(r['seq']): float(r['true_length_m']) for r in csv.DictReader(stream)}
+    truth = TruthLog.true_lengths(truth_csv)
     rows = []
     for c in steps[begin:]:
         stamp = c.header.stamp.sec * 10**9 + c.header.stamp.nanosec

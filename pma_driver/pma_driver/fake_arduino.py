@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import csv
 import dataclasses
 import errno
 import logging
@@ -328,6 +329,13 @@ class TruthLog:
 
     def close(self) -> None:
         self._file.close()
+
+    @staticmethod
+    def true_lengths(path: Path) -> dict[int, float]:
+        """seq -> the simulated true length [m], read back from a log this class wrote."""
+        with open(path, newline='', encoding='utf-8') as stream:
+            return {int(row['seq']): float(row['true_length_m'])
+                    for row in csv.DictReader(stream)}
 
 
 def run(args: argparse.Namespace, stop: StopRequest,
