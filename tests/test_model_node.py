@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -28,18 +27,6 @@ def _call(probe, client, request, timeout=10.0):
     future = client.call_async(request)
     wait_until(future.done, timeout, 'service response')
     return future.result()
-
-
-def _collect(probe, msg_type, topic, qos=10):
-    received = []
-    lock = threading.Lock()
-
-    def on_msg(msg):
-        with lock:
-            received.append(msg)
-
-    sub = probe.node.create_subscription(msg_type, topic, on_msg, qos)
-    return received, sub
 
 
 def test_service_refuses_bad_requests_then_answers(procs, probe):
@@ -94,8 +81,8 @@ def test_every_state_gets_a_prediction_with_its_header(procs, probe):
     from pma_interfaces.srv import PressureForLength
 
     procs.ros2_run('pma_model', 'model_node').wait_for_line('model_node ready')
-    predictions, sub_p = _collect(probe, PmaPrediction, 'pma/prediction')
-    states, sub_s = _collect(probe, PmaState, 'pma/state')
+    predictions, sub_p = probe.collect(PmaPrediction, 'pma/prediction')
+    states, sub_s = probe.collect(PmaState, 'pma/state')
     try:
         wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,
                    'model_node publisher')
@@ -160,7 +147,7 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
                    ros_args=['-p', f'params_file:={params_file}']).wait_for_line(
         'model_node ready')
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    published, sub = _collect(probe, ModelParams, 'pma/model_params', latched)
+    published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
     client = probe.node.create_client(SetParametersAtomically,
                                       'model_node/set_parameters_atomically')
     try:
@@ -206,7 +193,7 @@ def _model_diagnostics(probe):
     """The latest model_node /diagnostics status, as (level, message, {key: value})."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    received, sub = _collect(probe, DiagnosticArray, '/diagnostics')
+    received, sub = probe.collect(DiagnosticArray, '/diagnostics')
 
     def latest():
         for array in reversed(list(received)):
@@ -233,7 +220,7 @@ def test_a_bad_params_file_at_start_leaves_the_node_running_on_the_defaults(proc
     params_file.write_bytes(b'# written by caf\xe9 refit\n' + hill.to_yaml().encode())
     latest, diag_sub = _model_diagnostics(probe)
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    published, sub = _collect(probe, ModelParams, 'pma/model_params', latched)
+    published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
     node = procs.ros2_run('pma_model', 'model_node',
                           ros_args=['-p', f'params_file:={params_file}'])
     try:
@@ -274,7 +261,7 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
     node = procs.ros2_run('pma_model', 'model_node')
     node.wait_for_line('model_node ready')
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    published, sub = _collect(probe, ModelParams, 'pma/model_params', latched)
+    published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
     client = probe.node.create_client(SetParameters, 'model_node/set_parameters')
     inverse = probe.node.create_client(PressureForLength, 'pressure_for_length')
     fifo = tmp_path / 'params.fifo'
@@ -376,7 +363,7 @@ def test_a_stall_of_500_samples_loses_no_state_and_no_prediction(procs, probe):
     model = procs.ros2_run('pma_model', 'model_node')
     model.wait_for_line('model_node ready')
     latest, diag_sub = _model_diagnostics(probe)
-    predictions, sub = _collect(probe, PmaPrediction, 'pma/prediction',
+    predictions, sub = probe.collect(PmaPrediction, 'pma/prediction',
                                 QoSProfile(depth=count, reliability=ReliabilityPolicy.RELIABLE))
     try:
         wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,

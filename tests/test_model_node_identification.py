@@ -7,7 +7,6 @@ rig's sensor noise and the sample's simulated time in the header.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -27,16 +26,6 @@ def probe():
     yield node
     node.close()
     shutdown()
-
-
-def collect(probe, msg_type, topic, qos=10):
-    received, lock = [], threading.Lock()
-
-    def on_msg(msg):
-        with lock:
-            received.append(msg)
-
-    return received, probe.node.create_subscription(msg_type, topic, on_msg, qos)
 
 
 def publish_run(probe, rate_hz=400.0, duration_s=60.0):
@@ -71,8 +60,8 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
     latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          reliability=ReliabilityPolicy.RELIABLE)
     procs.ros2_run('pma_model', 'model_node').wait_for_line('model_node ready', 30)
-    published, sub_params = collect(probe, ModelParams, 'pma/model_params', latched)
-    diagnostics, sub_diag = collect(probe, DiagnosticArray, '/diagnostics')
+    published, sub_params = probe.collect(ModelParams, 'pma/model_params', latched)
+    diagnostics, sub_diag = probe.collect(DiagnosticArray, '/diagnostics')
     try:
         wait_until(lambda: published, 20, 'the latched parameters')
         first = published[0]
@@ -108,7 +97,7 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
     resumed = procs.ros2_run('pma_model', 'model_node', name='resumed_model', ros_args=[
         '-r', '__ns:=/resumed', '--params-file', str(saved)])
     resumed.wait_for_line('model_node ready', 30)
-    again, sub_again = collect(probe, ModelParams, '/resumed/pma/model_params', latched)
+    again, sub_again = probe.collect(ModelParams, '/resumed/pma/model_params', latched)
     try:
         wait_until(lambda: again, 20, 'the resumed node parameters')
         start = again[-1]

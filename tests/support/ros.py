@@ -42,6 +42,17 @@ class SpinningNode:
             except ExternalShutdownException:
                 return
 
+    def collect(self, msg_type, topic: str, qos=10):
+        """(list that every message on `topic` is appended to, the subscription)."""
+        received = []
+        lock = threading.Lock()
+
+        def on_msg(msg):
+            with lock:
+                received.append(msg)
+
+        return received, self.node.create_subscription(msg_type, topic, on_msg, qos)
+
     def close(self) -> None:
         self._stopping.set()
         self._thread.join(2)
