@@ -61,6 +61,7 @@ class Probe:
 
     def __init__(self, spinning: SpinningNode):
         self.node = spinning.node
+        self.call = spinning.call
         self.lock = threading.Lock()
         self.states: list[tuple[float, PmaState]] = []
         self.pressures: list[FluidPressure] = []
@@ -78,7 +79,6 @@ class Probe:
             node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10),
         ]
         self.setpoint_pub = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
-        self._clients = {}
         self.sweep = ActionClient(node, Sweep, 'pma/sweep')
 
     def _on_state(self, msg: PmaState) -> None:
@@ -99,8 +99,6 @@ class Probe:
         for sub in self._subs:
             self.node.destroy_subscription(sub)
         self.node.destroy_publisher(self.setpoint_pub)
-        for client in self._clients.values():
-            self.node.destroy_client(client)
         self.sweep.destroy()
 
     # -- helpers -------------------------------------------------------------------------
@@ -141,26 +139,6 @@ class Probe:
         wait_until(lambda: self.setpoint_pub.get_subscription_count() > 0, 10.0,
                    'driver subscribed to pma/pressure_setpoint')
         self.setpoint_pub.publish(Float64(data=value))
-
-    def call(self, srv_type, name: str, request, timeout: float = 10.0,
-             idempotent: bool = False):
-        """Call a service; clients are kept, since a brand-new client can lose its first
-        answer while the server's reply writer is still matching it. An idempotent request
-        (a query) is sent once more if that happens."""
-        client = self._clients.get(name)
-        if client is None:
-            client = self._clients[name] = self.node.create_client(srv_type, name)
-        assert client.wait_for_service(timeout_sec=timeout), f'{name} not available'
-        for attempt in range(2 if idempotent else 1):
-            future = client.call_async(request)
-            try:
-                wait_until(future.done, timeout / (2 if idempotent else 1), f'{name} answer')
-                return future.result()
-            except TimeoutError:
-                client.remove_pending_request(future)
-                if attempt or not idempotent:
-                    raise
-        raise AssertionError('unreachable')
 
     def set_parameter(self, name: str, value):
         if isinstance(value, float):

@@ -27,7 +27,7 @@ from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import DescribeParameters, ListParameters
 
 from support.procs import INSTALL, ROOT
-from support.ros import SpinningNode, shutdown, wait_until
+from support.ros import SpinningNode, shutdown
 
 LAUNCH_FILES = {
     'driver': ROOT / 'pma_driver' / 'launch' / 'driver.launch.py',
@@ -343,17 +343,6 @@ def parameter_type(value) -> int:
     return _TYPE_OF[type(value)]
 
 
-def _call(node, srv_type, name: str, request, timeout: float = 30.0):
-    client = node.create_client(srv_type, name)
-    try:
-        assert client.wait_for_service(timeout_sec=timeout), f'{name} not available'
-        future = client.call_async(request)
-        wait_until(future.done, timeout, f'{name} answer')
-        return future.result()
-    finally:
-        node.destroy_client(client)
-
-
 @pytest.fixture(scope='module')
 def declared(module_procs, tmp_path_factory) -> dict[tuple[str, str], dict[str, int]]:
     """{(package, executable): {parameter name: declared type}} from the running nodes."""
@@ -368,11 +357,11 @@ def declared(module_procs, tmp_path_factory) -> dict[tuple[str, str], dict[str, 
     try:
         result = {}
         for key, node_name in NODE_NAMES.items():
-            names = _call(probe.node, ListParameters, f'/{node_name}/list_parameters',
-                          ListParameters.Request()).result.names
-            described = _call(probe.node, DescribeParameters,
-                              f'/{node_name}/describe_parameters',
-                              DescribeParameters.Request(names=list(names))).descriptors
+            names = probe.call(ListParameters, f'/{node_name}/list_parameters',
+                               timeout=30.0, idempotent=True).result.names
+            described = probe.call(DescribeParameters, f'/{node_name}/describe_parameters',
+                                   DescribeParameters.Request(names=list(names)),
+                                   timeout=30.0, idempotent=True).descriptors
             result[key] = {d.name: d.type for d in described}
         return result
     finally:

@@ -23,57 +23,51 @@ def probe():
     shutdown()
 
 
-def _call(probe, client, request, timeout=10.0):
-    future = client.call_async(request)
-    wait_until(future.done, timeout, 'service response')
-    return future.result()
+def _ask_inverse(probe, request):
+    from pma_interfaces.srv import PressureForLength
+    return probe.call(PressureForLength, 'pressure_for_length', request, idempotent=True)
 
 
 def test_service_refuses_bad_requests_then_answers(procs, probe):
     from pma_interfaces.srv import PressureForLength
 
     procs.ros2_run('pma_model', 'model_node').wait_for_line('model_node ready')
-    client = probe.node.create_client(PressureForLength, 'pressure_for_length')
-    try:
-        assert client.wait_for_service(timeout_sec=20)
-        req = PressureForLength.Request
-        auto = _call(probe, client, req(length_m=0.27, branch=req.BRANCH_AUTO))
-        assert not auto.success and 'no pma/state sample' in auto.message
-        bad_requests = [
-            (req(length_m=math.nan, branch=1), 'finite'),
-            (req(length_m=math.inf, branch=1), 'finite'),
-            (req(length_m=-math.inf, branch=2), 'finite'),
-            (req(length_m=0.0, branch=1), 'positive'),
-            (req(length_m=-0.1, branch=2), 'positive'),
-            (req(length_m=0.27, branch=7), 'unknown branch'),
-            (req(length_m=0.20, branch=1), 'not reachable'),
-            (req(length_m=0.31, branch=2), 'not reachable'),
-        ]
-        for request, words in bad_requests:
-            response = _call(probe, client, request)
-            assert not response.success, request
-            assert words in response.message, (request, response.message)
-        out_of_range = _call(probe, client, req(length_m=0.20, branch=1))
-        assert 0.24 < out_of_range.min_length_m < out_of_range.max_length_m <= 0.3006
-        assert f'{out_of_range.min_length_m:.6g}' in out_of_range.message
+    req = PressureForLength.Request
+    auto = _ask_inverse(probe, req(length_m=0.27, branch=req.BRANCH_AUTO))
+    assert not auto.success and 'no pma/state sample' in auto.message
+    bad_requests = [
+        (req(length_m=math.nan, branch=1), 'finite'),
+        (req(length_m=math.inf, branch=1), 'finite'),
+        (req(length_m=-math.inf, branch=2), 'finite'),
+        (req(length_m=0.0, branch=1), 'positive'),
+        (req(length_m=-0.1, branch=2), 'positive'),
+        (req(length_m=0.27, branch=7), 'unknown branch'),
+        (req(length_m=0.20, branch=1), 'not reachable'),
+        (req(length_m=0.31, branch=2), 'not reachable'),
+    ]
+    for request, words in bad_requests:
+        response = _ask_inverse(probe, request)
+        assert not response.success, request
+        assert words in response.message, (request, response.message)
+    out_of_range = _ask_inverse(probe, req(length_m=0.20, branch=1))
+    assert 0.24 < out_of_range.min_length_m < out_of_range.max_length_m <= 0.3006
+    assert f'{out_of_range.min_length_m:.6g}' in out_of_range.message
 
-        # Still serving, and right: the default increasing branch is the paper's fit.
-        increasing = default_params().increasing.sigmoid
-        for pressure_pa in (100e3, 250e3, 400e3):
-            target = float(increasing.length(pressure_pa))
-            answer = _call(probe, client, req(length_m=target, branch=req.BRANCH_INCREASING))
-            assert answer.success, answer.message
-            assert answer.branch == req.BRANCH_INCREASING
-            assert math.isclose(answer.gauge_pressure_pa, pressure_pa, abs_tol=1.0)
-        # An explicit branch is that major branch, whatever the state (here: at rest).
-        decreasing = default_params().decreasing.sigmoid
-        target = float(decreasing.length(200e3))
-        answer = _call(probe, client, req(length_m=target, branch=req.BRANCH_DECREASING))
-        assert answer.success and answer.branch == req.BRANCH_DECREASING, answer.message
-        assert math.isclose(answer.gauge_pressure_pa, 200e3, abs_tol=1.0)
-        assert 'decreasing major branch' in answer.message
-    finally:
-        probe.node.destroy_client(client)
+    # Still serving, and right: the default increasing branch is the paper's fit.
+    increasing = default_params().increasing.sigmoid
+    for pressure_pa in (100e3, 250e3, 400e3):
+        target = float(increasing.length(pressure_pa))
+        answer = _ask_inverse(probe, req(length_m=target, branch=req.BRANCH_INCREASING))
+        assert answer.success, answer.message
+        assert answer.branch == req.BRANCH_INCREASING
+        assert math.isclose(answer.gauge_pressure_pa, pressure_pa, abs_tol=1.0)
+    # An explicit branch is that major branch, whatever the state (here: at rest).
+    decreasing = default_params().decreasing.sigmoid
+    target = float(decreasing.length(200e3))
+    answer = _ask_inverse(probe, req(length_m=target, branch=req.BRANCH_DECREASING))
+    assert answer.success and answer.branch == req.BRANCH_DECREASING, answer.message
+    assert math.isclose(answer.gauge_pressure_pa, 200e3, abs_tol=1.0)
+    assert 'decreasing major branch' in answer.message
 
 
 def test_every_state_gets_a_prediction_with_its_header(procs, probe):
@@ -120,16 +114,13 @@ def test_every_state_gets_a_prediction_with_its_header(procs, probe):
         assert 0.24 < last.predicted_length_m < 0.28
         assert last.branch in (PmaPrediction.BRANCH_INCREASING, PmaPrediction.BRANCH_DECREASING)
 
-        client = probe.node.create_client(PressureForLength, 'pressure_for_length')
-        assert client.wait_for_service(timeout_sec=20)
         req = PressureForLength.Request
-        longer = _call(probe, client, req(length_m=0.28, branch=req.BRANCH_AUTO))
+        longer = _ask_inverse(probe, req(length_m=0.28, branch=req.BRANCH_AUTO))
         assert longer.success and longer.branch == req.BRANCH_DECREASING, longer.message
         assert longer.gauge_pressure_pa < 250e3
-        shorter = _call(probe, client, req(length_m=0.25, branch=req.BRANCH_AUTO))
+        shorter = _ask_inverse(probe, req(length_m=0.25, branch=req.BRANCH_AUTO))
         assert shorter.success and shorter.branch == req.BRANCH_INCREASING, shorter.message
         assert shorter.gauge_pressure_pa > 250e3
-        probe.node.destroy_client(client)
     finally:
         probe.node.destroy_subscription(sub_p)
         probe.node.destroy_subscription(sub_s)
@@ -148,18 +139,16 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
         'model_node ready')
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
-    client = probe.node.create_client(SetParametersAtomically,
-                                      'model_node/set_parameters_atomically')
     try:
         wait_until(lambda: published, 20, 'latched model parameters')
         assert published[-1].form == 'sigmoid' and published[-1].memory == 'identify'
-        assert client.wait_for_service(timeout_sec=20)
 
         def set_atomically(**values):
             request = SetParametersAtomically.Request(parameters=[
                 Parameter(name, value=value).to_parameter_msg()
                 for name, value in values.items()])
-            return _call(probe, client, request).result
+            return probe.call(SetParametersAtomically, 'model_node/set_parameters_atomically',
+                              request).result
 
         bad = set_atomically(**{'memory': 'switch', 'increasing.sigmoid.a': -1.0})
         assert not bad.successful and 'increasing.sigmoid' in bad.reason
@@ -185,7 +174,6 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
         procs.procs[-1].wait_for_line('params file not loaded', timeout=10)
         assert procs.procs[-1].alive()
     finally:
-        probe.node.destroy_client(client)
         probe.node.destroy_subscription(sub)
 
 
@@ -262,8 +250,6 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
     node.wait_for_line('model_node ready')
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
-    client = probe.node.create_client(SetParameters, 'model_node/set_parameters')
-    inverse = probe.node.create_client(PressureForLength, 'pressure_for_length')
     fifo = tmp_path / 'params.fifo'
     os.mkfifo(fifo)
     bad_units = tmp_path / 'kpa.yaml'
@@ -284,15 +270,13 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
     ]
     try:
         wait_until(lambda: published, 20, 'latched model parameters')
-        assert client.wait_for_service(timeout_sec=20)
-        assert inverse.wait_for_service(timeout_sec=20)
         request = PressureForLength.Request(length_m=0.27, branch=1)
-        answer = _call(probe, inverse, request).gauge_pressure_pa
+        answer = _ask_inverse(probe, request).gauge_pressure_pa
 
         def set_params_file(path):
             request = SetParameters.Request(parameters=[
                 Parameter('params_file', value=str(path)).to_parameter_msg()])
-            (result,) = _call(probe, client, request).results
+            (result,) = probe.call(SetParameters, 'model_node/set_parameters', request).results
             return result
 
         for path, words in refused:
@@ -301,7 +285,7 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
             assert words in result.reason and 'model is unchanged' in result.reason, \
                 result.reason
             # Still serving, with the same model.
-            assert _call(probe, inverse, request).gauge_pressure_pa == answer
+            assert _ask_inverse(probe, request).gauge_pressure_pa == answer
         assert len(published) == 1, 'a refused file must not republish the model'
         assert node.alive()
 
@@ -312,10 +296,8 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
         assert result.successful, result.reason
         wait_until(lambda: published[-1].form == 'hill', 10, 'the file loaded')
         assert published[-1].memory == 'switch'
-        assert _call(probe, inverse, request).gauge_pressure_pa != answer
+        assert _ask_inverse(probe, request).gauge_pressure_pa != answer
     finally:
-        probe.node.destroy_client(client)
-        probe.node.destroy_client(inverse)
         probe.node.destroy_subscription(sub)
 
 

@@ -43,6 +43,7 @@ class Probe:
     def __init__(self, topics=('/pma/state',)):
         self.spinning = SpinningNode('recorder_probe')
         self.node = self.spinning.node
+        self.call = self.spinning.call
         self.first: dict[str, int] = {}
         self.newest: dict[str, int] = {}
         self._lock = threading.Lock()
@@ -71,16 +72,6 @@ class Probe:
                        f'the recorder hearing {topic}')
         finally:
             self.node.destroy_subscription(sub)
-
-    def call(self, srv_type, name: str, request=None, timeout: float = 20.0):
-        client = self.node.create_client(srv_type, name)
-        try:
-            assert client.wait_for_service(timeout_sec=timeout), f'no service {name}'
-            future = client.call_async(request or srv_type.Request())
-            wait_until(future.done, timeout, f'{name} response')
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
 
     def close(self) -> None:
         self.spinning.close()

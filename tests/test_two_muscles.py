@@ -74,17 +74,6 @@ class Streams:
             return list(getattr(self, kind)[side])
 
 
-def call(node, name: str, request, timeout: float = 20.0):
-    client = node.create_client(PressureForLength, name)
-    try:
-        assert client.wait_for_service(timeout_sec=timeout), f'{name} not available'
-        future = client.call_async(request)
-        wait_until(future.done, timeout, f'{name} answer')
-        return future.result()
-    finally:
-        node.destroy_client(client)
-
-
 def test_setpoint_on_left_moves_left_only_and_each_model_follows_its_own(rigs, probe):
     node = probe.node
     streams = Streams(node)
@@ -128,8 +117,9 @@ def test_setpoint_on_left_moves_left_only_and_each_model_follows_its_own(rigs, p
     # Both services answer, each from its own muscle's state: at 300 kPa the left muscle is
     # shorter than 28 cm, so reaching 28 cm means deflating; the right one at rest must inflate.
     request = PressureForLength.Request
-    answers = {side: call(node, f'/{side}/pressure_for_length',
-                          request(length_m=0.28, branch=request.BRANCH_AUTO)) for side in SIDES}
+    answers = {side: probe.call(PressureForLength, f'/{side}/pressure_for_length',
+                                request(length_m=0.28, branch=request.BRANCH_AUTO),
+                                idempotent=True) for side in SIDES}
     for side, answer in answers.items():
         assert answer.success, (side, answer.message)
         assert 0.0 < answer.gauge_pressure_pa < SETPOINT_PA

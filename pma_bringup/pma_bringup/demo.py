@@ -154,14 +154,14 @@ def run_sweep(node, label: str, goal, timeout: float):
 
 
 def _wait(future, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not future.done():
-        if time.monotonic() > deadline:
-            raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what}')
-        time.sleep(0.02)
+    from pma_common.service import poll
+
+    if not poll(future.done, timeout):
+        raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what}')
 
 
 def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
+    from pma_common.service import ask, poll
     from pma_interfaces.srv import PressureForLength
 
     client = node.create_client(PressureForLength, 'pressure_for_length')
@@ -172,10 +172,11 @@ def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
                    PressureForLength.Request.BRANCH_DECREASING,
                    PressureForLength.Request.BRANCH_AUTO):
         for length_m in lengths_m:
-            future = client.call_async(PressureForLength.Request(length_m=length_m,
-                                                                 branch=branch))
-            _wait(future, 10, 'pressure_for_length')
-            answers.append((length_m, branch, future.result()))
+            answer = ask(client, PressureForLength.Request(length_m=length_m, branch=branch),
+                         10, poll)
+            if answer is None:
+                raise RuntimeError('pressure_for_length (model_node) did not answer in 10 s')
+            answers.append((length_m, branch, answer))
     node.destroy_client(client)
     return answers
 

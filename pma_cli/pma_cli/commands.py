@@ -285,7 +285,7 @@ def pressure_for_length(session: Session, length_m: float, branch: str, si: bool
     client = session.node.create_client(PressureForLength, 'pressure_for_length')
     request = PressureForLength.Request(length_m=length_m, branch=BRANCH_CHOICES[branch])
     answer = session.call(client, request, timeout_s,
-                          session.where_hint('pma/prediction', 'model_node'))
+                          session.where_hint('pma/prediction', 'model_node'), query=True)
     reach = f'{q.cm(answer.min_length_m)} .. {q.cm(answer.max_length_m)}'
     if not answer.success:
         raise CliError(f'no pressure for {q.cm(length_m)}: {answer.message} (reachable: {reach})')
@@ -322,7 +322,7 @@ class Parameters:
         self._list = make(ListParameters, f'{self.node}/list_parameters')
         self._describe = make(DescribeParameters, f'{self.node}/describe_parameters')
 
-    def _call(self, client, request):
+    def _call(self, client, request, query: bool = True):
         graph = self.session.node
 
         def running() -> set[str]:
@@ -349,8 +349,7 @@ class Parameters:
             raise CliError(f'no node {self.node} answers'
                            + (f' (did you mean {close[0]}?)' if close else '')
                            + f'; nodes running: {", ".join(nodes) or "none"}', NO_ANSWER)
-        return self.session.wait_future(client.call_async(request), self.timeout_s,
-                                        client.srv_name)
+        return self.session.answer(client, request, self.timeout_s, query)
 
     def names(self) -> list[str]:
         return sorted(self._call(self._list, ListParameters.Request()).result.names)
@@ -381,7 +380,8 @@ class Parameters:
 
     def set(self, name: str, value) -> tuple[bool, str]:
         message = Parameter(name, value=value).to_parameter_msg()
-        result = self._call(self._set, SetParameters.Request(parameters=[message])).results[0]
+        result = self._call(self._set, SetParameters.Request(parameters=[message]),
+                            query=False).results[0]
         return result.successful, result.reason
 
 

@@ -17,6 +17,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rclpy.task import Future
 
+from pma_common.service import ask
 from pma_common.stop import StopRequest
 
 # Exit codes of every verb (docs/cli.md).
@@ -106,10 +107,21 @@ class Session:
             raise CliError(f'nothing serves {client.srv_name} (waited {timeout_s:g} s): {hint}',
                            NO_ANSWER)
 
-    def call(self, client, request, timeout_s: float, hint: str):
-        """Call a service once it is there; its response."""
-        self.wait_for_service(client, timeout_s, hint)
+    def answer(self, client, request, timeout_s: float, query: bool = False):
+        """The response to `request` on a service already seen as ready; a query is resent
+        while unanswered (pma_common.service), a command is sent once."""
+        if query:
+            response = ask(client, request, timeout_s, self.spin_until)
+            if response is None:
+                raise CliError(f'no answer from {client.srv_name} within {timeout_s:g} s',
+                               NO_ANSWER)
+            return response
         return self.wait_future(client.call_async(request), timeout_s, client.srv_name)
+
+    def call(self, client, request, timeout_s: float, hint: str, query: bool = False):
+        """Call a service once it is there; its response (see `answer` for `query`)."""
+        self.wait_for_service(client, timeout_s, hint)
+        return self.answer(client, request, timeout_s, query)
 
     # -- topics ------------------------------------------------------------------------
 

@@ -7,13 +7,14 @@ own probe on the same DDS domain (subscriber, client, parameter caller).
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 
 import rclpy
 from rclpy._rclpy_pybind11 import InvalidHandle
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+
+from pma_common.service import ask, poll
 
 
 class SpinningNode:
@@ -23,6 +24,7 @@ class SpinningNode:
         self.node = Node(name)
         self.executor = MultiThreadedExecutor(num_threads=2)
         self.executor.add_node(self.node)
+        self._clients: dict[str, object] = {}
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
@@ -53,7 +55,30 @@ class SpinningNode:
 
         return received, self.node.create_subscription(msg_type, topic, on_msg, qos)
 
+    def call(self, srv_type, name: str, request=None, *, timeout: float = 20.0,
+             idempotent: bool = False):
+        """Call a service and wait for its answer; clients are kept per name.
+
+        An idempotent request (a query) is resent while unanswered, as the product's tools
+        do (pma_common.service: Fast DDS can drop the first reply to a new client); a
+        command is sent once, since sending it twice would change what the test measures.
+        """
+        client = self._clients.get(name)
+        if client is None:
+            client = self._clients[name] = self.node.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=timeout), f'{name} not available'
+        request = srv_type.Request() if request is None else request
+        if idempotent:
+            response = ask(client, request, timeout, poll)
+            if response is None:
+                raise TimeoutError(f'no answer from {name} within {timeout} s')
+            return response
+        future = client.call_async(request)
+        wait_until(future.done, timeout, f'{name} answer')
+        return future.result()
+
     def close(self) -> None:
+        self._clients.clear()   # destroy_node destroys them
         self._stopping.set()
         self._thread.join(2)
         self.executor.shutdown(timeout_sec=2)
@@ -63,12 +88,8 @@ class SpinningNode:
 def wait_until(predicate: Callable[[], bool], timeout: float, what: str,
                period: float = 0.02) -> None:
     """Poll a condition (discovery, message arrival) instead of sleeping a fixed time."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(period)
-    raise TimeoutError(f'timed out after {timeout} s waiting for {what}')
+    if not poll(predicate, timeout, period):
+        raise TimeoutError(f'timed out after {timeout} s waiting for {what}')
 
 
 def shutdown() -> None:

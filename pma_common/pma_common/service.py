@@ -1,0 +1,47 @@
+"""Asking a service a question when its answer can be lost in discovery.
+
+A brand-new client's first request can be answered into the void: Fast DDS drops a reply
+when the server's reply writer has not matched the client's reply reader yet, and a loaded
+machine makes that likely (ros2/rmw_fastrtps#842, open). `wait_for_service` cannot tell,
+since it only sees the request side. A *query* (a request without side effects: a model
+lookup, a parameter read) is therefore sent again until it is answered. A command is not:
+doing it twice is not doing it once, so callers send commands once and report no answer.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+# A query unanswered this long is sent again. The server gives up on an unmatched reply
+# reader after 100 ms; a second's wait leaves room for a busy server's queue.
+RESEND_QUERY_S = 1.0
+
+
+def ask(client, request, timeout_s: float,
+        wait: Callable[[Callable[[], bool], float], bool],
+        resend_s: float = RESEND_QUERY_S):
+    """The response to a query, resent every `resend_s` until `timeout_s`; None if none came.
+
+    `wait(done, seconds)` waits (spinning, or polling a node spun elsewhere) until `done()`
+    or the time is up, and says which.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        future = client.call_async(request)
+        remaining = deadline - time.monotonic()
+        if wait(future.done, max(0.0, min(resend_s, remaining))):
+            return future.result()
+        client.remove_pending_request(future)
+        if time.monotonic() >= deadline:
+            return None
+
+
+def poll(done: Callable[[], bool], seconds: float, period_s: float = 0.02) -> bool:
+    """`wait` for a node spun by another thread: poll `done()` for up to `seconds`."""
+    deadline = time.monotonic() + seconds
+    while not done():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(period_s)
+    return True
