@@ -116,7 +116,12 @@ class Session:
                 raise CliError(f'no answer from {client.srv_name} within {timeout_s:g} s',
                                NO_ANSWER)
             return response
-        return self.wait_future(client.call_async(request), timeout_s, client.srv_name)
+        future = client.call_async(request)
+        if not self.spin_until(future.done, timeout_s):
+            raise CliError(f'no answer from {client.srv_name} within {timeout_s:g} s; it may '
+                           'have been carried out all the same (an answer to a new client can '
+                           'be lost), so check before repeating it', NO_ANSWER)
+        return future.result()
 
     def call(self, client, request, timeout_s: float, hint: str, query: bool = False):
         """Call a service once it is there; its response (see `answer` for `query`)."""
