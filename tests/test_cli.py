@@ -9,6 +9,7 @@ pma/state, the controller's mode, the bag on disk read by rosbags (an independen
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import os
 import signal
@@ -211,6 +212,32 @@ def test_sweep_records_where_the_user_asked_and_exports_to_csv(rig, tmp_path):
                             abs_tol=1e-12) if row['length_m'] else True
 
 
+def test_sweep_profiles_from_flags_stream_their_setpoints_and_a_wrong_flag_is_refused(
+        rig, tmp_path):
+    probe = rig['probe']
+    start = len(probe.states)
+    out = ok(pma('sweep', '--profile', 'sine', '--amplitude', '100kPa', '--offset', '150kPa',
+                 '--frequency', '0.5Hz', '--cycles', '2'))
+    assert 'sine 150 kPa +/- 100 kPa at 0.5 Hz, 2 period(s)' in out and 'sweep succeeded' in out
+    setpoints = [state.gauge_setpoint_pa for state in probe.states[start:]]
+    assert 245_000.0 < max(setpoints) <= 250_000.0
+    changes = sum(1 for before, after in itertools.pairwise(setpoints) if after != before)
+    assert changes > 60, f'{changes} setpoints: a sine streamed at 20 Hz for 4 s has ~80'
+    assert setpoints[-1] == 0.0
+
+    profile = tmp_path / 'profile.csv'
+    profile.write_text('time_s,gauge_pressure_pa\n0,0\n1,120000\n2,0\n')
+    start = len(probe.states)
+    out = ok(pma('sweep', '--profile', 'csv', '--csv', str(profile)))
+    assert 'profile of 3 points over 2.0 s' in out and 'sweep succeeded' in out
+    assert max(state.gauge_setpoint_pa for state in probe.states[start:]) == 120_000.0
+
+    start = len(probe.states)
+    refused = pma('sweep', '--profile', 'ramp', '--max', '300kPa')
+    assert refused.returncode == 1 and 'ramp_rate_pa_s' in refused.stdout, refused
+    assert all(state.gauge_setpoint_pa == 0.0 for state in probe.states[start:])
+
+
 def test_ctrl_c_cancels_the_sweep_and_the_driver_vents(rig):
     proc = subprocess.Popen([str(PMA), 'sweep', '--max', '300kPa', '--step', '100kPa',
                              '--hold', '3s', '--namespace', NS], stdout=subprocess.PIPE,
@@ -398,6 +425,27 @@ def test_calibrate_finds_the_true_sensors_from_a_gauge_and_a_tape(miscalibrated,
             assert driver_parameter(name, namespace='cal_load') == written[name]
     finally:
         loader.stop()
+
+
+def test_ctrl_c_at_the_gauge_prompt_vents_and_changes_nothing(rig, tmp_path):
+    names = ('calibration.volts_at_full', 'calibration.length_offset_m')
+    before = {name: driver_parameter(name) for name in names}
+    typist = Typist([str(PMA), 'calibrate', '--namespace', NS, '--yes', '--check-pressure',
+                     '300kPa', '-o', 'out.yaml'], cwd=tmp_path)
+    try:
+        typist.expect('Reference gauge reading')
+        typist.expect(': ')
+        probe = rig['probe']
+        assert probe.fresh_state().gauge_setpoint_pa == 300_000.0, 'inflated for the check'
+        os.kill(typist.proc.pid, signal.SIGINT)            # Ctrl-C while input() waits
+        code, out = typist.finish(30)
+        assert code == 130, out
+        assert 'interrupted: vented; no parameter changed' in out and 'Traceback' not in out
+        assert probe.fresh_state().gauge_setpoint_pa == 0.0
+        assert not (tmp_path / 'out.yaml').exists()
+        assert {name: driver_parameter(name) for name in names} == before
+    finally:
+        ok(pma('param', 'set', 'driver_node', 'calibration.tare_offset_pa', '0'))
 
 
 def test_calibrate_refuses_a_result_out_of_bounds_and_changes_nothing(rig, tmp_path):

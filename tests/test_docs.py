@@ -124,12 +124,35 @@ def test_every_block_is_run_or_says_why_not():
             f'{block.document}:{block.line}: a bare cd leaves later lines elsewhere: a subshell'
 
 
+def test_every_documented_pma_line_parses_even_where_it_is_not_run():
+    """A `pma` line in a skipped block (it needs the rig, or runs long) still has flags that
+    exist: the real argument parser reads every `pma ...` line of the docs and cli.md."""
+    import shlex
+
+    from pma_cli.main import parser
+
+    documents = (*DOCUMENTS, 'docs/cli.md')
+    lines = [(document, line.strip()) for document in documents for block in blocks(document)
+             if block.lang in ('bash', 'sh', '') for line in block.text.splitlines()
+             if line.strip().startswith('pma ')]
+    assert len(lines) > 10
+    for document, line in lines:
+        command = re.sub(r'\s+#.*$', '', line).rstrip(' &\\')   # comment, `&`, continuation
+        argv = shlex.split(command)[1:]
+        argv = argv[:argv.index('&&')] if '&&' in argv else argv
+        try:
+            parser().parse_args(argv)
+        except SystemExit:
+            pytest.fail(f'{document}: `{line}` does not parse (pma {argv[0]} --help)')
+
+
 def test_a_failing_documented_command_fails_the_run(tmp_path):
     block = Block('x.md', 1, 'bash', 'true\nfalse\necho never', None)
     code, out = run_script(script([block]), tmp_path, 20)
     assert code != 0 and 'never' not in out and 'all documented commands ran' not in out
 
 
+@pytest.mark.timeout(TIMEOUT_S + 60)   # its own limit first: it reports where the run was
 def test_the_documented_commands_run_in_order_in_one_shell(tmp_path):
     if PORT.exists():
         pytest.fail(f'{PORT} exists: another simulated rig runs here; the documents use it')

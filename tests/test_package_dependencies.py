@@ -170,3 +170,16 @@ def test_no_package_reads_another_packages_share_against_the_dependencies():
             found |= set(re.findall(r"FindPackage(?:Share|Prefix)\('(\w+)'\)", path.read_text()))
         missing = found - {package} - dependencies(package, RUN_TAGS)
         assert not missing, f'{package} launch files use {sorted(missing)} without depending'
+
+
+def test_every_packages_tests_are_collected_by_make_test():
+    """A package whose test/ is missing from pytest's testpaths has tests nobody runs."""
+    import tomllib
+
+    testpaths = tomllib.loads((ROOT / 'pyproject.toml').read_text())['tool']['pytest'][
+        'ini_options']['testpaths']
+    collected = {(ROOT / path).resolve() for path in testpaths}
+    for package, source in PACKAGES.items():
+        if (source / 'test').is_dir():
+            assert (source / 'test').resolve() in collected, (
+                f'{package}/test is not in pyproject.toml testpaths: make test skips it')

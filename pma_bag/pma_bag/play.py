@@ -173,10 +173,12 @@ class Player(Node):
     def bag_now(self) -> int:
         """Current bag time [ns since epoch] of the playback timeline."""
         with self._lock:
-            if self._paused_at is not None:
-                return self._paused_at
-            bag, wall = self._anchor
-            return bag + int((time.monotonic_ns() - wall) * self.rate)
+            return self._paused_at if self._paused_at is not None else self._running_ns()
+
+    def _running_ns(self) -> int:
+        """Where the running timeline is now (hold the lock)."""
+        bag, wall = self._anchor
+        return bag + int((time.monotonic_ns() - wall) * self.rate)
 
     def restart_timeline(self, bag_ns: int) -> None:
         with self._lock:
@@ -190,8 +192,7 @@ class Player(Node):
             if paused == (self._paused_at is not None):
                 return False
             if paused:
-                bag, wall = self._anchor
-                self._paused_at = bag + int((time.monotonic_ns() - wall) * self.rate)
+                self._paused_at = self._running_ns()
             else:
                 self._anchor = (self._paused_at, time.monotonic_ns())
                 self._paused_at = None
@@ -270,8 +271,12 @@ class Player(Node):
                 if not self.loop:
                     break
             if message is not None:
-                with self._lock:  # /clock stays at the end of the bag while acks drain
-                    self._paused_at = message.log_time_ns
+                # /clock stops at the end of the bag while acks drain. The timeline is already
+                # a little past the last message (it was published once due), and /clock must
+                # never step back: stop where it is.
+                with self._lock:
+                    if self._paused_at is None:
+                        self._paused_at = max(message.log_time_ns, self._running_ns())
             for publisher in self.publishers_by_topic.values():
                 publisher.wait_for_all_acked(Duration(seconds=1))
         finally:

@@ -16,11 +16,22 @@ from action_msgs.msg import GoalStatus
 from rclpy.action import ActionClient
 
 from pma_cli import quantities as q
-from pma_cli.session import FAILED, INTERRUPTED, NO_ANSWER, OK, CliError, Interrupted, Session
+from pma_cli.session import (
+    FAILED,
+    INTERRUPTED,
+    NO_ANSWER,
+    OK,
+    USAGE,
+    CliError,
+    Interrupted,
+    Session,
+)
+from pma_driver.sweep import STREAMED_PROFILES, SweepError, read_profile_csv
 from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import PmaState
 
 CANCEL_WAIT_S = 15.0
+DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or FORC set
 STATUS_WORDS = {GoalStatus.STATUS_SUCCEEDED: 'succeeded', GoalStatus.STATUS_ABORTED: 'aborted',
                 GoalStatus.STATUS_CANCELED: 'cancelled'}
 
@@ -83,32 +94,79 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
         client.destroy()
 
 
-def sweep(session: Session, *, max_pa: float, step_pa: float, hold_s: float, cycles: int,
-          reversals_pa: list[float], record: str | None, note: str, timeout_s: float) -> int:
-    bag_path = ''
-    if record is not None and record:
-        # The recorder resolves a relative path against its own working directory: send the
-        # one the user meant, relative to where they typed it.
-        bag_path = os.path.abspath(record)
-    goal = Sweep.Goal(max_gauge_pressure_pa=max_pa, step_pa=step_pa, hold_s=hold_s,
-                      cycles=cycles, reversal_pressures_pa=reversals_pa,
-                      record=record is not None, bag_path=bag_path, note=note)
+def sweep_goal(args) -> Sweep.Goal:
+    """The Sweep goal `pma sweep`'s flags describe.
+
+    Only the flags given are filled in, so a flag the profile does not use reaches the driver,
+    which refuses the goal and says which field does not belong (nothing is commanded).
+    """
+    hold_s = args.hold_s
+    if hold_s is None:
+        hold_s = DEFAULT_STEP_HOLD_S if args.profile in ('staircase', 'forc') else 0.0
+    times, pressures = [], []
+    if args.profile_csv is not None:
+        try:
+            times, pressures = read_profile_csv(args.profile_csv)
+        except SweepError as error:
+            raise CliError(str(error), USAGE) from None
+    # The recorder resolves a relative path against its own working directory: send the one
+    # the user meant, relative to where they typed it.
+    bag_path = os.path.abspath(args.record) if args.record else ''
+    return Sweep.Goal(
+        profile=args.profile, max_gauge_pressure_pa=args.max_pa, step_pa=args.step_pa,
+        hold_s=hold_s, cycles=args.cycles, rest_s=args.rest_s,
+        reversal_pressures_pa=args.reversals, ramp_rate_pa_s=args.rate_pa_s,
+        sine_amplitude_pa=args.amplitude_pa, sine_offset_pa=args.offset_pa,
+        sine_frequency_hz=args.frequency_hz, profile_time_s=times,
+        profile_pressure_pa=pressures, forc_count=args.forc_count,
+        forc_family=args.forc_family, record=args.record is not None, bag_path=bag_path,
+        note=args.note)
+
+
+def describe(goal: Sweep.Goal) -> str:
+    """One line saying what the goal will do, in kPa and seconds."""
+    top = q.kpa(goal.max_gauge_pressure_pa, 0)
+    reversals = (f', reversals at {", ".join(q.kpa(r, 0) for r in goal.reversal_pressures_pa)}'
+                 if len(goal.reversal_pressures_pa) else '')
+    if goal.profile == 'forc':
+        text = (f'FORC set: {goal.forc_count} {goal.forc_family or "ascending"} reversal '
+                f'curves up to {top} in {q.kpa(goal.step_pa, 0)} steps, hold '
+                f'{q.seconds(goal.hold_s)}')
+    elif goal.profile == 'ramp':
+        text = (f'ramp 0 -> {top} at {goal.ramp_rate_pa_s / 1000.0:g} kPa/s{reversals}, hold '
+                f'{q.seconds(goal.hold_s)} at each turn')
+    elif goal.profile == 'sine':
+        text = (f'sine {q.kpa(goal.sine_offset_pa, 0)} +/- {q.kpa(goal.sine_amplitude_pa, 0)} '
+                f'at {goal.sine_frequency_hz:g} Hz')
+    elif goal.profile == 'csv':
+        duration = goal.profile_time_s[-1] - goal.profile_time_s[0] if len(
+            goal.profile_time_s) else 0.0
+        text = f'profile of {len(goal.profile_time_s)} points over {q.seconds(duration)}'
+    else:
+        text = (f'sweep 0 -> {top} in {q.kpa(goal.step_pa, 0)} steps, hold '
+                f'{q.seconds(goal.hold_s)}{reversals}')
+    text += f', {goal.cycles} {"period" if goal.profile == "sine" else "cycle"}(s)'
+    if goal.rest_s:
+        text += f', rest {q.seconds(goal.rest_s)} between'
+    if goal.record:
+        text += f'; recording to {goal.bag_path or "an auto-named bag"}'
+    return text
+
+
+def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     state = session.latest(PmaState, 'pma/state')
     progress = Progress()
+    unit = 'setpoint' if goal.profile in STREAMED_PROFILES else 'step'
 
     def on_feedback(feedback) -> None:
         measured = state.message.gauge_pressure_pa if state.message else math.nan
         progress.show(feedback.progress,
-                      f'step {feedback.step_index + 1}/{feedback.step_count}  setpoint '
+                      f'{unit} {feedback.step_index + 1}/{feedback.step_count}  setpoint '
                       f'{q.kpa(feedback.gauge_setpoint_pa, 0)}  pressure {q.kpa(measured)}  '
-                      f'{feedback.sample_count} samples', feedback.step_index)
+                      f'{feedback.sample_count} samples',
+                      feedback.step_index if unit == 'step' else round(10 * feedback.progress))
 
-    print(f'sweep 0 -> {q.kpa(max_pa, 0)} in {q.kpa(step_pa, 0)} steps, hold '
-          f'{q.seconds(hold_s)}, {cycles} cycle(s)'
-          + (f', reversals at {", ".join(q.kpa(r, 0) for r in reversals_pa)}'
-             if reversals_pa else '')
-          + (f'; recording to {bag_path or "an auto-named bag"}' if record is not None else ''),
-          flush=True)
+    print(describe(goal), flush=True)
     started = time.monotonic()
     try:
         status, result, cancelled = run_goal(

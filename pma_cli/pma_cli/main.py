@@ -16,28 +16,32 @@ from pathlib import Path
 
 from pma_cli import quantities as q
 from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted
+from pma_driver.sweep import FORC_FAMILIES, PROFILES
 
 DEFAULT_TIMEOUT_S = 10.0
 
 
-def _quantity(kind: str):
-    def convert(text: str) -> float:
+def _argument(parse, name: str):
+    """An argparse type from a quantities parser: its refusal becomes argparse's message."""
+    def convert(text: str):
         try:
-            return q.parse(text, kind)
+            return parse(text)
         except q.QuantityError as error:
             raise argparse.ArgumentTypeError(str(error)) from None
-    convert.__name__ = kind
+    convert.__name__ = name
     return convert
+
+
+def _quantity(kind: str):
+    return _argument(lambda text: q.parse(text, kind), kind)
 
 
 def _quantities(kind: str):
-    def convert(text: str) -> list[float]:
-        try:
-            return q.parse_list(text, kind)
-        except q.QuantityError as error:
-            raise argparse.ArgumentTypeError(str(error)) from None
-    convert.__name__ = f'{kind} list'
-    return convert
+    return _argument(lambda text: q.parse_list(text, kind), f'{kind} list')
+
+
+def _rate(kind: str):
+    return _argument(lambda text: q.parse_rate(text, kind), f'{kind} rate')
 
 
 def parser() -> argparse.ArgumentParser:
@@ -80,17 +84,46 @@ def parser() -> argparse.ArgumentParser:
     p = verb('tare', "zero the pressure reading at rest (the driver's ~/tare)")
     p.add_argument('--vent', action='store_true',
                    help='vent first and wait until the pressure is steady')
-    p = verb('sweep', 'run a pressure staircase (the Sweep action) with a progress bar; '
-             'Ctrl-C cancels it and the driver vents')
-    p.add_argument('--max', type=_quantity('pressure'), required=True, dest='max_pa',
-                   metavar='PRESSURE', help='top of the staircase, e.g. 500kPa')
-    p.add_argument('--step', type=_quantity('pressure'), required=True, dest='step_pa',
-                   metavar='PRESSURE', help='step height, e.g. 50kPa')
-    p.add_argument('--hold', type=_quantity('time'), default=5.0, dest='hold_s', metavar='TIME',
-                   help='hold at each step (default 5s)')
-    p.add_argument('--cycles', type=int, default=1, help='up-and-down cycles (default 1)')
+    p = verb('sweep', 'run a pressure profile (the Sweep action: a staircase by default) with a '
+             'progress bar; Ctrl-C cancels it and the driver vents',
+             epilog='profiles and their flags: staircase --max --step [--hold] [--reversals]; '
+             'forc --max --step --forc-count [--forc-family] [--hold]; ramp --max --rate '
+             '[--reversals] [--hold]; sine --amplitude --offset --frequency [--max]; csv --csv '
+             '[--max]. All take --cycles and --rest. A flag the profile does not use is refused '
+             'by the driver, with the reason.')
+    p.add_argument('--profile', choices=PROFILES, default='staircase',
+                   help='the path of the pressure (default staircase)')
+    p.add_argument('--max', type=_quantity('pressure'), default=0.0, dest='max_pa',
+                   metavar='PRESSURE', help='top of a staircase, FORC set or ramp, e.g. 500kPa; '
+                   'sine, csv: an optional bound')
+    p.add_argument('--step', type=_quantity('pressure'), default=0.0, dest='step_pa',
+                   metavar='PRESSURE', help='staircase, forc: step height, e.g. 50kPa')
+    p.add_argument('--hold', type=_quantity('time'), default=None, dest='hold_s',
+                   metavar='TIME', help='staircase, forc: hold at each step (default 5s); '
+                   'ramp: at each turning point (default 0)')
+    p.add_argument('--cycles', type=int, default=1,
+                   help='repetitions of the whole profile; sine: periods (default 1)')
+    p.add_argument('--rest', type=_quantity('time'), default=0.0, dest='rest_s',
+                   metavar='TIME', help='rest at 0 Pa between cycles (default none)')
     p.add_argument('--reversals', type=_quantities('pressure'), default=[],
-                   help='minor loops: turn at these pressures, e.g. 300kPa,150kPa')
+                   help='staircase, ramp: minor loops, turn at these pressures, e.g. '
+                        '300kPa,150kPa')
+    p.add_argument('--rate', type=_rate('pressure'), default=0.0, dest='rate_pa_s',
+                   metavar='RATE', help='ramp: rise and fall rate, e.g. 50kPa/s')
+    p.add_argument('--amplitude', type=_quantity('pressure'), default=0.0,
+                   dest='amplitude_pa', metavar='PRESSURE', help='sine: amplitude, e.g. 100kPa')
+    p.add_argument('--offset', type=_quantity('pressure'), default=0.0, dest='offset_pa',
+                   metavar='PRESSURE', help='sine: mean pressure, e.g. 200kPa')
+    p.add_argument('--frequency', type=_quantity('frequency'), default=0.0,
+                   dest='frequency_hz', metavar='FREQUENCY', help='sine: e.g. 0.1Hz')
+    p.add_argument('--csv', type=Path, dest='profile_csv', metavar='FILE',
+                   help='csv: a file with columns time_s,gauge_pressure_pa (SI; a sample log '
+                        'replays as a profile)')
+    p.add_argument('--forc-count', type=int, default=0,
+                   help='forc: number of reversal curves')
+    p.add_argument('--forc-family', choices=FORC_FAMILIES, default='',
+                   help='forc: ascending (default), descending or both (for refit '
+                        '--memory-check)')
     p.add_argument('--record', nargs='?', const='', metavar='BAG',
                    help='record the run to its own bag (a relative path is taken from here; '
                         'no path = auto-named); needs a recorder: pma run pma_bag record --idle')
@@ -182,9 +215,7 @@ def dispatch(args, session) -> int:
     if args.verb == 'tare':
         return commands.tare(session, args.vent, args.timeout)
     if args.verb == 'sweep':
-        return goals.sweep(session, max_pa=args.max_pa, step_pa=args.step_pa,
-                           hold_s=args.hold_s, cycles=args.cycles, reversals_pa=args.reversals,
-                           record=args.record, note=args.note, timeout_s=args.timeout)
+        return goals.sweep(session, goals.sweep_goal(args), timeout_s=args.timeout)
     if args.verb == 'length':
         return commands.pressure_for_length(session, args.length, args.branch, args.si,
                                             args.timeout)

@@ -19,9 +19,11 @@ PRESSURE_UNITS = {'pa': 1.0, 'kpa': PA_PER_KPA, 'mpa': 1000.0 * PA_PER_KPA,
                   'psi': 6894.757293168361}          # lbf/in^2, exact by definition
 LENGTH_UNITS = {'m': 1.0, 'cm': M_PER_CM, 'mm': 0.1 * M_PER_CM}
 TIME_UNITS = {'s': 1.0, 'ms': 1e-3, 'min': 60.0, 'h': 3600.0}
+FREQUENCY_UNITS = {'hz': 1.0}
 KINDS = {'pressure': (PRESSURE_UNITS, 'Pa', '200kPa, 2bar, 29psi'),
          'length': (LENGTH_UNITS, 'm', '26.5cm, 265mm, 0.265m'),
-         'time': (TIME_UNITS, 's', '5s, 500ms, 2min')}
+         'time': (TIME_UNITS, 's', '5s, 500ms, 2min'),
+         'frequency': (FREQUENCY_UNITS, 'Hz', '0.5Hz, 0.1hz')}
 
 _QUANTITY = re.compile(r'^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zA-Z]*)\s*$')
 
@@ -46,6 +48,22 @@ def parse(text: str, kind: str) -> float:
     if not math.isfinite(value):
         raise QuantityError(f'{text!r} is not a finite {kind}')
     return value
+
+
+def parse_rate(text: str, kind: str = 'pressure') -> float:
+    """`50kPa/s`, `3bar/min` as SI per second; a plain number is SI per second."""
+    amount, slash, per = text.partition('/')
+    if not slash:
+        match = _QUANTITY.match(text)
+        if match is not None and match.group(2):
+            raise QuantityError(f'{text!r} is not a rate: give it per time ({text.strip()}/s)'
+                                f' or as a plain number in {KINDS[kind][1]}/s')
+        return parse(text, kind)
+    per = per.strip().lower()
+    if per not in TIME_UNITS:
+        raise QuantityError(f'{text!r}: {per!r} is not a unit of time (known: '
+                            f'{", ".join(TIME_UNITS)})')
+    return parse(amount, kind) / TIME_UNITS[per]
 
 
 def parse_list(text: str, kind: str) -> list[float]:

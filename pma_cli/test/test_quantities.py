@@ -18,6 +18,7 @@ from pma_cli import quantities as q
     ('26.5cm', 'length', 0.265), ('265mm', 'length', 0.265), ('0.265m', 'length', 0.265),
     ('0.265', 'length', 0.265), ('5s', 'time', 5.0), ('500ms', 'time', 0.5),
     ('2min', 'time', 120.0), ('1h', 'time', 3600.0), ('-3kPa', 'pressure', -3000.0),
+    ('0.5Hz', 'frequency', 0.5), ('0.1', 'frequency', 0.1),
 ])
 def test_parse_gives_si(text, kind, si):
     assert math.isclose(q.parse(text, kind), si, rel_tol=1e-12)
@@ -44,6 +45,24 @@ def test_the_refusal_names_the_known_units():
     with pytest.raises(q.QuantityError) as error:
         q.parse('3atm', 'pressure')
     assert 'kPa' in str(error.value) and 'psi' in str(error.value) and 'Pa' in str(error.value)
+
+
+@pytest.mark.parametrize(('text', 'si'), [
+    ('50kPa/s', 50_000.0), ('50 kPa / s', 50_000.0), ('3bar/min', 5000.0),
+    ('1kPa/ms', 1e6), ('2000', 2000.0),
+])
+def test_rates_are_si_per_second(text, si):
+    assert math.isclose(q.parse_rate(text), si, rel_tol=1e-12)
+
+
+@pytest.mark.parametrize(('text', 'words'), [
+    ('50kPa', r'not a rate: give it per time \(50kPa/s\)'),   # kPa meant per second?
+    ('50kPa/fortnight', "'fortnight' is not a unit of time"),
+    ('5cm/s', "'cm' is not a unit of pressure"),
+])
+def test_a_rate_without_a_time_or_with_a_wrong_unit_is_refused(text, words):
+    with pytest.raises(q.QuantityError, match=words):
+        q.parse_rate(text)
 
 
 def test_lists_split_on_commas_and_spaces():

@@ -1,0 +1,72 @@
+"""`pma sweep`'s flags become the Sweep goal the driver checks (pma_driver.sweep.plan_goal)."""
+
+import pytest
+from pma_cli.goals import describe, sweep_goal
+from pma_cli.main import parser
+from pma_cli.session import CliError
+
+from pma_driver.sweep import SweepError, SweepGoal, plan_goal
+
+CEILING_PA = 500_000.0
+
+
+def goal_of(*argv: str):
+    return sweep_goal(parser().parse_args(['sweep', *argv]))
+
+
+def planned(goal):
+    """What the driver makes of it (the same checks its action server runs)."""
+    fields = {name: getattr(goal, name) for name in SweepGoal.__dataclass_fields__}
+    fields['reversal_pressures_pa'] = tuple(fields['reversal_pressures_pa'])
+    fields['profile_time_s'] = tuple(fields['profile_time_s'])
+    fields['profile_pressure_pa'] = tuple(fields['profile_pressure_pa'])
+    return plan_goal(SweepGoal(**fields), ceiling_pa=CEILING_PA)
+
+
+@pytest.mark.parametrize('argv', [
+    ('--max', '100kPa', '--step', '50kPa'),
+    ('--profile', 'forc', '--max', '400kPa', '--step', '100kPa', '--forc-count', '3',
+     '--forc-family', 'both', '--hold', '1s'),
+    ('--profile', 'ramp', '--max', '300kPa', '--rate', '50kPa/s', '--reversals', '200kPa,100kPa'),
+    ('--profile', 'sine', '--amplitude', '100kPa', '--offset', '150kPa', '--frequency', '0.5Hz',
+     '--cycles', '2', '--rest', '1s'),
+])
+def test_every_profile_from_its_flags_is_a_goal_the_driver_plans(argv):
+    goal = goal_of(*argv)
+    plan = planned(goal)
+    assert plan is not None
+    assert describe(goal)
+
+
+def test_a_staircase_holds_5_s_by_default_and_a_ramp_does_not_hold():
+    assert goal_of('--max', '100kPa', '--step', '50kPa').hold_s == 5.0
+    assert goal_of('--profile', 'ramp', '--max', '1e5', '--rate', '1e4').hold_s == 0.0
+
+
+def test_the_csv_profile_sends_the_files_points(tmp_path):
+    profile = tmp_path / 'p.csv'
+    profile.write_text('time_s,gauge_pressure_pa\n0,0\n1.5,100000\n3,0\n')
+    goal = goal_of('--profile', 'csv', '--csv', str(profile))
+    assert list(goal.profile_time_s) == [0.0, 1.5, 3.0]
+    assert list(goal.profile_pressure_pa) == [0.0, 100_000.0, 0.0]
+    assert 'profile of 3 points over 3.0 s' in describe(goal)
+    planned(goal)
+
+
+def test_an_unreadable_csv_is_a_usage_error_before_anything_is_sent(tmp_path):
+    bad = tmp_path / 'bad.csv'
+    bad.write_text('t,p\n0,0\n')
+    with pytest.raises(CliError, match='lacks time_s and gauge_pressure_pa') as error:
+        goal_of('--profile', 'csv', '--csv', str(bad))
+    assert error.value.code == 2
+
+
+@pytest.mark.parametrize(('argv', 'words'), [
+    (('--profile', 'sine', '--amplitude', '100kPa', '--offset', '150kPa', '--frequency', '1Hz',
+      '--step', '50kPa'), 'step_pa'),                        # a staircase flag on a sine
+    (('--profile', 'ramp', '--max', '300kPa'), 'ramp_rate_pa_s'),
+    (('--rate', '50kPa/s', '--max', '300kPa', '--step', '50kPa'), 'ramp_rate_pa_s'),
+])
+def test_a_flag_the_profile_does_not_use_is_refused_by_the_driver_with_its_name(argv, words):
+    with pytest.raises(SweepError, match=words):
+        planned(goal_of(*argv))
