@@ -10,7 +10,7 @@ import threading
 from collections.abc import Callable
 
 import rclpy
-from rclpy._rclpy_pybind11 import InvalidHandle
+from rclpy._rclpy_pybind11 import InvalidHandle, RCLError
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
@@ -33,13 +33,19 @@ class SpinningNode:
         """Spin until closed, surviving entities destroyed under the executor.
 
         A test that destroys a subscription or client while the executor is waiting on it
-        makes rclpy raise InvalidHandle in this thread; plain `executor.spin()` would die of
-        it and every later test in the module would time out waiting for messages.
+        makes rclpy raise InvalidHandle in this thread (an action client: RCLError "action
+        client pointer is invalid"); plain `executor.spin()` would die of it and every later
+        test in the module would time out waiting for messages. The destroyed entity is out
+        of the next wait set, so spinning on is safe.
         """
         while not self._stopping.is_set() and rclpy.ok():
             try:
                 self.executor.spin_once(timeout_sec=0.1)
             except InvalidHandle:
+                continue
+            except RCLError as error:
+                if 'pointer is invalid' not in str(error):
+                    raise
                 continue
             except ExternalShutdownException:
                 return
