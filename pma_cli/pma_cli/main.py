@@ -19,6 +19,8 @@ from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted
 from pma_driver.sweep import FORC_FAMILIES, PROFILES
 
 DEFAULT_TIMEOUT_S = 10.0
+# `pma status` listens at most this long for every node's diagnostics (usually ~1.2 s).
+STATUS_LISTEN_S = 5.0
 
 
 def _argument(parse, name: str):
@@ -204,7 +206,7 @@ def run_executable(package: str, executable: str, args: list[str]) -> int:
 def dispatch(args, session) -> int:
     from pma_cli import calibrate, commands, goals, observe
     if args.verb == 'status':
-        return observe.status(session, args.wait, listen_s=3.0)
+        return observe.status(session, args.wait, listen_s=STATUS_LISTEN_S)
     if args.verb == 'watch':
         return observe.Watch(session, args.si, args.max_rate).run(args.count, args.timeout)
     if args.verb == 'set':

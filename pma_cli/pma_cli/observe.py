@@ -167,15 +167,19 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
         return NO_ANSWER
 
     listening_since = time.monotonic()
+    graph = {'nodes': _nodes_in(session), 'since': listening_since}
 
     def heard_everyone() -> bool:
-        # Graph discovery lags behind a fresh node: one diagnostics period heard in full.
-        if time.monotonic() - listening_since < DIAGNOSTICS_PERIOD_S + 0.2:
+        # A fresh process discovers the nodes one by one, the slower the busier the machine:
+        # wait for one diagnostics period heard in full and a graph unchanged that long.
+        now, nodes = time.monotonic(), _nodes_in(session)
+        if nodes != graph['nodes']:
+            graph.update(nodes=nodes, since=now)
+        if min(now - listening_since, now - graph['since']) < DIAGNOSTICS_PERIOD_S + 0.2:
             return False
         if diagnostics.get('driver_node') is None or state.message is None:
             return False
-        nodes = set(_nodes_in(session)) & {'model_node', 'length_controller'}
-        return nodes <= set(diagnostics.by_node)
+        return set(nodes) & {'model_node', 'length_controller'} <= set(diagnostics.by_node)
 
     session.spin_until(heard_everyone, listen_s)
     session.spin_for(0.1)                  # the prediction of the last state
