@@ -145,9 +145,13 @@ def run_sweep(node, label: str, goal, timeout: float):
     _wait(result_future, timeout, f'{label} to finish')
     if interactive:
         print(flush=True)
-    result = result_future.result().result
+    response = result_future.result()
+    result = response.result
     if not result.success:
-        raise RuntimeError(f'{label} failed: {result.message}')
+        # The status tells a run that failed (ABORTED, with the driver's reason) from a goal
+        # the driver no longer knew (UNKNOWN, empty result).
+        raise RuntimeError(f'{label} failed (goal status {response.status}): '
+                           f'{result.message or "no message; see driver_node.log"}')
     say(f'{label}: done, {result.sample_count} samples ({result.message})')
     client.destroy()
     return result
