@@ -15,6 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT / 'tests'))
 
+from support.domains import another_domain, worker_domains  # noqa: E402
 from support.procs import ProcessGroup  # noqa: E402
 
 
@@ -22,7 +23,7 @@ def pytest_configure(config):
     if 'PMA_TEST_DOMAIN_ID' in os.environ:
         domain = int(os.environ['PMA_TEST_DOMAIN_ID'])
     else:
-        domain = random.SystemRandom().choice(_worker_domains())
+        domain = random.SystemRandom().choice(worker_domains())
     os.environ['ROS_DOMAIN_ID'] = str(domain)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_LOCALHOST_ONLY', None)
@@ -34,17 +35,6 @@ def pytest_configure(config):
 
 
 _DOMAIN_KEY = pytest.StashKey[int]()
-
-
-def _worker_domains() -> range:
-    """Domain IDs 1-101, split between pytest-xdist workers so that two never share one."""
-    worker = os.environ.get('PYTEST_XDIST_WORKER', '')          # 'gw0', 'gw1', ...
-    count = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
-    if not worker.startswith('gw') or count <= 1:
-        return range(1, 102)
-    size = 101 // count
-    first = 1 + int(worker[2:]) * size
-    return range(first, first + size)
 
 
 def pytest_report_header(config):
@@ -61,9 +51,7 @@ def ros_domain_per_module():
     (a recorder adapts its QoS to such ghosts). The in-process rclpy context follows: it is
     shut down at the end of the module, and the next module's probe starts it again.
     """
-    previous = os.environ['ROS_DOMAIN_ID']
-    choices = [d for d in _worker_domains() if str(d) != previous]
-    os.environ['ROS_DOMAIN_ID'] = str(random.SystemRandom().choice(choices))
+    os.environ['ROS_DOMAIN_ID'] = str(another_domain())
     yield
     import rclpy
     if rclpy.ok():

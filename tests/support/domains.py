@@ -1,0 +1,24 @@
+"""ROS domain IDs for tests: each pytest-xdist worker has its own range, so two never share one."""
+
+from __future__ import annotations
+
+import os
+import random
+
+
+def worker_domains() -> range:
+    """Domain IDs 1-101, split between pytest-xdist workers so that two never share one."""
+    worker = os.environ.get('PYTEST_XDIST_WORKER', '')          # 'gw0', 'gw1', ...
+    count = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
+    if not worker.startswith('gw') or count <= 1:
+        return range(1, 102)
+    size = 101 // count
+    first = 1 + int(worker[2:]) * size
+    return range(first, first + size)
+
+
+def another_domain() -> int:
+    """A domain of this worker other than the current one: a graph of its own."""
+    current = os.environ.get('ROS_DOMAIN_ID')
+    return random.SystemRandom().choice(
+        [domain for domain in worker_domains() if str(domain) != current])
