@@ -256,6 +256,9 @@ class ModelNode(Node):
             learned = self._model.learned()
             drift = self._model.drift
             counts = (self._model.samples_learned, self._model.samples_rejected)
+        # What this message says was learned: the diagnostics tick republishes only when more
+        # has been (the start-up message must not be sent twice, unchanged).
+        self._published_learning = counts[0]
         params = self._params.with_learned(learned)
         msg = ModelParamsMsg()
         msg.header.stamp = self.get_clock().now().to_msg()
@@ -398,7 +401,6 @@ class ModelNode(Node):
         if (learned.enabled or adapting) and learned_count != self._published_learning:
             # What it has learned, latched at 1 Hz at most: a recording (or a restart from
             # its parameters_yaml) keeps it.
-            self._published_learning = learned_count
             self._publish_params()
 
 
