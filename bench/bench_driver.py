@@ -8,6 +8,10 @@
 * latency: a line written at 100 Hz -> its PmaState received here (same clock); p50/p99
   (target p99 < 5 ms).
 * CPU of driver_node (utime + stime from /proc) at 20 Hz and 1 kHz, % of one core.
+* under the length controller's traffic (50 Hz samples, 50 Hz pma/pressure_setpoint), in
+  several fresh starts: CPU and latency p99 / worst per start. rclpy's MultiThreadedExecutor
+  fell into spinning at 100 % CPU in about one start in three here, samples then up to 3 s
+  late (docs/driver.md, Threads); the latency is reported as a ratio to the 100 Hz run.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from benchlib import cpu_seconds, isolate_ros_graph, load_row, print_table, stop
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile
+from std_msgs.msg import Float64
 
 from pma_driver import protocol
 from pma_interfaces.msg import PmaState
@@ -126,10 +131,15 @@ class BenchDevice:
             time.sleep(min(0.001, 0.5 / self.rate_hz))
 
 
-def subscriber_main(out: str) -> None:
-    """Child process: record (seq, receive time) of every PmaState until SIGINT."""
+def subscriber_main(out: str, setpoint_hz: float) -> None:
+    """Child process: record (seq, receive time) of every PmaState until SIGINT; optionally
+    stream pressure setpoints as the length controller does."""
     rclpy.init()
     node = rclpy.create_node('bench_driver_probe')
+    if setpoint_hz > 0:
+        setpoints = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+        node.create_timer(1.0 / setpoint_hz, lambda: setpoints.publish(
+            Float64(data=100_000.0 + 50_000.0 * np.sin(time.monotonic()))))
     seqs: list[int] = []
     times: list[int] = []
 
@@ -175,11 +185,14 @@ def wait_for(predicate, timeout: float, what: str) -> None:
         time.sleep(0.05)
 
 
-def run_driver(rate_hz: float | None, seconds: float, work: Path):
+def run_driver(rate_hz: float | None, seconds: float, work: Path, setpoint_hz: float = 0.0,
+               run_name: str = ''):
     """Driver fed by a BenchDevice; returns (device, [(seq, receive ns)], CPU % of one core)."""
-    out = work / f'received_{rate_hz}.npy'
-    errors = open(work / f'subscriber_{rate_hz}.log', 'w')  # closed after the run
-    subscriber = subprocess.Popen([sys.executable, __file__, '--subscribe', str(out)],
+    name = run_name or f'{rate_hz}'
+    out = work / f'received_{name}.npy'
+    errors = open(work / f'subscriber_{name}.log', 'w')  # closed after the run
+    subscriber = subprocess.Popen([sys.executable, __file__, '--subscribe', str(out),
+                                   '--setpoint-hz', str(setpoint_hz)],
                                   stdout=subprocess.PIPE, stderr=errors, text=True,
                                   start_new_session=True)
     device = BenchDevice(rate_hz)
@@ -226,6 +239,12 @@ class Run:
             self.diagnostics) > 1 else -1
 
 
+def latencies_ms(run: Run) -> np.ndarray:
+    """Device write -> PmaState received, per sample [ms]."""
+    written = run.device.written_ns
+    return np.array([(t - written[s]) / 1e6 for s, t in run.received if s in written])
+
+
 def bare_readline_rate(seconds: float) -> float:
     """Lines/s a plain pyserial readline loop (its own process) gets from the same device."""
     device = BenchDevice(None)
@@ -254,11 +273,14 @@ def bare_main(port_name: str, seconds: float) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seconds', type=float, default=5.0)
+    parser.add_argument('--starts', type=int, default=6,
+                        help='fresh driver starts under setpoint traffic')
     parser.add_argument('--subscribe', help=argparse.SUPPRESS)
+    parser.add_argument('--setpoint-hz', type=float, default=0.0, help=argparse.SUPPRESS)
     parser.add_argument('--bare', nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.subscribe:
-        subscriber_main(args.subscribe)
+        subscriber_main(args.subscribe, args.setpoint_hz)
         return
     if args.bare:
         bare_main(args.bare[0], float(args.bare[1]))
@@ -281,8 +303,7 @@ def main() -> None:
                  f'{len(flat.received) / args.seconds:.0f}', f'({sub_gaps} not delivered)'))
     rows.append(('  driver CPU flat out [% core]', f'{flat.cpu_percent:.0f}', ''))
     paced = run_driver(100.0, max(args.seconds, 10.0), work)
-    latency_ms = np.array([(t - paced.device.written_ns[s]) / 1e6 for s, t in paced.received
-                           if s in paced.device.written_ns])
+    latency_ms = latencies_ms(paced)
     rows.append(('latency line -> PmaState p50 [ms]', f'{np.percentile(latency_ms, 50):.2f}',
                  f'({len(latency_ms)} samples at 100 Hz)'))
     rows.append(('latency line -> PmaState p99 [ms]', f'{np.percentile(latency_ms, 99):.2f}',
@@ -291,6 +312,21 @@ def main() -> None:
         run = run_driver(rate_hz, args.seconds, work)
         rows.append((f'driver CPU at {rate_hz:g} Hz [% core]', f'{run.cpu_percent:.1f}',
                      f'({run.published_rate():.0f} samples/s published)'))
+    baseline_p99 = np.percentile(latency_ms, 99)
+    cpus, p99s, worst = [], [], []
+    for start in range(args.starts):
+        run = run_driver(50.0, max(args.seconds, 20.0), work, setpoint_hz=50.0,
+                         run_name=f'setpoints_{start}')
+        latency = latencies_ms(run)
+        cpus.append(run.cpu_percent)
+        p99s.append(np.percentile(latency, 99))
+        worst.append(latency.max())
+    rows.append((f'50 Hz + 50 Hz setpoints, {args.starts} starts: driver CPU [% core]',
+                 ' / '.join(f'{c:.0f}' for c in cpus), '< 30 each (a spinning executor: ~100)'))
+    rows.append(('  latency p99 / 100 Hz run p99, worst start',
+                 f'{max(p99s) / baseline_p99:.2f}', f'(p99 {max(p99s):.2f} ms)'))
+    rows.append(('  latency worst sample, worst start [ms]', f'{max(worst):.1f}',
+                 '(a starved link thread: 100s of ms)'))
     rows.append(load_row())
     print_table(rows)
 

@@ -334,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
     major_bag = run_dir / 'major_loop'            # the Sweep action's own bags, one per run
@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
 
         rclpy.init()
         node = Node('pma_demo')
-        executor = MultiThreadedExecutor()
+        executor = SingleThreadedExecutor()   # its callbacks only collect
         executor.add_node(node)
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()

@@ -16,17 +16,27 @@ and the device commands of the cleanup still work, and rclpy is shut down exactl
 
 from __future__ import annotations
 
+import concurrent.futures
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import rclpy
-from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import (
+    ConditionReachedException,
+    Executor,
+    ExternalShutdownException,
+    ShutdownException,
+    SingleThreadedExecutor,
+    TimeoutException,
+)
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from pma_common.stop import StopRequest, stop_request
 
 SPIN_PERIOD_S = 0.1   # how soon a stop request is seen while nothing else happens
+HANDOVER_CHECK_S = 0.1   # how often a pool-executor waiting for a free worker checks for shutdown
 
 
 @contextmanager
@@ -64,3 +74,58 @@ def run_single_threaded(make_node: Callable[[], Node], args: list[str] | None = 
         finally:
             node.destroy_node()
     return 0
+
+
+class WorkerPoolExecutor(Executor):
+    """Callbacks on a pool of worker threads, for a node whose callbacks may block.
+
+    Use it instead of rclpy's MultiThreadedExecutor. That one (rclpy 7.1, Jazzy) hands a ready
+    callback to its pool and looks for work again at once; until a worker has started the
+    callback it still counts as pending work, so it is handed out again, without waiting, over
+    and over. Under steady traffic the pool's queue fills with copies and the process spins at
+    100 % CPU (ros2/rclpy#1452): a driver_node at 50 Hz, starved of the GIL, published samples
+    up to 3 s late. Here the spinning thread waits until a worker has taken the callback
+    before it looks for more.
+    """
+
+    def __init__(self, num_threads: int, *, context=None):
+        super().__init__(context=context)
+        self._pool = concurrent.futures.ThreadPoolExecutor(
+            num_threads, thread_name_prefix='pma-callback')
+        self._running: list[tuple[concurrent.futures.Future, object]] = []   # (run, Task)
+        self._closed = threading.Event()
+        self.handed_out = 0    # callbacks given to a worker (a test sees none handed out twice)
+
+    def spin_once(self, timeout_sec: float | None = None) -> None:
+        self._spin_once_impl(timeout_sec)
+
+    def spin_once_until_future_complete(self, future, timeout_sec: float | None = None) -> None:
+        future.add_done_callback(lambda _: self.wake())
+        self._spin_once_impl(timeout_sec, future.done)
+
+    def _spin_once_impl(self, timeout_sec=None, wait_condition=lambda: False) -> None:
+        try:
+            handler, _, _ = self.wait_for_ready_callbacks(timeout_sec, None, wait_condition)
+        except (ShutdownException, TimeoutException, ConditionReachedException):
+            return
+        taken = threading.Event()
+
+        def run() -> None:
+            taken.set()
+            handler()
+
+        self._running.append((self._pool.submit(run), handler))
+        self.handed_out += 1
+        # Every worker busy (a long callback each): wait for one, but not past a shutdown.
+        while not taken.wait(HANDOVER_CHECK_S) and not self._closed.is_set():
+            pass
+        finished = [task for run_, task in self._running if run_.done()]
+        self._running = [pair for pair in self._running if not pair[0].done()]
+        for task in finished:
+            task.result()   # a callback's exception ends spin(), as SingleThreadedExecutor's does
+
+    def shutdown(self, timeout_sec: float | None = None) -> bool:
+        self._closed.set()
+        done = super().shutdown(timeout_sec)
+        self._pool.shutdown(wait=False)
+        return done

@@ -21,7 +21,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import Node, State, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -29,7 +28,7 @@ from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from pma_common.node import ros_context, spin_until_stopped
+from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_driver import protocol
 from pma_driver.clock_sync import ClockSync
 from pma_driver.control import DeviceControl
@@ -394,7 +393,7 @@ def main(args=None) -> int:
         except rclpy.exceptions.InvalidParameterValueException as error:
             print(f'driver_node: bad parameter: {error}', file=sys.stderr)
             return 2
-        executor = MultiThreadedExecutor(num_threads=4)
+        executor = WorkerPoolExecutor(num_threads=4)
         try:
             spin_until_stopped(executor, node, stop)
         finally:

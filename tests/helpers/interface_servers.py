@@ -9,9 +9,10 @@ import time
 
 import rclpy
 from rclpy.action import ActionServer
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from pma_common.node import WorkerPoolExecutor
 from pma_interfaces.action import Sweep
 from pma_interfaces.srv import PressureForLength
 
@@ -52,7 +53,7 @@ class InterfaceServers(Node):
 def main() -> None:
     rclpy.init()
     node = InterfaceServers()
-    executor = MultiThreadedExecutor()
+    executor = WorkerPoolExecutor(num_threads=4)
     executor.add_node(node)
     print('interface_servers: ready', flush=True)
     try:

@@ -16,11 +16,10 @@ import sys
 import threading
 from pathlib import Path
 
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
-from pma_common.node import ros_context, spin_until_stopped
+from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_interfaces.msg import PmaState
 from pma_interfaces.srv import StartRecording, StopRecording
 
@@ -85,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         node = RecorderStandIn(args.calls, args.refuse)
         print(f'recorder_stand_in: ready as {node.get_fully_qualified_name()}', flush=True)
         try:
-            spin_until_stopped(MultiThreadedExecutor(num_threads=2), node, stop)
+            spin_until_stopped(WorkerPoolExecutor(num_threads=2), node, stop)
         finally:
             node.destroy_node()
     return 0

@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import rclpy
 from rclpy._rclpy_pybind11 import InvalidHandle, RCLError
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from pma_common.service import ask, poll
@@ -22,7 +22,7 @@ class SpinningNode:
         if not rclpy.ok():
             rclpy.init()
         self.node = Node(name)
-        self.executor = MultiThreadedExecutor(num_threads=2)
+        self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self._clients: dict[str, object] = {}
         self._stopping = threading.Event()
