@@ -282,7 +282,9 @@ class PmaDriver(Node):
     def _on_setpoint(self, msg: Float64) -> None:
         kind, reason = self._control.command_setpoint(msg.data)
         if kind == 'inactive':
-            reason = f'driver is {self._state_label()}, not active'
+            label = self._state_label()   # still 'active' while deactivating or shutting down
+            reason = ('driver is leaving the active state' if label == 'active'
+                      else f'driver is {label}, not active')
         # Throttled per kind, so a flood of one kind of refusal hides no other kind.
         now = time.monotonic()
         if reason and now - self._refusal_logged.get(kind, -math.inf) >= 1.0:
