@@ -111,14 +111,12 @@ def test_an_unreachable_target_is_refused_with_the_reachable_range(rig):
 
 @pytest.mark.serial
 def test_a_streamed_sine_is_tracked_end_to_end(rig):
-    """A 0.1 Hz sine over DDS: RMSE against the true length, better than feedback alone can.
+    """A 0.1 Hz sine over DDS: RMSE against the true length within the issue's 2 % of stroke.
 
-    The issue's 2 % of stroke is the controller's target, met in bench/bench_control.py on
-    every muscle family with up to 50 ms of command delay, in simulated time (150 ms:
-    2.6-3.1 %, docs/control.md). Over DDS, five
-    Python processes share the machine: 1.1 % on a quiet one, 1.9 % beside four busy loops,
-    2.8 % in a loaded CI run. Feedback alone ('fb') measured 4.2-4.4 % here whatever the load,
-    so the bound (3.5 %) still fails a controller whose model feedforward does not work.
+    Five Python processes share the machine: 1.31-1.47 % on a quiet one, 1.18-1.52 % beside
+    two or four busy loops (docs/control.md). Larger errors here (10-28 %) came from a driver
+    spinning in rclpy's MultiThreadedExecutor and reading its samples late (docs/driver.md,
+    Threads); feedback alone ('fb') measured 4.2-4.4 %.
     """
     probe = rig['probe']
     wait_until(lambda: probe.setpoints.get_subscription_count() > 0, 10, 'controller subscribed')
@@ -144,7 +142,7 @@ def test_a_streamed_sine_is_tracked_end_to_end(rig):
     rmse = float(np.sqrt(np.mean((true - ref) ** 2)))
     print(f'streamed sine 0.1 Hz over DDS: RMSE against the true length {rmse * 1000:.2f} mm '
           f'({100 * rmse / STROKE_M:.2f} % of stroke), {true.size} samples')
-    assert rmse <= 0.035 * STROKE_M
+    assert rmse <= 0.02 * STROKE_M
     with probe.lock:
         modes = {c.mode for c in probe.control[-50:]}
     assert ControlState.MODE_STREAM in modes
