@@ -1,5 +1,6 @@
 """length_controller against the simulated rig: fake_arduino, driver_node and the controller as
-real processes over DDS, without model_node (the controller needs none), then with it.
+real processes over DDS, without model_node: the controller needs none (test_launch_files and
+`make demo` run it beside model_node).
 
 The probe sends MoveToLength goals and streams pma/length_setpoint like `ros2 action
 send_goal` and `ros2 topic pub -r 50` would, and reads the measured length from pma/state.
