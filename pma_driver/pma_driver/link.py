@@ -15,6 +15,7 @@ import enum
 import errno
 import logging
 import math
+import termios
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -25,6 +26,10 @@ import serial
 from pma_common.sequence import SequenceStats, SequenceTracker
 from pma_driver import protocol
 from pma_driver.protocol import Ack, Command, Hello, Nak, Sample
+
+# What a port that goes away can raise from pyserial: a pulled cable between open() and the
+# port's configuration or a flush surfaces as termios.error, which is not an OSError.
+PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 
 _log = logging.getLogger('pma_driver.link')
 
@@ -272,7 +277,7 @@ class SerialLink:
                 self._after_open()
             try:
                 data = self._serial.read(self._serial.in_waiting or 1)
-            except (serial.SerialException, OSError, TypeError, AttributeError) as error:
+            except (*PORT_ERRORS, TypeError, AttributeError) as error:
                 # TypeError/AttributeError: pyserial on a port closed under it by stop().
                 if not self._stop.is_set():
                     self._lost_port(error)
@@ -288,7 +293,7 @@ class SerialLink:
     def _open_port(self) -> serial.Serial:
         try:
             port = serial.Serial(self.port, self.baud, timeout=0.05, write_timeout=0.5)
-        except (serial.SerialException, OSError, ValueError) as error:
+        except (*PORT_ERRORS, ValueError) as error:
             message = describe_open_error(self.port, error, self.reconnect_period_s)
             with self._lock:
                 self._last_error = message
@@ -301,7 +306,7 @@ class SerialLink:
         self._decoder.reset(drop_first_partial=True)
         try:
             self._serial.reset_input_buffer()
-        except (serial.SerialException, OSError):
+        except PORT_ERRORS:
             pass
         with self._lock:
             self._sequence.reset()      # a reopened port may be a rebooted device
@@ -329,7 +334,7 @@ class SerialLink:
         if port is not None:
             try:
                 port.close()
-            except (serial.SerialException, OSError):
+            except PORT_ERRORS:
                 pass
 
     def _dispatch(self, frame: protocol.Frame, received_ns: int) -> None:
@@ -467,7 +472,7 @@ class SerialLink:
         try:
             with self._write_lock:
                 port.write(data)
-        except (serial.SerialException, OSError, TypeError, AttributeError) as error:
+        except (*PORT_ERRORS, TypeError, AttributeError) as error:
             raise LinkError(f'write to {self.port} failed: {error}') from error
 
     def _try_write(self, data: bytes) -> None:

@@ -152,10 +152,20 @@ class FirmwareSimulator:
 
     def _until_done(self) -> None:
         """Serve the simulator's questions and events until it says `done`."""
+        self.cycle = int(self._serve_until(b'done'))
+
+    def _serve_until(self, answer: bytes) -> bytes:
+        """Serve questions and events until the line starting with `answer`; its rest.
+
+        Events come whenever the pins change, also before the first `run` (the pin levels at
+        power-on), so every command's answer is read through here.
+        """
         readline = self._process.stdout.readline
         while True:
             line = readline()
-            kind, _, rest = line.partition(b' ')
+            kind, _, rest = line.rstrip(b'\n').partition(b' ')
+            if kind == answer:
+                return rest
             if kind == b'tx':
                 self.output += bytes.fromhex(rest.decode('ascii'))
             elif kind == b'adc':
@@ -165,9 +175,6 @@ class FirmwareSimulator:
             elif kind == b'valves':
                 cycle, inlet, exhaust = (int(field) for field in rest.split())
                 self._on_valves(cycle, inlet, exhaust)
-            elif kind == b'done':
-                self.cycle = int(rest)
-                return
             elif kind == b'error':
                 raise FirmwareStoppedError(rest.decode('ascii', 'replace').strip())
             elif not line:
@@ -194,11 +201,9 @@ class FirmwareSimulator:
     def stats(self) -> FirmwareStats:
         """Counters since the last reset; the `window_` ones restart with each call."""
         self._send('stats\n')
-        line = self._process.stdout.readline()
-        if not line.startswith(b'stats '):
-            raise FirmwareStoppedError(f'pma_simavr answered stats with {line!r}')
+        answer = self._serve_until(b'stats').decode('ascii')
         return FirmwareStats({key: int(value) for key, value in
-                              (item.split('=') for item in line.decode().split()[1:])})
+                              (item.split('=') for item in answer.split())})
 
     def close(self) -> None:
         if self._process.poll() is None:
@@ -349,8 +354,8 @@ def run(args: argparse.Namespace, stop: StopRequest) -> int:
         for device in devices:
             try:
                 print(device.simulator.stats().text(), flush=True)
-            except FirmwareStoppedError:
-                pass
+            except FirmwareStoppedError as error:
+                print(f'{PROG}: no firmware stats: {error}', flush=True)
             speed = device.simulated_ms / 1000 / max(device.simulating_s, 1e-9)
             print(f'{PROG}: simulation speed_vs_real_time={speed:.1f} '
                   f'both_valves_open={device.both_valves_open}', flush=True)

@@ -190,6 +190,22 @@ def test_boots_with_the_banner_and_streams_at_20_hz(bench):
     assert stats.values['rx_overruns'] == 0 and stats.values['triggers_short'] == 0
 
 
+def test_stats_answer_before_the_first_step(bench):
+    """A stop that comes before the device ever ran still reports the firmware's counters.
+
+    pma_simavr reports the pin levels at power-on before any `run`; stats() once read that
+    event as its answer, so simavr_arduino stopped early printed no firmware line (CI, a
+    signal test whose burst came right after 'device at').
+    """
+    b = bench()
+    stats = b.stats()
+    assert stats.values['loops'] == 0, stats.values
+    assert b.device.both_valves_open == 0
+    b.run(200, heartbeat_ms=100)
+    assert b.stats().values['loops'] > 0
+    assert b.samples(), 'the device streams after an early stats'
+
+
 def test_the_image_answers_every_line_as_the_host_build(bench):
     """The same table of lines and answers as the sketch compiled for the PC."""
     b = bench(pressure_noise_pa=0.0)
