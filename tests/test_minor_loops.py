@@ -64,12 +64,7 @@ def test_identify_beats_the_papers_switch_in_rmse(family):
         assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind
 
 
-@pytest.mark.parametrize('family', [
-    *(name for name in FAMILY_NAMES if name != 'asymmetric'),
-    pytest.param('asymmetric', marks=pytest.mark.xfail(
-        strict=True, reason='not met: 0.81x the switch on the nested path (docs/model.md §3):'
-        ' on falling scans this Duhem muscle approaches its envelope exponentially, a shape '
-        'no mix of Madelung and play-like curves follows'))])
+@pytest.mark.parametrize('family', FAMILY_NAMES)
 def test_identify_max_error_is_at_most_0_7_of_the_switch(family):
     ours, paper = scores(family, IDENTIFY), scores(family, PAPER)
     for kind in PATH_KINDS:

@@ -68,6 +68,7 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         assert first.memory == 'identify' and first.identification_enabled
         assert (first.play_share_rising, first.play_share_falling) == (0.5, 0.5)
         assert list(first.branch_correction_m) == [0.0] * len(CORRECTION_KNOTS_PA)
+        assert list(first.branch_difference_m) == [0.0] * len(CORRECTION_KNOTS_PA)
         run = publish_run(probe)
         count = run.time_s.size
         wait_until(lambda: published[-1].samples_learned >= 0.95 * count, 20,
@@ -75,9 +76,11 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         learned = published[-1]
         print(f'\nlearned from {learned.samples_learned} of {count} samples: play shares '
               f'{learned.play_share_rising:.2f} / {learned.play_share_falling:.2f}, '
-              f'correction mm {np.round(np.array(learned.branch_correction_m) * 1e3, 2)}')
+              f'correction mm {np.round(np.array(learned.branch_correction_m) * 1e3, 2)}, '
+              f'difference mm {np.round(np.array(learned.branch_difference_m) * 1e3, 2)}')
         assert list(learned.branch_correction_pressures_pa) == list(CORRECTION_KNOTS_PA)
         assert np.max(np.abs(learned.branch_correction_m)) > 5e-4   # the sigmoid is wrong
+        assert len(learned.branch_difference_m) == len(CORRECTION_KNOTS_PA)
         assert (learned.play_share_rising, learned.play_share_falling) != (0.5, 0.5)
         assert len(learned.creep_gains) == len(learned.creep_time_constants_s) == 2
         assert len(published) < 60     # republished at most once a second while learning
@@ -87,7 +90,7 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
                                for s in a.status for kv in s.values), 10, 'diagnostics')
         keys = {kv.key for a in diagnostics for s in a.status for kv in s.values}
         assert {'play_share_rising', 'play_share_falling', 'branch_correction_mm',
-                'creep_gains'} <= keys
+                'branch_difference_mm', 'creep_gains'} <= keys
     finally:
         probe.node.destroy_subscription(sub_params)
         probe.node.destroy_subscription(sub_diag)
@@ -104,6 +107,7 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         assert start.play_share_rising == learned.play_share_rising
         assert start.play_share_falling == learned.play_share_falling
         assert list(start.branch_correction_m) == list(learned.branch_correction_m)
+        assert list(start.branch_difference_m) == list(learned.branch_difference_m)
         assert list(start.creep_gains) == list(learned.creep_gains)
         assert start.samples_learned == 0
     finally:

@@ -11,11 +11,15 @@ its state (docs/model.md, "Online identification"):
   memory parameter between the two rules, whose regret against the best fixed share
   grows only logarithmically. It learns only where the shapes differ: after reversals.
 - the branch shape: a correction delta(P) given at knots every 50 kPa (CORRECTION_KNOTS_PA),
-  the same for both branches, added inside them (CorrectedBranch) so every memory rule uses
-  it and keeps its continuity and return-point memory. Between knots it follows the branch's
-  own length, so it can flatten the sigmoid's dead zone and still invert in closed form. (A
-  correction per branch learned worse: on a scanning curve a residual cannot be told to one
-  branch.)
+  added inside both branches (CorrectedBranch) so every memory rule uses it and keeps its
+  continuity and return-point memory. Between knots it follows the branch's own length, so it
+  can flatten the sigmoid's dead zone and still invert in closed form. It is learned as a
+  mean for both branches plus a difference (increasing minus decreasing, half added to each):
+  the paper's two sigmoids miss Table 1 in different places (their misfits differ by up to
+  3 mm at a knot), which a mean cannot follow. The difference has a tighter prior
+  (DIFFERENCE_PRIOR_M): on a scanning curve a residual cannot be told to one branch, and a
+  loose difference trades off against the play shares (docs/model.md, "Online
+  identification").
 - creep: length = static + sum_j k_j (lag_j(static) - static), the model's static length
   through first-order lags of CREEP_TIME_CONSTANTS_S: a share of each change arriving late,
   which vanishes in a hold (so the inverse, a steady-state answer, ignores it).
@@ -48,6 +52,7 @@ from pma_model.memory import HysteresisModel, InverseResult
 CORRECTION_KNOTS_PA = tuple(float(p) for p in np.linspace(0.0, 500_000.0, 11))
 CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
 MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
+MAX_DIFFERENCE_M = 2 * MAX_CORRECTION_M   # each branch's own correction stays within the above
 MAX_CREEP_GAIN = 1.0
 SPREAD_SCALE_M = 0.0005      # memory shapes this far apart halve the confidence (quarter R)
 COMMIT_M = 2e-5              # apply learned branch changes once they move 0.02 mm somewhere
@@ -57,8 +62,13 @@ GAIN_WALK_LENGTH_M = 0.03    # the gain may move as fast as the shift does at th
 SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth nothing)
 
 # Kalman filter priors (standard deviations) and random-walk rates (per second).
-_PRIOR = {'correction': 0.004, 'creep': 0.5, 'shift': 0.003, 'gain': 0.1, 'share': 1.0}
-_PRIOR_RESUMED = {'correction': 0.001, 'creep': 0.1, 'share': 0.2}
+# The branch difference's prior. Measured on seeds 3-4 of every family (sigmoid): 0.5, 1 and
+# 1.5 mm give minor-loop RMSE 0.90, 0.87 and 0.90 % of stroke (1.13 % with no difference);
+# looser, it trades off against the play shares: 2 mm 0.93 %, 4 mm 1.17 %.
+DIFFERENCE_PRIOR_M = 0.001
+_PRIOR = {'correction': 0.004, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5, 'shift': 0.003,
+          'gain': 0.1, 'share': 1.0}
+_PRIOR_RESUMED = {'correction': 0.001, 'difference': 0.0005, 'creep': 0.1, 'share': 0.2}
 _WALK_PER_S = {'correction': 1e-5, 'creep': 1e-3, 'share': 0.003}
 
 
@@ -70,6 +80,8 @@ class IdentificationSettings:
     play_share_rising: float = 0.5
     play_share_falling: float = 0.5
     branch_correction_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
+    # Increasing minus decreasing correction: each branch gets the mean plus or minus half.
+    branch_difference_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
     creep_gains: tuple[float, ...] = (0.0,) * len(CREEP_TIME_CONSTANTS_S)
     length_noise_m: float = 0.0017   # HC-SR04: 1.5 mm noise and 3 mm steps
 
@@ -80,9 +92,10 @@ class IdentificationSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):
                 raise ValueError(f'{name} must be within 0..1, got {value!r}')
-        object.__setattr__(self, 'branch_correction_m',
-                           _checked_vector('branch_correction_m', self.branch_correction_m,
-                                           len(CORRECTION_KNOTS_PA), MAX_CORRECTION_M))
+        for name, limit in (('branch_correction_m', MAX_CORRECTION_M),
+                            ('branch_difference_m', MAX_DIFFERENCE_M)):
+            object.__setattr__(self, name, _checked_vector(
+                name, getattr(self, name), len(CORRECTION_KNOTS_PA), limit))
         object.__setattr__(self, 'creep_gains',
                            _checked_vector('creep_gains', self.creep_gains,
                                            len(CREEP_TIME_CONSTANTS_S), MAX_CREEP_GAIN))
@@ -96,8 +109,8 @@ class IdentificationSettings:
 
     @property
     def learned_anything(self) -> bool:
-        return any(self.branch_correction_m) or any(self.creep_gains) or \
-            self.play_shares != (0.5, 0.5)
+        return any(self.branch_correction_m) or any(self.branch_difference_m) or \
+            any(self.creep_gains) or self.play_shares != (0.5, 0.5)
 
 
 def _checked_vector(name: str, values, size: int, limit: float) -> tuple[float, ...]:
@@ -254,7 +267,7 @@ class Prediction:
 
 @dataclass
 class _Filter:
-    """Kalman filter over [shape coordinates, creep gains, shift, gain - 1]."""
+    """Kalman filter over [shape coordinates, branch difference, creep gains, shift, gain - 1]."""
 
     mean: np.ndarray
     covariance: np.ndarray
@@ -296,10 +309,9 @@ class OnlineModel:
         priors = _PRIOR_RESUMED if settings.learned_anything else _PRIOR
         self._share_variance = np.full(2, priors['share'] ** 2)
         self._filter = self._new_filter(settings, priors)
-        correction = self._monotone(self._parts()[0])
-        self._committed = (correction, shares)
-        self._committed_raw = self._parts()[0]
-        branches = self._corrected(correction)
+        self._committed = (self._branch_offsets(), shares)
+        self._committed_raw = self._raw_corrections()
+        branches = self._corrected(self._committed[0])
         self.model = HysteresisModel(*branches, memory=self.memory,
                                      deadband_pa=self.deadband_pa,
                                      max_gauge_pressure_pa=self.max_gauge_pressure_pa,
@@ -318,11 +330,12 @@ class OnlineModel:
     # --- construction ---------------------------------------------------------------
 
     def _new_filter(self, settings: IdentificationSettings, priors: dict) -> _Filter:
-        """The filter's state: [shape coordinates z, creep gains, shift, gain - 1].
+        """The filter's state: [shape coordinates z, difference, creep gains, shift, gain - 1].
 
-        The correction is basis @ z. With adaptation on, the basis leaves out the two
-        directions drift moves the knots in (a constant, and the stroke-like B - L_ref), so
-        shape and drift cannot trade off against each other; without it, every knot is free.
+        The mean correction is basis @ z; the difference is free at every knot. With
+        adaptation on, the basis leaves out the two directions drift moves the knots in (a
+        constant, and the stroke-like B - L_ref), so shape and drift cannot trade off against
+        each other; without it, every knot is free.
         """
         knots = len(CORRECTION_KNOTS_PA)
         drift_directions = self._drift_directions()
@@ -337,13 +350,14 @@ class OnlineModel:
         if self._drifting:
             drift = np.linalg.lstsq(drift_directions, saved - self._basis @ shape, rcond=None)[0]
         size = self._basis.shape[1]
-        mean = np.concatenate([shape, settings.creep_gains, drift])
+        mean = np.concatenate([shape, settings.branch_difference_m, settings.creep_gains, drift])
         learn = 1.0 if self._learning else 0.0
         on = 1.0 if self._drifting else 0.0
         prior = np.concatenate([np.full(size, learn * priors['correction'] ** 2),
+                                np.full(knots, learn * priors['difference'] ** 2),
                                 np.full(len(CREEP_TIME_CONSTANTS_S), learn * priors['creep'] ** 2),
                                 on * np.array([_PRIOR['shift'], _PRIOR['gain']]) ** 2])
-        walk = np.concatenate([np.full(size, learn * _WALK_PER_S['correction'] ** 2),
+        walk = np.concatenate([np.full(size + knots, learn * _WALK_PER_S['correction'] ** 2),
                                np.full(len(CREEP_TIME_CONSTANTS_S),
                                        learn * _WALK_PER_S['creep'] ** 2), [0.0, 0.0]])
         return _Filter(mean, np.diag(prior), walk)
@@ -359,18 +373,26 @@ class OnlineModel:
         """The correction, bounded and kept monotone on both branches."""
         return np.array(monotone_correction(correction, np.minimum(*self._caps)))
 
-    def _corrected(self, correction) -> tuple[Branch, Branch]:
-        if not any(correction):
+    def _branch_offsets(self, mean=None, difference=None) -> tuple[np.ndarray, np.ndarray]:
+        """(increasing, decreasing) corrections the model can use: mean +/- half the
+        difference, each bounded and monotone on its own branch."""
+        if mean is None:
+            mean, difference = self._raw_corrections()
+        return tuple(np.array(monotone_correction(mean + sign * 0.5 * difference, caps))
+                     for sign, caps in ((1.0, self._caps[0]), (-1.0, self._caps[1])))
+
+    def _corrected(self, offsets) -> tuple[Branch, Branch]:
+        increasing, decreasing = offsets
+        if not any(increasing) and not any(decreasing):
             return self.increasing, self.decreasing
-        offsets = tuple(float(v) for v in correction)
-        return (CorrectedBranch(self.increasing, offsets),
-                CorrectedBranch(self.decreasing, offsets))
+        return (CorrectedBranch(self.increasing, tuple(float(v) for v in increasing)),
+                CorrectedBranch(self.decreasing, tuple(float(v) for v in decreasing)))
 
     # --- what it has learned --------------------------------------------------------
 
     @property
     def drift(self) -> Drift:
-        _, _, shift, gain_excess = self._parts()
+        *_, shift, gain_excess = self._parts()
         return Drift(self.reference_length_m, float(shift), 1.0 + float(gain_excess))
 
     @property
@@ -391,19 +413,32 @@ class OnlineModel:
         The drift at this moment is folded into the correction (it is this muscle, now);
         a model built from these settings starts from there with no drift.
         """
-        correction, creep, shift, gain_excess = self._parts()
-        folded = self._monotone(correction + self._drift_directions()
-                                @ np.array([shift, gain_excess]))
+        correction, difference, creep, shift, gain_excess = self._parts()
+        mean = correction + self._drift_directions() @ np.array([shift, gain_excess])
+        increasing, decreasing = self._branch_offsets(mean, difference)
+        if not (np.array_equal(increasing, mean + 0.5 * difference)
+                and np.array_equal(decreasing, mean - 0.5 * difference)):
+            # A limit bound: save what the branches use. Otherwise the filter's own numbers,
+            # so that a saved file gives them back to the last bit.
+            mean, difference = 0.5 * (increasing + decreasing), increasing - decreasing
         return replace(self.identification, play_share_rising=float(self._shares[0]),
                        play_share_falling=float(self._shares[1]),
-                       branch_correction_m=tuple(float(v) for v in folded),
+                       branch_correction_m=tuple(float(v) for v in mean),
+                       branch_difference_m=tuple(float(v) for v in difference),
                        creep_gains=tuple(float(v) for v in creep))
 
     def _parts(self):
-        """(correction at the knots, creep gains, shift, gain - 1) from the filter's state."""
-        size, lags = self._basis.shape[1], len(CREEP_TIME_CONSTANTS_S)
+        """(mean correction, difference, creep gains, shift, gain - 1) at the knots, from the
+        filter's state."""
+        size, knots = self._basis.shape[1], len(CORRECTION_KNOTS_PA)
         mean = self._filter.mean
-        return self._basis @ mean[:size], mean[size:size + lags], mean[-2], mean[-1]
+        return (self._basis @ mean[:size], mean[size:size + knots], mean[size + knots:-2],
+                mean[-2], mean[-1])
+
+    def _raw_corrections(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mean correction, difference) as the filter has them (no drift, no limits)."""
+        correction, difference, *_ = self._parts()
+        return correction, difference.copy()
 
     # --- the online order -----------------------------------------------------------
 
@@ -426,7 +461,7 @@ class OnlineModel:
         spread = abs(play - madelung)
         confidence = 1.0 / (1.0 + (spread / SPREAD_SCALE_M) ** 2)
         dt = self._advance_lags(static, t_s)
-        _, creep_gains, _, _ = self._parts()
+        creep_gains = self._parts()[2]
         creep = self._lags - static
         undrifted = static + float(creep_gains @ creep)
         predicted = float(drift.correct(undrifted))
@@ -465,9 +500,15 @@ class OnlineModel:
         noise = self.identification.length_noise_m ** 2
         if self._learning and self.memory == 'identify':
             self._learn_share(residual, shape_difference * gain, noise, dt)
-        size = self._basis.shape[1]
+        size, knots = self._basis.shape[1], len(CORRECTION_KNOTS_PA)
+        weights, rising = self._correction_regressor()
+        # Which branch a residual belongs to is clear on a major branch and not just after a
+        # reversal, so the difference's regressor is scaled by the confidence (the mean's is
+        # not: it is the same for both branches).
+        side = (0.5 if rising else -0.5) * gain * confidence
         regressor = np.concatenate([
-            gain * (self._correction_regressor() @ self._basis),
+            gain * (weights @ self._basis),
+            side * weights,
             gain * creep,
             [1.0, undrifted - self.reference_length_m]])
         walk = state.walk_per_s * dt
@@ -488,7 +529,9 @@ class OnlineModel:
         state.mean = mean
         self._project_shape(state)
         mean = state.mean
-        mean[size:-2] = np.clip(mean[size:-2], -MAX_CREEP_GAIN, MAX_CREEP_GAIN)
+        mean[size:size + knots] = np.clip(mean[size:size + knots], -MAX_DIFFERENCE_M,
+                                          MAX_DIFFERENCE_M)
+        mean[size + knots:-2] = np.clip(mean[size + knots:-2], -MAX_CREEP_GAIN, MAX_CREEP_GAIN)
         limits = self.adaptation
         mean[-2] = min(max(mean[-2], -limits.max_shift_m), limits.max_shift_m)
         mean[-1] = min(max(mean[-1], limits.min_gain - 1.0), limits.max_gain - 1.0)
@@ -512,12 +555,14 @@ class OnlineModel:
             left = projected - self._basis @ state.mean[:size]
             state.mean[-2:] += np.linalg.lstsq(self._drift_directions(), left, rcond=None)[0]
 
-    def _correction_regressor(self) -> np.ndarray:
-        """d length / d knots at the current pressure, along the current direction's branch
-        (exact on a major branch; on a scanning curve a shift of the correction there moves
-        the length by about as much). The direction is the stack's ('switch' has none)."""
+    def _correction_regressor(self) -> tuple[np.ndarray, bool]:
+        """(d length / d knots at the current pressure along the current direction's branch,
+        that direction: True rising). Exact on a major branch; on a scanning curve a shift of
+        the correction there moves the length by about as much. The direction is the
+        stack's ('switch' has none)."""
         tracker = self._shapes if self._shapes is not None else self.model
-        return correction_weights(tracker.pressure_pa, tracker.major(tracker.rising))
+        rising = tracker.rising
+        return correction_weights(tracker.pressure_pa, tracker.major(rising)), rising
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
         """Scalar RLS on the current direction's play share (prediction linear in it)."""
@@ -532,19 +577,20 @@ class OnlineModel:
 
     def _commit_if_moved(self) -> None:
         _, shares = self._committed
-        raw = self._parts()[0]
-        if float(np.max(np.abs(raw - self._committed_raw))) < COMMIT_M and \
+        raw = self._raw_corrections()
+        if max(float(np.max(np.abs(now - then)))
+               for now, then in zip(raw, self._committed_raw, strict=True)) < COMMIT_M and \
                 float(np.max(np.abs(self._shares - shares))) < COMMIT_SHARE:
             return
         self._committed_raw = raw
-        correction = self._monotone(raw)
+        offsets = self._branch_offsets(*raw)
         self.commits += 1
         new_shares = (float(self._shares[0]), float(self._shares[1]))
-        branches = self._corrected(correction)
+        branches = self._corrected(offsets)
         self.model.relearn(*branches, new_shares)
         if self._shapes is not None and self._shapes is not self.model:
             self._shapes.relearn(*branches, new_shares)
-        self._committed = (correction, new_shares)
+        self._committed = (offsets, new_shares)
 
     # --- inverse --------------------------------------------------------------------
 

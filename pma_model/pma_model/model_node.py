@@ -273,6 +273,7 @@ class ModelNode(Node):
         msg.play_share_falling = learned.play_share_falling
         msg.branch_correction_pressures_pa = list(CORRECTION_KNOTS_PA)
         msg.branch_correction_m = list(learned.branch_correction_m)
+        msg.branch_difference_m = list(learned.branch_difference_m)
         msg.creep_time_constants_s = list(CREEP_TIME_CONSTANTS_S)
         msg.creep_gains = list(learned.creep_gains)
         msg.samples_learned, msg.samples_rejected = counts
@@ -396,6 +397,8 @@ class ModelNode(Node):
                 play_share_falling=f'{learned.play_share_falling:.3f}',
                 branch_correction_mm=' '.join(f'{1e3 * v:.2f}'
                                               for v in learned.branch_correction_m),
+                branch_difference_mm=' '.join(f'{1e3 * v:.2f}'
+                                              for v in learned.branch_difference_m),
                 creep_gains=' '.join(f'{v:.3f}' for v in learned.creep_gains))
         publish_status(self, self._diagnostics_pub, status, values)
         if (learned.enabled or adapting) and learned_count != self._published_learning:

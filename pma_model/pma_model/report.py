@@ -349,6 +349,7 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
                     'play_share_rising': learned.play_share_rising,
                     'play_share_falling': learned.play_share_falling,
                     'branch_correction_m': list(learned.branch_correction_m),
+                    'branch_difference_m': list(learned.branch_difference_m),
                     'creep_gains': list(learned.creep_gains)}
             else:
                 predicted = HysteresisModel(*branches, memory=memory,
@@ -470,10 +471,12 @@ def format_table(report: dict) -> str:
                                              for name, memory in check['best_memory'].items()))
         for name, values in check.get('identified', {}).items():
             correction = ' '.join(f'{100 * v:.2f}' for v in values['branch_correction_m'])
+            difference = ' '.join(f'{100 * v:.2f}' for v in values['branch_difference_m'])
             lines.append(f"  {name}/identify learned: play share rising "
                          f"{values['play_share_rising']:.2f}, falling "
                          f"{values['play_share_falling']:.2f}; branch correction cm at 0, 50, "
-                         f"... 500 kPa: {correction}; creep gains "
+                         f"... 500 kPa: {correction} (increasing minus decreasing: "
+                         f"{difference}); creep gains "
                          + ', '.join(f'{v:.3f}' for v in values['creep_gains']))
     if report['warnings']:
         lines += ['', 'warnings:'] + [f'  - {text}' for text in report['warnings']]

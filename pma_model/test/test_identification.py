@@ -139,6 +139,36 @@ def test_it_learns_a_branch_correction_and_the_error_falls_to_the_noise():
     assert np.allclose(learning.learned().branch_correction_m, correction[0], atol=8e-4)
 
 
+def test_it_learns_where_the_two_branches_miss_differently():
+    """The paper's two sigmoids miss Table 1 in different places (up to 3 mm apart at a
+    knot): a truth whose branches need opposite corrections is learned as a mean and an
+    increasing-minus-decreasing difference, and the error falls to the noise."""
+    mean = np.array(corrections()[0])
+    difference = np.array([0.003 * math.sin(2 * math.pi * p / 500e3) for p in CORRECTION_KNOTS_PA])
+    caps = [correction_caps(branch) for branch in default_params().branches()]
+    truth_offsets = (monotone_correction(mean + 0.5 * difference, caps[0]),
+                     monotone_correction(mean - 0.5 * difference, caps[1]))
+    time_s, pressure = random_path(3)
+    truth = truth_with(correction=truth_offsets).predict(pressure)
+    noise = np.random.default_rng(4).normal(0.0, 5e-4, truth.size)
+    frozen = online(enabled=False).build_online()
+    learning = online(length_noise_m=5e-4).build_online()
+    before = run_online(frozen, pressure, truth + noise, time_s) - truth
+    after = run_online(learning, pressure, truth + noise, time_s) - truth
+    second_half = slice(truth.size // 2, None)
+    learned = learning.learned()
+    print(f'\nfrozen {rms(before[second_half]) * 1e3:.3f} mm, learned '
+          f'{rms(after[second_half]) * 1e3:.3f} mm; difference mm '
+          f'{np.round(np.array(learned.branch_difference_m) * 1e3, 2)}')
+    assert rms(after[second_half]) < 0.25 * rms(before[second_half])
+    assert rms(after[second_half]) < 3e-4
+    # The high knots see fewer samples and keep more of the 1 mm prior: the shape, not every
+    # knot to the last 0.1 mm (measured: 0.39 of the truth's RMS left, correlation 0.98).
+    wanted = np.subtract(*truth_offsets)
+    assert rms(np.subtract(learned.branch_difference_m, wanted)) < 0.5 * rms(wanted)
+    assert np.corrcoef(learned.branch_difference_m, wanted)[0, 1] > 0.9
+
+
 def test_it_learns_creep_and_predicts_the_length_still_moving_in_a_hold():
     time_s, pressure = random_path(5, step_pa=5_000.0)
     static = truth_with().predict(pressure)
@@ -250,11 +280,15 @@ def test_a_noisy_hold_neither_moves_the_prediction_nor_teaches_nonsense():
         assert len(branches) == 1 and len(model.model.turning_points) < 40
         after = model.learned()
         # A hold on a scanning curve still says something about the share (the truth's is
-        # 0.5): it may move toward it, not away; the correction stays where it was.
+        # 0.5): it may move toward it, not away; the correction stays about where it was.
+        # Knots next to the held one, barely seen, wander with the noise: over this hold
+        # and seeds 0-7 of the same test the mean correction moved at most 1.06 mm at a knot
+        # (0.72 mm before the branch difference was learned too); nonsense moves several.
         for name in ('play_share_rising', 'play_share_falling'):
             assert abs(getattr(after, name) - 0.5) <= abs(getattr(before, name) - 0.5) + 0.05
-        assert np.max(np.abs(np.subtract(after.branch_correction_m,
-                                         before.branch_correction_m))) < 1e-3
+        for name in ('branch_correction_m', 'branch_difference_m'):
+            assert np.max(np.abs(np.subtract(getattr(after, name),
+                                             getattr(before, name)))) < 1.5e-3, name
     print(f'\njitter over the hold: {jitter[False] * 1e3:.2f} mm frozen, '
           f'{jitter[True] * 1e3:.2f} mm learning')
     assert jitter[True] < jitter[False] + 2e-4

@@ -51,6 +51,7 @@ def test_memory_check_identifies_the_shares_and_params_out_writes_them(procs, tm
     assert written['memory'] == 'identify'
     assert written['identification']['play_share_rising'] == learned['play_share_rising']
     assert written['identification']['branch_correction_m'] == learned['branch_correction_m']
+    assert written['identification']['branch_difference_m'] == learned['branch_difference_m']
     assert 'adaptation' not in written          # the node's own settings stay its own
     loaded = ModelParams.load_yaml(tmp_path / 'p.yaml')
     assert loaded.identification.play_shares == (learned['play_share_rising'],
