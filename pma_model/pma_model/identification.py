@@ -15,11 +15,11 @@ its state (docs/model.md, "Online identification"):
   continuity and return-point memory. Between knots it follows the branch's own length, so it
   can flatten the sigmoid's dead zone and still invert in closed form. It is learned as a
   mean for both branches plus a difference (increasing minus decreasing, half added to each):
-  the paper's two sigmoids miss Table 1 in different places (their misfits differ by up to
-  3 mm at a knot), which a mean cannot follow. The difference has a tighter prior
-  (DIFFERENCE_PRIOR_M): on a scanning curve a residual cannot be told to one branch, and a
-  loose difference trades off against the play shares (docs/model.md, "Online
-  identification").
+  the paper's two sigmoids miss a muscle in different places (on the simulated families the
+  two branches' misfits differ by up to 3.4 mm at a knot), which a mean cannot follow. On a
+  scanning curve a residual cannot be told to one branch, so the difference learns in
+  proportion to the confidence below and has a tighter prior (DIFFERENCE_PRIOR_M; a loose
+  one trades off against the play shares: docs/model.md §5).
 - creep: length = static + sum_j k_j (lag_j(static) - static), the model's static length
   through first-order lags of CREEP_TIME_CONSTANTS_S: a share of each change arriving late,
   which vanishes in a hold (so the inverse, a steady-state answer, ignores it).
