@@ -30,6 +30,10 @@ DIAGNOSTICS_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 DIAGNOSTICS_PERIOD_S = 1.0      # every node of the project publishes at 1 Hz
+# How long the node graph must stay unchanged before `pma status` believes it complete. A
+# fresh process discovers the others one by one; a busy machine answers late (CI once saw
+# model_node appear after the graph had been still for 1.2 s), so two diagnostics periods.
+GRAPH_SETTLED_S = 2 * DIAGNOSTICS_PERIOD_S + 0.2
 
 
 def level_name(level) -> str:
@@ -170,12 +174,12 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
     graph = {'nodes': _nodes_in(session), 'since': listening_since}
 
     def heard_everyone() -> bool:
-        # A fresh process discovers the nodes one by one, the slower the busier the machine:
-        # wait for one diagnostics period heard in full and a graph unchanged that long.
+        # Diagnostics heard for a full period from every node seen, and a graph unchanged
+        # for GRAPH_SETTLED_S.
         now, nodes = time.monotonic(), _nodes_in(session)
         if nodes != graph['nodes']:
             graph.update(nodes=nodes, since=now)
-        if min(now - listening_since, now - graph['since']) < DIAGNOSTICS_PERIOD_S + 0.2:
+        if min(now - listening_since, now - graph['since']) < GRAPH_SETTLED_S:
             return False
         if diagnostics.get('driver_node') is None or state.message is None:
             return False
