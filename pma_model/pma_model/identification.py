@@ -107,6 +107,16 @@ class IdentificationSettings:
     def play_shares(self) -> tuple[float, float]:
         return self.play_share_rising, self.play_share_falling
 
+    # What identification learns (the rest are settings): saved, published, carried over.
+    LEARNED: ClassVar[tuple[str, ...]] = ('play_share_rising', 'play_share_falling',
+                                          'branch_correction_m', 'branch_difference_m',
+                                          'creep_gains')
+
+    def learned_values(self) -> dict[str, float | list[float]]:
+        """{name: value} of what was learned, vectors as lists (for JSON and YAML)."""
+        return {name: list(value) if isinstance(value, tuple) else value
+                for name in self.LEARNED for value in (getattr(self, name),)}
+
     @property
     def learned_anything(self) -> bool:
         return any(self.branch_correction_m) or any(self.branch_difference_m) or \

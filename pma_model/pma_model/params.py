@@ -121,11 +121,8 @@ class ModelParams:
 
     def with_learned(self, learned: IdentificationSettings) -> ModelParams:
         """A copy starting from what an OnlineModel has learned (shares, corrections, creep)."""
-        return replace(self, identification=replace(
-            self.identification, play_share_rising=learned.play_share_rising,
-            play_share_falling=learned.play_share_falling,
-            branch_correction_m=learned.branch_correction_m,
-            branch_difference_m=learned.branch_difference_m, creep_gains=learned.creep_gains))
+        return replace(self, identification=replace(self.identification,
+                                                    **learned.learned_values()))
 
     def with_branches(self, increasing: Branch, decreasing: Branch) -> ModelParams:
         """A copy with the given branches (their form) replacing that form's numbers."""

@@ -344,13 +344,7 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
                 online = OnlineModel(*branches, memory=memory, deadband_pa=deadband_pa)
                 predicted = run_online(online, samples.pressure_pa, samples.length_m,
                                        samples.time_s)
-                learned = online.learned()
-                identified[name] = {
-                    'play_share_rising': learned.play_share_rising,
-                    'play_share_falling': learned.play_share_falling,
-                    'branch_correction_m': list(learned.branch_correction_m),
-                    'branch_difference_m': list(learned.branch_difference_m),
-                    'creep_gains': list(learned.creep_gains)}
+                identified[name] = online.learned().learned_values()
             else:
                 predicted = HysteresisModel(*branches, memory=memory,
                                             deadband_pa=deadband_pa).predict(samples.pressure_pa)
