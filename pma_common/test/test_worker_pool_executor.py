@@ -49,6 +49,14 @@ class Spinner:
         except Exception as error:  # what the test asserts on
             self.error = error
 
+    def finish_cleanly(self, node) -> None:
+        """Spinning ended without an error; stop it, the executor and the node."""
+        assert self.error is None
+        self.stopping.set()
+        self.thread.join(5)
+        self.executor.shutdown(timeout_sec=5)
+        node.destroy_node()
+
 
 def test_steady_traffic_hands_each_callback_out_once(context):
     node = rclpy.create_node('pool_traffic', context=context)
@@ -70,11 +78,7 @@ def test_steady_traffic_hands_each_callback_out_once(context):
     # One hand-out per message; a few extra while a worker had been given a callback but not
     # yet started it. rclpy 7.1's MultiThreadedExecutor handed out 23,000-40,000 here.
     assert executor.handed_out <= count + count // 20, executor.handed_out
-    assert spinner.error is None
-    spinner.stopping.set()
-    spinner.thread.join(5)
-    executor.shutdown(timeout_sec=5)
-    node.destroy_node()
+    spinner.finish_cleanly(node)
 
 
 def test_a_blocked_callback_does_not_hold_up_the_others(context):
@@ -105,11 +109,7 @@ def test_a_blocked_callback_does_not_hold_up_the_others(context):
     assert not answer.done()
     release.set()
     assert poll(answer.done, 10) and answer.result().success
-    assert spinner.error is None
-    spinner.stopping.set()
-    spinner.thread.join(5)
-    executor.shutdown(timeout_sec=5)
-    node.destroy_node()
+    spinner.finish_cleanly(node)
 
 
 def test_a_callback_error_ends_spinning_like_the_single_threaded_executor(context):

@@ -122,8 +122,10 @@ def test_it_learns_the_play_shares_of_each_direction():
     assert learned.play_share_falling == pytest.approx(0.1, abs=0.1)
 
 
-def test_it_learns_a_branch_correction_and_the_error_falls_to_the_noise():
-    correction = corrections()
+def learn_branches(correction):
+    """A truth with these (increasing, decreasing) corrections, measured with 0.5 mm noise
+    along a random path: (what was learned, RMS error frozen, RMS error learning), the
+    errors over the second half."""
     time_s, pressure = random_path(3)
     truth = truth_with(correction=correction).predict(pressure)
     noise = np.random.default_rng(4).normal(0.0, 5e-4, truth.size)
@@ -132,36 +134,33 @@ def test_it_learns_a_branch_correction_and_the_error_falls_to_the_noise():
     before = run_online(frozen, pressure, truth + noise, time_s) - truth
     after = run_online(learning, pressure, truth + noise, time_s) - truth
     second_half = slice(truth.size // 2, None)
-    print(f'\nfrozen {rms(before[second_half]) * 1e3:.3f} mm, learned '
-          f'{rms(after[second_half]) * 1e3:.3f} mm')
-    assert rms(after[second_half]) < 0.25 * rms(before[second_half])
-    assert rms(after[second_half]) < 3e-4
-    assert np.allclose(learning.learned().branch_correction_m, correction[0], atol=8e-4)
+    return learning.learned(), rms(before[second_half]), rms(after[second_half])
+
+
+def test_it_learns_a_branch_correction_and_the_error_falls_to_the_noise():
+    correction = corrections()
+    learned, before, after = learn_branches(correction)
+    print(f'\nfrozen {before * 1e3:.3f} mm, learned {after * 1e3:.3f} mm')
+    assert after < 0.25 * before
+    assert after < 3e-4
+    assert np.allclose(learned.branch_correction_m, correction[0], atol=8e-4)
 
 
 def test_it_learns_where_the_two_branches_miss_differently():
-    """The paper's two sigmoids miss Table 1 in different places (up to 3 mm apart at a
-    knot): a truth whose branches need opposite corrections is learned as a mean and an
-    increasing-minus-decreasing difference, and the error falls to the noise."""
+    """The paper's two sigmoids miss a muscle in different places (on the simulated
+    families up to 3.4 mm apart at a knot): a truth whose branches need opposite corrections
+    is learned as a mean and an increasing-minus-decreasing difference, and the error falls
+    to the noise."""
     mean = np.array(corrections()[0])
     difference = np.array([0.003 * math.sin(2 * math.pi * p / 500e3) for p in CORRECTION_KNOTS_PA])
     caps = [correction_caps(branch) for branch in default_params().branches()]
     truth_offsets = (monotone_correction(mean + 0.5 * difference, caps[0]),
                      monotone_correction(mean - 0.5 * difference, caps[1]))
-    time_s, pressure = random_path(3)
-    truth = truth_with(correction=truth_offsets).predict(pressure)
-    noise = np.random.default_rng(4).normal(0.0, 5e-4, truth.size)
-    frozen = online(enabled=False).build_online()
-    learning = online(length_noise_m=5e-4).build_online()
-    before = run_online(frozen, pressure, truth + noise, time_s) - truth
-    after = run_online(learning, pressure, truth + noise, time_s) - truth
-    second_half = slice(truth.size // 2, None)
-    learned = learning.learned()
-    print(f'\nfrozen {rms(before[second_half]) * 1e3:.3f} mm, learned '
-          f'{rms(after[second_half]) * 1e3:.3f} mm; difference mm '
+    learned, before, after = learn_branches(truth_offsets)
+    print(f'\nfrozen {before * 1e3:.3f} mm, learned {after * 1e3:.3f} mm; difference mm '
           f'{np.round(np.array(learned.branch_difference_m) * 1e3, 2)}')
-    assert rms(after[second_half]) < 0.25 * rms(before[second_half])
-    assert rms(after[second_half]) < 3e-4
+    assert after < 0.25 * before
+    assert after < 3e-4
     # The high knots see fewer samples and keep more of the 1 mm prior: the shape, not every
     # knot to the last 0.1 mm (measured: 0.39 of the truth's RMS left, correlation 0.98).
     wanted = np.subtract(*truth_offsets)
