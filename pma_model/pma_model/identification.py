@@ -622,6 +622,16 @@ class OnlineModel:
             result = replace(result, message=message, min_length_m=low, max_length_m=high)
         return result
 
+    def settled_lengths(self, pressures_pa, rising: bool, path: bool = True) -> np.ndarray:
+        """Lengths once creep has settled, drift applied: along the path pressure would
+        follow from the current state one way (path), or on that direction's major branch.
+
+        The forward map of `pressure_for_length`, for a caller that must search.
+        """
+        static = (self.model.path_lengths(pressures_pa, rising) if path
+                  else self.model.major(rising).length(np.asarray(pressures_pa, dtype=float)))
+        return np.asarray(self.drift.correct(np.asarray(static, dtype=float)), dtype=float)
+
     # --- run-time parameter changes -------------------------------------------------
 
     def resume_from(self, other: OnlineModel) -> None:

@@ -18,7 +18,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pma_driver.sim import families, paths
-from pma_model.identification import run_online
+from pma_model.forecaster import RuleMix
+from pma_model.identification import OnlineModel, run_online
 from pma_model.params import ModelParams, default_params
 
 STROKE_M = 0.0586            # Table 1: 30.06 - 24.20 cm
@@ -37,6 +38,8 @@ class Config:
 
     @property
     def label(self) -> str:
+        if self.memory == MIX:
+            return 'identify + play, mixed'
         name = {'switch': 'switch (paper)'}.get(self.memory, self.memory) \
             if not self.learn else f'{self.memory} + learned'
         if self.memory == 'identify':
@@ -49,12 +52,21 @@ class Config:
                        identification=replace(base.identification, enabled=self.learn),
                        adaptation=replace(base.adaptation, enabled=self.adapt))
 
+    def build(self, form: str) -> OnlineModel | RuleMix:
+        """The online model this configuration runs (a RuleMix for MIX)."""
+        if self.memory == MIX:
+            return RuleMix.of_rules(lambda rule: replace(self, memory=rule).params(form)
+                                    .build_online())
+        return self.params(form).build_online()
 
+
+MIX = 'mix'   # forecaster.RuleMix over 'identify' and 'play', each learning
 PAPER = Config('switch', learn=False)
 STATIC_RULES = (Config('madelung', False), Config('play', False))
 LEARNED_RULES = (Config('switch', True), Config('madelung', True), Config('play', True))
 IDENTIFY = Config('identify', True)
-ALL_CONFIGS = (PAPER, *STATIC_RULES, *LEARNED_RULES, IDENTIFY)
+MIXED = Config(MIX, True)
+ALL_CONFIGS = (PAPER, *STATIC_RULES, *LEARNED_RULES, IDENTIFY, MIXED)
 
 
 @dataclass(frozen=True)
@@ -87,8 +99,8 @@ def simulate(scenario: Scenario) -> paths.Run:
 def predict(scenario: Scenario, config: Config, form: str = 'sigmoid') -> np.ndarray:
     """What the model would publish for every sample of the scenario (online)."""
     run = simulate(scenario)
-    online = config.params(form).build_online()
-    return run_online(online, run.measured_pressure_pa, run.measured_length_m, run.time_s)
+    return run_online(config.build(form), run.measured_pressure_pa, run.measured_length_m,
+                      run.time_s)
 
 
 @dataclass(frozen=True)

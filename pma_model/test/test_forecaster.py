@@ -1,0 +1,145 @@
+"""RuleMix: the weights find the rule the muscle follows, and the mixture inverts exactly.
+
+Truths are memory models of known rules on the default (Table 1) branches, so the right
+weight is known; tests/test_minor_loops.py runs the mixture on the simulated muscle families.
+"""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from pma_driver.sim import paths
+from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
+from pma_model.forecaster import RuleMix
+from pma_model.identification import run_online
+from pma_model.memory import HysteresisModel
+from pma_model.params import default_params
+
+NOISE_M = 5e-4
+
+
+def mix_of_rules(rules=('identify', 'play'), **settings) -> RuleMix:
+    params = default_params()
+    learning = replace(params.identification, length_noise_m=NOISE_M)
+    return RuleMix.of_rules(lambda rule: replace(params, memory=rule, identification=learning)
+                            .build_online(), rules, **settings)
+
+
+def measured_truth(rule: str, seed: int = 1, kind: str = 'random'):
+    """(pressure, measured length, time, true length) of a muscle that follows `rule`."""
+    turns = paths.nested_turns if kind == 'nested' else paths.random_turns
+    path = paths.ramp_path(turns(240.0, seed=seed), seed=seed)
+    truth = HysteresisModel(*default_params().branches(), memory=rule).predict(path.pressure_pa)
+    measured = truth + np.random.default_rng(seed).normal(0.0, NOISE_M, truth.size)
+    return path.pressure_pa, measured, path.time_s, truth
+
+
+def run_on_truth(rule: str, seed: int = 1) -> tuple[RuleMix, np.ndarray, np.ndarray]:
+    """(the mix after the path, its predictions, the truth) for a muscle of that rule."""
+    *samples, truth = measured_truth(rule, seed)
+    mix = mix_of_rules()
+    return mix, run_online(mix, *samples), truth
+
+
+@pytest.mark.parametrize('kind', ['random', 'nested'])
+@pytest.mark.parametrize('truth_rule', ['play', 'madelung'])
+def test_the_mixture_is_as_good_as_the_better_rule(truth_rule, kind):
+    *samples, truth = measured_truth(truth_rule, kind=kind)
+    mix = mix_of_rules()
+    predicted = run_online(mix, *samples)
+    late = slice(truth.size // 2, None)
+    alone = [float(np.sqrt(np.mean((run_online(model, *samples) - truth)[late] ** 2)))
+             for model in mix_of_rules().experts]
+    mixed = float(np.sqrt(np.mean((predicted - truth)[late] ** 2)))
+    assert mixed <= 1.05 * min(alone), (mixed, alone)
+    if truth_rule == 'madelung':
+        # identify contains Madelung (share 0); play, which rejoins the branch, does not.
+        assert mix.weights[0] > 0.99, mix.weights
+
+
+def test_the_mixture_lies_between_the_rules_and_never_jumps():
+    pressure, measured, time_s, _ = measured_truth('play', seed=2)
+    mix = mix_of_rules()
+    mixed, each = [], []
+    for p, length, t in zip(pressure, measured, time_s, strict=True):
+        weights = mix.weights
+        mixed.append(mix.step(p, length, t).length_m)
+        each.append([prediction.length_m for prediction in mix.last_predictions])
+        assert min(each[-1]) - 1e-12 <= mixed[-1] <= max(each[-1]) + 1e-12
+        assert mixed[-1] == pytest.approx(float(weights @ each[-1]), abs=1e-12)
+    largest_rule_step = np.abs(np.diff(np.array(each), axis=0)).max()
+    assert np.abs(np.diff(mixed)).max() <= 1.05 * largest_rule_step
+
+
+def settle(mix: RuleMix, start_pa: float, end_pa: float, t_s: float) -> float:
+    """Ramp the pressure (no measurements: nothing learned), hold until creep settles; the
+    last prediction."""
+    for k, p in enumerate(np.linspace(start_pa, end_pa, 200)):
+        mix.step(float(p), math.nan, t_s + 0.02 * k)
+    for k in range(500):
+        prediction = mix.step(end_pa, math.nan, t_s + 4.0 + 0.02 * k)
+    return prediction.length_m
+
+
+@pytest.mark.parametrize('target_m', [0.250, 0.262, 0.275, 0.290, 0.299])
+def test_pressure_for_length_is_where_the_mixture_settles(target_m):
+    mix, _, _ = run_on_truth('play', seed=3)
+    mix.losses_m2s = np.array([0.0, mix.temperature_m2s * math.log(3.0)])   # weights 3:1
+    here = mix.experts[0].model.pressure_pa
+    answer = mix.pressure_for_length(target_m)
+    assert answer.success, answer.message
+    assert 0.0 <= answer.gauge_pressure_pa <= mix.max_gauge_pressure_pa
+    assert answer.min_length_m <= target_m <= answer.max_length_m
+    time_s = mix.experts[0]._time + 1.0
+    assert settle(mix, here, answer.gauge_pressure_pa, time_s) == pytest.approx(target_m,
+                                                                                abs=1e-6)
+
+
+def test_on_the_major_branches_it_inverts_the_mixed_branches():
+    mix = mix_of_rules()
+    mix.losses_m2s = np.array([mix.temperature_m2s * math.log(2.0), 0.0])
+    weights = mix.weights
+    for branch, rising in ((BRANCH_INCREASING, True), (BRANCH_DECREASING, False)):
+        answer = mix.pressure_for_length(0.27, branch)
+        assert answer.success and answer.branch == branch
+        lengths = [float(e.model.major(rising).length(answer.gauge_pressure_pa))
+                   for e in mix.experts]
+        assert float(weights @ lengths) == pytest.approx(0.27, abs=1e-7)
+
+
+@pytest.mark.parametrize(('target', 'branch', 'says'), [
+    (0.10, BRANCH_AUTO, 'not reachable'), (0.40, BRANCH_AUTO, 'not reachable'),
+    (math.nan, BRANCH_AUTO, 'finite'), (0.27, 7, 'unknown branch')])
+def test_impossible_requests_are_refused_with_the_reason(target, branch, says):
+    answer = mix_of_rules().pressure_for_length(target, branch)
+    assert not answer.success
+    assert says in answer.message
+    assert math.isnan(answer.gauge_pressure_pa)
+
+
+def test_a_restart_resumes_the_history_and_the_weights():
+    mix, _, _ = run_on_truth('play')
+    fresh = mix_of_rules()
+    fresh.resume_from(mix)
+    np.testing.assert_array_equal(fresh.weights, mix.weights)
+    for mine, theirs in zip(fresh.experts, mix.experts, strict=True):
+        assert mine.model.pressure_pa == theirs.model.pressure_pa
+        assert [p for p, _ in mine.model.turning_points] == \
+            [p for p, _ in theirs.model.turning_points]
+
+
+def test_bad_samples_change_nothing():
+    mix, _, _ = run_on_truth('play')
+    before = mix.losses_m2s.copy()
+    assert math.isnan(mix.step(math.nan, 0.28, mix._time + 0.02).length_m)
+    mix.step(mix.experts[0].model.pressure_pa, math.nan, mix._time + 0.02)
+    np.testing.assert_array_equal(mix.losses_m2s, before)
+
+
+@pytest.mark.parametrize('bad', [dict(time_constant_s=0.0), dict(temperature_m2s=math.nan),
+                                 dict(losses_m2s=[0.0]), dict(losses_m2s=[0.0, math.inf])])
+def test_bad_settings_are_refused(bad):
+    with pytest.raises(ValueError):
+        mix_of_rules(**bad)
