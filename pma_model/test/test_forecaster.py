@@ -4,13 +4,13 @@ Truths are memory models of known rules on the default (Table 1) branches, so th
 weight is known; tests/test_minor_loops.py runs the mixture on the simulated muscle families.
 """
 
+import itertools
 import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from pma_driver.sim import paths
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
 from pma_model.forecaster import RuleMix
 from pma_model.identification import run_online
@@ -27,13 +27,33 @@ def mix_of_rules(rules=('identify', 'play'), **settings) -> RuleMix:
                             .build_online(), rules, **settings)
 
 
+NESTED_TURNS_KPA = (0, 500, 100, 400, 200, 300, 240, 500, 0, 350, 150, 300, 200, 260, 220, 0)
+
+
+def ramps(turns_pa, rate_hz: float = 50.0, slew_pa_per_s: float = 150e3) -> np.ndarray:
+    """Ramps between the turning points at one slew rate, a 1 s hold at each."""
+    pieces = []
+    for start, end in itertools.pairwise(turns_pa):
+        samples = max(2, round(abs(end - start) / slew_pa_per_s * rate_hz))
+        pieces += [np.linspace(start, end, samples)[1:], np.full(round(rate_hz), end)]
+    return np.concatenate(pieces)
+
+
 def measured_truth(rule: str, seed: int = 1, kind: str = 'random'):
     """(pressure, measured length, time, true length) of a muscle that follows `rule`."""
-    turns = paths.nested_turns if kind == 'nested' else paths.random_turns
-    path = paths.ramp_path(turns(240.0, seed=seed), seed=seed)
-    truth = HysteresisModel(*default_params().branches(), memory=rule).predict(path.pressure_pa)
-    measured = truth + np.random.default_rng(seed).normal(0.0, NOISE_M, truth.size)
-    return path.pressure_pa, measured, path.time_s, truth
+    rng = np.random.default_rng(seed)
+    if kind == 'nested':
+        turns = [1e3 * p for p in NESTED_TURNS_KPA] * 3
+    else:
+        turns = [0.0]
+        for k in range(40):   # alternately up and down, anywhere in 0..500 kPa
+            turns.append(rng.uniform(turns[-1], 500e3) if k % 2 == 0
+                         else rng.uniform(0.0, turns[-1]))
+    pressure = ramps(turns)
+    time_s = np.arange(pressure.size) / 50.0
+    truth = HysteresisModel(*default_params().branches(), memory=rule).predict(pressure)
+    measured = truth + rng.normal(0.0, NOISE_M, truth.size)
+    return pressure, measured, time_s, truth
 
 
 def run_on_truth(rule: str, seed: int = 1) -> tuple[RuleMix, np.ndarray, np.ndarray]:
@@ -53,7 +73,10 @@ def test_the_mixture_is_as_good_as_the_better_rule(truth_rule, kind):
     alone = [float(np.sqrt(np.mean((run_online(model, *samples) - truth)[late] ** 2)))
              for model in mix_of_rules().experts]
     mixed = float(np.sqrt(np.mean((predicted - truth)[late] ** 2)))
-    assert mixed <= 1.05 * min(alone), (mixed, alone)
+    # The forecaster's bound: its discounted loss exceeds the better rule's by at most
+    # temperature * ln 2, i.e. its mean squared error by that over the time constant.
+    slack_m2 = mix.temperature_m2s * math.log(2.0) / mix.time_constant_s
+    assert mixed ** 2 <= (1.05 * min(alone)) ** 2 + slack_m2, (mixed, alone)
     if truth_rule == 'madelung':
         # identify contains Madelung (share 0); play, which rejoins the branch, does not.
         assert mix.weights[0] > 0.99, mix.weights
