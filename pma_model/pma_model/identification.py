@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
@@ -489,7 +490,7 @@ class OnlineModel:
             if self._lags is None:
                 self._lags = np.full(len(CREEP_TIME_CONSTANTS_S), static)
         else:
-            dt = min(max(float(t_s) - self._time, 0.0), MAX_STEP_S)
+            dt = elapsed_s(self._time, t_s)
         if dt > 0.0:
             # Exact for a static length that moves linearly over the step.
             slope = (static - self._static) / dt
@@ -622,15 +623,15 @@ class OnlineModel:
             result = replace(result, message=message, min_length_m=low, max_length_m=high)
         return result
 
-    def settled_lengths(self, pressures_pa, rising: bool, path: bool = True) -> np.ndarray:
-        """Lengths once creep has settled, drift applied: along the path pressure would
+    def settled_map(self, rising: bool, path: bool = True) -> Callable[[float], float]:
+        """length(p_pa) once creep has settled, drift applied: along the path pressure would
         follow from the current state one way (path), or on that direction's major branch.
 
         The forward map of `pressure_for_length`, for a caller that must search.
         """
-        static = (self.model.path_lengths(pressures_pa, rising) if path
-                  else self.model.major(rising).length(np.asarray(pressures_pa, dtype=float)))
-        return np.asarray(self.drift.correct(np.asarray(static, dtype=float)), dtype=float)
+        static = self.model.path_map(rising) if path else self.model.major(rising).length
+        drift = self.drift
+        return lambda p_pa: float(drift.correct(static(float(p_pa))))
 
     # --- run-time parameter changes -------------------------------------------------
 
@@ -641,6 +642,14 @@ class OnlineModel:
             self._shapes.resume_from(other._shapes if other._shapes is not None
                                      else other.model)
         self._lags, self._time, self._static = other._lags, other._time, other._static
+
+
+def elapsed_s(previous_s: float | None, t_s: float | None) -> float:
+    """Time between two samples, for learning: 0 if either is unknown or time went back,
+    at most MAX_STEP_S (a pause is not a long sample)."""
+    if previous_s is None or t_s is None:
+        return 0.0
+    return min(max(float(t_s) - previous_s, 0.0), MAX_STEP_S)
 
 
 def run_online(online: OnlineModel, pressure_pa, measured_length_m, time_s) -> np.ndarray:

@@ -41,6 +41,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -538,35 +539,28 @@ class HysteresisModel:
         return self._invert_along(self._path_segments(rising), rising, length_m, where)
 
     def _path_segments(self, rising: bool) -> list[tuple[_Curve, float, float]]:
-        if self.memory == 'switch':
-            return [(_Curve(self.major(rising)), self._p,
-                     self.max_gauge_pressure_pa if rising else 0.0)]
         return (self._play_segments(rising) if self.memory == 'play'
                 else self._future_segments(rising))
 
-    def path_length(self, p_pa: float, rising: bool) -> float:
-        """The length at p_pa if pressure moved there one way from the current state.
+    def path_map(self, rising: bool) -> Callable[[float], float]:
+        """length(p_pa) if pressure moved to p_pa one way from the current state.
 
         The forward map `path_pressure_for_length` inverts, for a caller that must search
-        (a mix of rules has no closed-form inverse; forecaster.RuleMix).
+        (a mix of rules has no closed-form inverse: forecaster.RuleMix). The pieces of the
+        path are built once, here; the map is for the current state only.
         """
-        return self.path_lengths([p_pa], rising)[0]
-
-    def path_lengths(self, pressures_pa, rising: bool) -> list[float]:
-        """path_length at several pressures ahead of the current one (pieces built once)."""
         segments = self._path_segments(rising)
-        lengths = []
-        for p_pa in map(float, pressures_pa):
+        held_m = self._l
+
+        def length_at(p_pa: float) -> float:
             for curve, p_from, p_to in segments:
                 if (p_pa < p_from) if rising else (p_pa > p_from):
-                    lengths.append(self._l)   # play's hold, before its branch is met
-                    break
+                    return held_m   # play's hold, before its branch is met
                 if (p_pa <= p_to) if rising else (p_pa >= p_to):
-                    lengths.append(float(curve.length(p_pa)))
-                    break
-            else:
-                lengths.append(float(segments[-1][0].length(p_pa)))
-        return lengths
+                    return float(curve.length(float(p_pa)))
+            return float(segments[-1][0].length(float(p_pa)))
+
+        return length_at
 
     def _play_segments(self, rising: bool) -> list[tuple[_Curve, float, float]]:
         """Play: the length holds until the major branch reaches it, then follows it."""
