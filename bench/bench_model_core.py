@@ -89,14 +89,24 @@ def main() -> None:
     # on a noisy measured length; fresh models each repeat, so learning starts each time.
     measured = sigmoid.predict(online_path) + rng.normal(0.0, 1.7e-3, calls)
     times = np.arange(calls) / 100.0
-    for label, learning in (('identify + learning', replace(params, adaptation=replace(
-            params.adaptation, enabled=True))),
-                            ('identify, learning off', replace(params, identification=replace(
-                                params.identification, enabled=False)))):
-        per_call[f'online.step ({label})'] = best_time(
-            lambda p=learning: [online.step(*sample) for online in [p.build_online()]
-                                for sample in zip(online_path, measured, times, strict=True)],
-            repeats)
+    samples = list(zip(online_path, measured, times, strict=True))
+    targets = np.linspace(0.245, 0.295, calls)
+    for memory in ('identify', 'mix'):
+        for learn in (True, False):
+            settings = replace(params, memory=memory,
+                               identification=replace(params.identification, enabled=learn),
+                               adaptation=replace(params.adaptation, enabled=learn))
+            label = f'{memory} + learning' if learn else f'{memory}, learning off'
+            per_call[f'online.step ({label})'] = best_time(
+                lambda p=settings: [online.step(*sample) for online in [p.build_online()]
+                                    for sample in samples], repeats)
+        # The controller's inverse every cycle: along the path from a learned state (the
+        # mix has no closed form: a bracketed root of the mixed path, scipy's brentq).
+        online = replace(params, memory=memory).build_online()
+        for sample in samples:
+            online.step(*sample)
+        per_call[f'online.pressure_for_length ({memory})'] = best_time(
+            lambda o=online: [o.pressure_for_length(float(t)) for t in targets], repeats)
     call_baseline = per_call['baseline: np.polyval on a float'] / calls
     print(f'\n{"per call":34s} {"us/call":>9s} {"x baseline":>11s}')
     for name, seconds in per_call.items():

@@ -13,14 +13,15 @@ from __future__ import annotations
 import pytest
 
 from pma_driver.sim.families import FAMILY_NAMES
-from support.muscle_families import Config, Scenario, score
+from support.muscle_families import MIX, Config, Scenario, score
 
 pytestmark = pytest.mark.slow
 
 DRIFT_START_S = 60.0
 DURATION_S = 300.0
 RECOVERED = (DRIFT_START_S + 120.0, DURATION_S)   # from two minutes after the drift began
-OFF, ON = Config('identify', True, False), Config('identify', True, True)
+# The default memory (the mix of identify and play), learning, with adaptation off and on.
+OFF, ON = Config(MIX, True, False), Config(MIX, True, True)
 
 
 @pytest.mark.parametrize('family', FAMILY_NAMES)

@@ -141,7 +141,7 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
     published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
     try:
         wait_until(lambda: published, 20, 'latched model parameters')
-        assert published[-1].form == 'sigmoid' and published[-1].memory == 'identify'
+        assert published[-1].form == 'sigmoid' and published[-1].memory == 'mix'
 
         def set_atomically(**values):
             request = SetParametersAtomically.Request(parameters=[

@@ -65,7 +65,9 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
     try:
         wait_until(lambda: published, 20, 'the latched parameters')
         first = published[0]
-        assert first.memory == 'identify' and first.identification_enabled
+        assert first.memory == 'mix' and first.identification_enabled
+        assert list(first.mix_rules) == ['identify', 'play']
+        assert list(first.mix_weights) == [0.5, 0.5]
         assert (first.play_share_rising, first.play_share_falling) == (0.5, 0.5)
         assert list(first.branch_correction_m) == [0.0] * len(CORRECTION_KNOTS_PA)
         assert list(first.branch_difference_m) == [0.0] * len(CORRECTION_KNOTS_PA)
@@ -83,6 +85,12 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         assert len(learned.branch_difference_m) == len(CORRECTION_KNOTS_PA)
         assert (learned.play_share_rising, learned.play_share_falling) != (0.5, 0.5)
         assert len(learned.creep_gains) == len(learned.creep_time_constants_s) == 2
+        print(f'mix weights {list(learned.mix_weights)}, play rule correction mm '
+              f'{np.round(np.array(learned.play_rule_correction_m) * 1e3, 2)}')
+        assert list(learned.mix_weights) != [0.5, 0.5]
+        assert sum(learned.mix_weights) == pytest.approx(1.0)
+        assert np.max(np.abs(learned.play_rule_correction_m)) > 5e-4
+        assert len(learned.play_rule_creep_gains) == 2
         assert len(published) < 60     # republished at most once a second while learning
         values = yaml.safe_load(learned.parameters_yaml)['/**']['ros__parameters']
         assert values['identification']['play_share_rising'] == learned.play_share_rising
@@ -90,7 +98,8 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
                                for s in a.status for kv in s.values), 10, 'diagnostics')
         keys = {kv.key for a in diagnostics for s in a.status for kv in s.values}
         assert {'play_share_rising', 'play_share_falling', 'branch_correction_mm',
-                'branch_difference_mm', 'creep_gains'} <= keys
+                'branch_difference_mm', 'creep_gains', 'mix_weights', 'play_rule_correction_mm',
+                'play_rule_difference_mm', 'play_rule_creep_gains'} <= keys
     finally:
         probe.node.destroy_subscription(sub_params)
         probe.node.destroy_subscription(sub_diag)
@@ -109,6 +118,10 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         assert list(start.branch_correction_m) == list(learned.branch_correction_m)
         assert list(start.branch_difference_m) == list(learned.branch_difference_m)
         assert list(start.creep_gains) == list(learned.creep_gains)
+        assert list(start.play_rule_correction_m) == list(learned.play_rule_correction_m)
+        assert list(start.play_rule_difference_m) == list(learned.play_rule_difference_m)
+        assert list(start.play_rule_creep_gains) == list(learned.play_rule_creep_gains)
+        assert list(start.mix_weights) == list(learned.mix_weights)
         assert start.samples_learned == 0
     finally:
         probe.node.destroy_subscription(sub_again)

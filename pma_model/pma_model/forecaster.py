@@ -30,29 +30,39 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 from scipy.optimize import brentq
 
+from pma_model.adaptation import Drift
+from pma_model.branches import Branch
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING, BRANCH_NAMES
-from pma_model.identification import OnlineModel, Prediction, elapsed_s
+from pma_model.identification import IdentificationSettings, OnlineModel, Prediction, elapsed_s
 from pma_model.memory import InverseResult
 
+MIX_MEMORY = 'mix'            # the model's memory setting that runs MIX_RULES mixed
+MIX_RULES = ('identify', 'play')
 MIX_TIME_CONSTANT_S = 100.0   # how long a rule's errors count (5000 samples at 50 Hz)
 MIX_TEMPERATURE_M2S = 2e-6    # a loss difference this large changes the weights by e
-MIX_RULES = ('identify', 'play')
 PRESSURE_TOLERANCE_PA = 1e-3
+# Rules whose weight is below this move the mixed length by less than 1e-10 m (they differ by
+# centimetres at most), less than the pressure tolerance does on the steepest branch.
+NEGLIGIBLE_WEIGHT = 1e-9
 
 
 @dataclass
 class RuleMix:
-    """Online models of several memory rules, mixed by their recent error; `step` and
-    `pressure_for_length` as OnlineModel's."""
+    """Online models of several memory rules, mixed by their recent error; `step`,
+    `pressure_for_length` and what model_node and the controller read (`learned`, `drift`,
+    the branches) as OnlineModel's: the first rule's, or mixed."""
 
     experts: tuple[OnlineModel, ...]
     time_constant_s: float = MIX_TIME_CONSTANT_S
     temperature_m2s: float = MIX_TEMPERATURE_M2S
     losses_m2s: np.ndarray | None = None
+    learning: bool = True       # False: the weights stay as given (identification off)
+    memory: ClassVar[str] = MIX_MEMORY
 
     def __post_init__(self):
         if len(self.experts) < 1:
@@ -85,12 +95,52 @@ class RuleMix:
         return weights / weights.sum()
 
     @property
+    def rules(self) -> tuple[str, ...]:
+        return tuple(expert.memory for expert in self.experts)
+
+    @property
     def max_gauge_pressure_pa(self) -> float:
         return self.experts[0].max_gauge_pressure_pa
 
     @property
     def branch(self) -> int:
         return self.experts[0].branch
+
+    @property
+    def increasing(self) -> Branch:
+        return self.experts[0].increasing
+
+    @property
+    def decreasing(self) -> Branch:
+        return self.experts[0].decreasing
+
+    @property
+    def samples_learned(self) -> int:
+        return self.experts[0].samples_learned
+
+    @property
+    def samples_rejected(self) -> int:
+        return self.experts[0].samples_rejected
+
+    @property
+    def drift(self) -> Drift:
+        """The rules' drift estimates, mixed (the prediction's offset and gain)."""
+        drifts = [expert.drift for expert in self.experts]
+        weights = self.weights
+        return Drift(drifts[0].reference_length_m,
+                     float(weights @ [d.shift_m for d in drifts]),
+                     float(weights @ [d.gain for d in drifts]))
+
+    def learned(self) -> IdentificationSettings:
+        """Every rule's learned numbers and the play rule's weight, as the 'mix' memory
+        saves them (IdentificationSettings.for_rule gives each rule its part back)."""
+        if self.rules != MIX_RULES:
+            raise ValueError(f'only the {MIX_RULES} mix is saved, not {self.rules}')
+        settings = self.experts[0].learned()
+        for rule, expert in zip(self.rules, self.experts, strict=True):
+            settings = settings.with_rule_learned(rule, expert.learned())
+        identify, play = self.losses_m2s
+        return replace(settings, play_rule_excess_loss_m2s=float(play - identify))
 
     def step(self, pressure_pa: float, measured_length_m: float = math.nan,
              t_s: float | None = None) -> Prediction:
@@ -99,19 +149,20 @@ class RuleMix:
         predictions = [e.step(pressure_pa, measured_length_m, t_s) for e in self.experts]
         lengths = np.array([p.length_m for p in predictions])
         first = predictions[0]
+        self.last_predictions = predictions
         if not math.isfinite(float(pressure_pa)):
             return first
         dt = elapsed_s(self._time, t_s)
         if t_s is not None:
             self._time = float(t_s)
         measured = float(measured_length_m)
-        if math.isfinite(measured) and dt > 0.0:
+        if self.learning and math.isfinite(measured) and dt > 0.0:
             # Outliers are capped at the limit the rules reject them at.
             cap = min(e.adaptation.outlier_m for e in self.experts)
-            errors = np.minimum(np.abs(lengths - measured), cap)
-            self.losses_m2s = self.losses_m2s * math.exp(-dt / self.time_constant_s) + \
-                errors ** 2 * dt
-        self.last_predictions = predictions
+            errors = np.abs(lengths - measured)
+            if np.any(errors <= cap):    # one every rule rejects says nothing about them
+                self.losses_m2s = self.losses_m2s * math.exp(-dt / self.time_constant_s) + \
+                    np.minimum(errors, cap) ** 2 * dt
         return replace(
             first, length_m=float(weights @ lengths),
             static_length_m=float(weights @ [p.static_length_m for p in predictions]),
@@ -137,13 +188,17 @@ class RuleMix:
                 not math.isfinite(float(length_m)):
             return self.experts[0].pressure_for_length(length_m, branch)   # its refusal
         length_m = float(length_m)
+        weights = self.weights
+        if np.count_nonzero(weights > NEGLIGIBLE_WEIGHT) == 1:
+            # One rule carries the mix (the others move it by < 1e-10 m): its exact inverse.
+            return self.experts[int(np.argmax(weights))].pressure_for_length(length_m, branch)
         path = branch == BRANCH_AUTO
         here = self.experts[0].model.pressure_pa
         rising = length_m < self.settled_length_m if path else branch == BRANCH_INCREASING
         start = here if path else (0.0 if rising else self.max_gauge_pressure_pa)
         end = self.max_gauge_pressure_pa if rising else 0.0
         maps = [(w, e.settled_map(rising, path))
-                for w, e in zip(self.weights, self.experts, strict=True) if w > 0.0]
+                for w, e in zip(weights, self.experts, strict=True) if w > 0.0]
 
         def mixed(p_pa: float) -> float:
             return sum(w * length_at(p_pa) for w, length_at in maps)
@@ -168,9 +223,16 @@ class RuleMix:
                               xtol=PRESSURE_TOLERANCE_PA)
         return InverseResult(True, f'on the mixed {where}', float(pressure), code, low, high)
 
-    def resume_from(self, other: RuleMix) -> None:
-        """Continue `other`'s pressure history and weights with these rules' settings."""
-        for mine, theirs in zip(self.experts, other.experts, strict=True):
-            mine.resume_from(theirs)
-        self.losses_m2s = other.losses_m2s.copy()
+    def resume_from(self, other: RuleMix | OnlineModel) -> None:
+        """Continue `other`'s pressure history with these rules' settings (and its weights,
+        when it is a mix of the same rules)."""
+        if isinstance(other, RuleMix) and other.rules == self.rules:
+            for mine, theirs in zip(self.experts, other.experts, strict=True):
+                mine.resume_from(theirs)
+            self.losses_m2s = other.losses_m2s.copy()
+        else:
+            source = other.experts[0] if isinstance(other, RuleMix) else other
+            for mine in self.experts:
+                mine.resume_from(source)
         self._time = other._time
+

@@ -55,6 +55,9 @@ CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
 MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
 MAX_DIFFERENCE_M = 2 * MAX_CORRECTION_M   # each branch's own correction stays within the above
 MAX_CREEP_GAIN = 1.0
+# Far beyond any loss difference of the mix (errors are capped at adaptation.outlier_m, at
+# most 0.05 m, and forgotten over 100 s: 0.25 m^2 s).
+MAX_EXCESS_LOSS_M2S = 1.0
 SPREAD_SCALE_M = 0.0005      # memory shapes this far apart halve the confidence (quarter R)
 COMMIT_M = 2e-5              # apply learned branch changes once they move 0.02 mm somewhere
 COMMIT_SHARE = 0.01          # or a share by this much
@@ -85,6 +88,13 @@ class IdentificationSettings:
     branch_difference_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
     creep_gains: tuple[float, ...] = (0.0,) * len(CREEP_TIME_CONSTANTS_S)
     length_noise_m: float = 0.0017   # HC-SR04: 1.5 mm noise and 3 mm steps
+    # The 'mix' memory's play rule learns a correction and creep of its own (forecaster.py);
+    # its weight against 'identify' follows how much more squared error it made recently
+    # (the weights' whole state, saved exactly: a weight near 0 or 1 would round).
+    play_rule_correction_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
+    play_rule_difference_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
+    play_rule_creep_gains: tuple[float, ...] = (0.0,) * len(CREEP_TIME_CONSTANTS_S)
+    play_rule_excess_loss_m2s: float = 0.0
 
     def __post_init__(self):
         if not isinstance(self.enabled, bool):
@@ -93,13 +103,19 @@ class IdentificationSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):
                 raise ValueError(f'{name} must be within 0..1, got {value!r}')
-        for name, limit in (('branch_correction_m', MAX_CORRECTION_M),
-                            ('branch_difference_m', MAX_DIFFERENCE_M)):
-            object.__setattr__(self, name, _checked_vector(
-                name, getattr(self, name), len(CORRECTION_KNOTS_PA), limit))
-        object.__setattr__(self, 'creep_gains',
-                           _checked_vector('creep_gains', self.creep_gains,
-                                           len(CREEP_TIME_CONSTANTS_S), MAX_CREEP_GAIN))
+        for name, size, limit in (
+                ('branch_correction_m', len(CORRECTION_KNOTS_PA), MAX_CORRECTION_M),
+                ('branch_difference_m', len(CORRECTION_KNOTS_PA), MAX_DIFFERENCE_M),
+                ('creep_gains', len(CREEP_TIME_CONSTANTS_S), MAX_CREEP_GAIN),
+                ('play_rule_correction_m', len(CORRECTION_KNOTS_PA), MAX_CORRECTION_M),
+                ('play_rule_difference_m', len(CORRECTION_KNOTS_PA), MAX_DIFFERENCE_M),
+                ('play_rule_creep_gains', len(CREEP_TIME_CONSTANTS_S), MAX_CREEP_GAIN)):
+            object.__setattr__(self, name, _checked_vector(name, getattr(self, name), size,
+                                                           limit))
+        excess = self.play_rule_excess_loss_m2s
+        if not (math.isfinite(excess) and abs(excess) <= MAX_EXCESS_LOSS_M2S):
+            raise ValueError(f'play_rule_excess_loss_m2s must be within '
+                             f'+/-{MAX_EXCESS_LOSS_M2S} m^2 s, got {excess!r}')
         if not (math.isfinite(self.length_noise_m) and 1e-5 <= self.length_noise_m <= 0.05):
             raise ValueError('length_noise_m must be within 1e-5..0.05 m, '
                              f'got {self.length_noise_m!r}')
@@ -111,7 +127,14 @@ class IdentificationSettings:
     # What identification learns (the rest are settings): saved, published, carried over.
     LEARNED: ClassVar[tuple[str, ...]] = ('play_share_rising', 'play_share_falling',
                                           'branch_correction_m', 'branch_difference_m',
-                                          'creep_gains')
+                                          'creep_gains', 'play_rule_correction_m',
+                                          'play_rule_difference_m', 'play_rule_creep_gains',
+                                          'play_rule_excess_loss_m2s')
+    # One OnlineModel's own learned fields, and where the mix's play rule keeps its copy.
+    _PLAY_RULE_FIELDS: ClassVar[dict[str, str]] = {
+        'branch_correction_m': 'play_rule_correction_m',
+        'branch_difference_m': 'play_rule_difference_m',
+        'creep_gains': 'play_rule_creep_gains'}
 
     def learned_values(self) -> dict[str, float | list[float]]:
         """{name: value} of what was learned, vectors as lists (for JSON and YAML)."""
@@ -120,8 +143,31 @@ class IdentificationSettings:
 
     @property
     def learned_anything(self) -> bool:
+        """True when an OnlineModel starts from learned numbers (tighter priors)."""
         return any(self.branch_correction_m) or any(self.branch_difference_m) or \
             any(self.creep_gains) or self.play_shares != (0.5, 0.5)
+
+    def for_rule(self, rule: str) -> IdentificationSettings:
+        """What the mix's OnlineModel for `rule` starts from: the play rule its own
+        correction, difference and creep (and the default shares, which only measure its
+        confidence); every other rule these settings as they are."""
+        if rule != 'play':
+            return self
+        default = IdentificationSettings()
+        return replace(self, play_share_rising=default.play_share_rising,
+                       play_share_falling=default.play_share_falling,
+                       **{own: getattr(self, copy)
+                          for own, copy in self._PLAY_RULE_FIELDS.items()})
+
+    def with_rule_learned(self, rule: str, learned: IdentificationSettings
+                          ) -> IdentificationSettings:
+        """These settings with what the mix's OnlineModel for `rule` has learned (the
+        inverse of for_rule)."""
+        if rule != 'play':
+            return replace(self, **{name: getattr(learned, name) for name in (
+                'play_share_rising', 'play_share_falling', *self._PLAY_RULE_FIELDS)})
+        return replace(self, **{copy: getattr(learned, own)
+                                for own, copy in self._PLAY_RULE_FIELDS.items()})
 
 
 def _checked_vector(name: str, values, size: int, limit: float) -> tuple[float, ...]:
@@ -630,13 +676,19 @@ class OnlineModel:
         The forward map of `pressure_for_length`, for a caller that must search.
         """
         static = self.model.path_map(rising) if path else self.model.major(rising).length
-        drift = self.drift
-        return lambda p_pa: float(drift.correct(static(float(p_pa))))
+        if not self._drifting:
+            return lambda p_pa: float(static(float(p_pa)))
+        reference, shift, gain = (self.drift.reference_length_m, self.drift.shift_m,
+                                  self.drift.gain)    # Drift.correct, on floats
+        return lambda p_pa: reference + shift + gain * (float(static(float(p_pa))) - reference)
 
     # --- run-time parameter changes -------------------------------------------------
 
-    def resume_from(self, other: OnlineModel) -> None:
-        """Continue `other`'s pressure history (and its creep lags) with these settings."""
+    def resume_from(self, other) -> None:
+        """Continue `other`'s pressure history (and its creep lags) with these settings;
+        from a forecaster.RuleMix, its first rule's."""
+        if not isinstance(other, OnlineModel):
+            other = other.experts[0]
         self.model.resume_from(other.model)
         if self._shapes is not None and self._shapes is not self.model:
             self._shapes.resume_from(other._shapes if other._shapes is not None

@@ -31,16 +31,22 @@ from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
 from pma_model.detector import BRANCH_NAMES
-from pma_model.identification import CORRECTION_KNOTS_PA, CREEP_TIME_CONSTANTS_S
+from pma_model.forecaster import RuleMix
+from pma_model.identification import (
+    CORRECTION_KNOTS_PA,
+    CREEP_TIME_CONSTANTS_S,
+    MAX_EXCESS_LOSS_M2S,
+)
 from pma_model.params import ModelParams, ParamsError, default_params
 
 _DESCRIPTIONS = {
     'branch_form': "branch shape: 'sigmoid' (the paper's L0 - a*L0/(1+exp(-b*P))^c) or "
                    "'hill' (L0 - dL*P^n/(P^n+K^n))",
-    'memory': "minor-loop memory: 'identify' (learned mix of Madelung and play-like scanning "
-              "curves), 'play' (friction band between the branches), 'madelung' "
-              "(turning-point stack) or 'switch' (the paper's "
-              'jump between the major branches)',
+    'memory': "minor-loop memory: 'mix' ('identify' and 'play' side by side, each learning, "
+              "weighted by their recent errors), 'identify' (learned blend of Madelung and "
+              "play-like scanning curves), 'play' (friction band between the branches), "
+              "'madelung' (turning-point stack) or 'switch' (the paper's jump between the "
+              'major branches)',
     'deadband_pa': 'pressure must move this far against the current direction before a '
                    'reversal counts [Pa]',
     'max_gauge_pressure_pa': 'highest gauge pressure the inverse may answer with [Pa]',
@@ -66,6 +72,7 @@ _RANGES = {
     'adaptation.time_constant_s': (1.0, 3600.0),
     'identification.play_share_rising': (0.0, 1.0),
     'identification.play_share_falling': (0.0, 1.0),
+    'identification.play_rule_excess_loss_m2s': (-MAX_EXCESS_LOSS_M2S, MAX_EXCESS_LOSS_M2S),
 }
 
 
@@ -256,6 +263,7 @@ class ModelNode(Node):
             learned = self._model.learned()
             drift = self._model.drift
             counts = (self._model.samples_learned, self._model.samples_rejected)
+            mix = _mix_weights(self._model)
         # What this message says was learned: the diagnostics tick republishes only when more
         # has been (the start-up message must not be sent twice, unchanged).
         self._published_learning = counts[0]
@@ -276,6 +284,10 @@ class ModelNode(Node):
         msg.branch_difference_m = list(learned.branch_difference_m)
         msg.creep_time_constants_s = list(CREEP_TIME_CONSTANTS_S)
         msg.creep_gains = list(learned.creep_gains)
+        msg.mix_rules, msg.mix_weights = list(mix), list(mix.values())
+        msg.play_rule_correction_m = list(learned.play_rule_correction_m)
+        msg.play_rule_difference_m = list(learned.play_rule_difference_m)
+        msg.play_rule_creep_gains = list(learned.play_rule_creep_gains)
         msg.samples_learned, msg.samples_rejected = counts
         msg.adaptation_offset_m = drift.offset_m if params.adaptation.enabled else 0.0
         msg.adaptation_gain = drift.gain if params.adaptation.enabled else 1.0
@@ -362,6 +374,7 @@ class ModelNode(Node):
             drift = self._model.drift
             learned = self._model.learned()
             learned_count = self._model.samples_learned
+            mix = _mix_weights(self._model)
         status = DiagnosticStatus()
         status.name = f'{self.get_fully_qualified_name()}: hysteresis model'
         status.hardware_id = 'model'
@@ -395,16 +408,31 @@ class ModelNode(Node):
                 samples_learned=learned_count,
                 play_share_rising=f'{learned.play_share_rising:.3f}',
                 play_share_falling=f'{learned.play_share_falling:.3f}',
-                branch_correction_mm=' '.join(f'{1e3 * v:.2f}'
-                                              for v in learned.branch_correction_m),
-                branch_difference_mm=' '.join(f'{1e3 * v:.2f}'
-                                              for v in learned.branch_difference_m),
+                branch_correction_mm=_millimetres(learned.branch_correction_m),
+                branch_difference_mm=_millimetres(learned.branch_difference_m),
                 creep_gains=' '.join(f'{v:.3f}' for v in learned.creep_gains))
+        if mix:
+            values.update(
+                mix_weights=' '.join(f'{rule} {weight:.3f}' for rule, weight in mix.items()),
+                play_rule_correction_mm=_millimetres(learned.play_rule_correction_m),
+                play_rule_difference_mm=_millimetres(learned.play_rule_difference_m),
+                play_rule_creep_gains=' '.join(f'{v:.3f}' for v in learned.play_rule_creep_gains))
         publish_status(self, self._diagnostics_pub, status, values)
         if (learned.enabled or adapting) and learned_count != self._published_learning:
             # What it has learned, latched at 1 Hz at most: a recording (or a restart from
             # its parameters_yaml) keeps it.
             self._publish_params()
+
+
+def _millimetres(values) -> str:
+    return ' '.join(f'{1e3 * v:.2f}' for v in values)
+
+
+def _mix_weights(model) -> dict[str, float]:
+    """{rule: weight} of the 'mix' memory; empty for a single rule."""
+    if not isinstance(model, RuleMix):
+        return {}
+    return {rule: float(weight) for rule, weight in zip(model.rules, model.weights, strict=True)}
 
 
 def main(args=None) -> int:

@@ -34,10 +34,13 @@ from pma_model.branches import (
     branch_class,
 )
 from pma_model.detector import DEFAULT_DEADBAND_PA
+from pma_model.forecaster import MIX_MEMORY, MIX_RULES, RuleMix
 from pma_model.identification import IdentificationSettings, OnlineModel
 from pma_model.memory import MEMORY_MODES, HysteresisModel
 
 BRANCH_FORM_NAMES = ('sigmoid', 'hill')
+# The memory setting: one rule of memory.py, or the rules mixed by their recent error.
+MEMORIES = (MIX_MEMORY, *MEMORY_MODES)
 DIRECTIONS = ('increasing', 'decreasing')
 
 # Sanity range that catches unit mix-ups (kPa for Pa); the branch ones live in branches.py.
@@ -76,8 +79,8 @@ class ModelParams:
         if self.branch_form not in BRANCH_FORM_NAMES:
             raise ParamsError(f'branch_form must be one of {BRANCH_FORM_NAMES}, '
                               f'got {self.branch_form!r}')
-        if self.memory not in MEMORY_MODES:
-            raise ParamsError(f'memory must be one of {MEMORY_MODES}, got {self.memory!r}')
+        if self.memory not in MEMORIES:
+            raise ParamsError(f'memory must be one of {MEMORIES}, got {self.memory!r}')
         low, high = MAX_GAUGE_PRESSURE_RANGE_PA
         if not (math.isfinite(self.max_gauge_pressure_pa)
                 and low <= self.max_gauge_pressure_pa <= high):
@@ -103,16 +106,26 @@ class ModelParams:
         """The memory model alone, with the branches as given (offline prediction, fits).
 
         The identified play shares are used; the learned branch correction, creep and
-        drift are OnlineModel's (build_online).
+        drift are OnlineModel's (build_online). The 'mix' memory is online only: here it
+        is its first rule, 'identify'.
         """
         increasing, decreasing = self.branches()
-        return HysteresisModel(increasing, decreasing, memory=self.memory,
+        memory = MIX_RULES[0] if self.memory == MIX_MEMORY else self.memory
+        return HysteresisModel(increasing, decreasing, memory=memory,
                                deadband_pa=self.deadband_pa,
                                max_gauge_pressure_pa=self.max_gauge_pressure_pa,
                                play_shares=self.identification.play_shares)
 
-    def build_online(self) -> OnlineModel:
-        """The memory model with what it learns online (identification, drift adaptation)."""
+    def build_online(self) -> OnlineModel | RuleMix:
+        """The memory model with what it learns online (identification, drift adaptation);
+        for the 'mix' memory, a RuleMix of an OnlineModel per rule, from the saved losses."""
+        if self.memory == MIX_MEMORY:
+            learned = self.identification
+            return RuleMix.of_rules(
+                lambda rule: replace(self, memory=rule, identification=learned.for_rule(rule))
+                .build_online(),
+                MIX_RULES, losses_m2s=[0.0, learned.play_rule_excess_loss_m2s],
+                learning=learned.enabled)
         increasing, decreasing = self.branches()
         return OnlineModel(increasing, decreasing, memory=self.memory,
                            deadband_pa=self.deadband_pa,

@@ -24,6 +24,7 @@ from pma_model.provenance import input_run
 from pma_model.report import (
     BRANCH_MODEL_FORMS,
     MODEL_NAMES,
+    ONLINE_MEMORIES,
     build_report,
     failed_models,
     format_table,
@@ -58,11 +59,11 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument('--deadband-pa', type=float, default=DEFAULT_DEADBAND_PA, metavar='X',
                         help=f'branch detector deadband [Pa] (default {DEFAULT_DEADBAND_PA:g})')
     parser.add_argument('--memory-check', type=Path, metavar='BAG_OR_CSV',
-                        help='also run each memory rule (identify, switch, madelung, play) '
+                        help='also run each memory (mix, identify, switch, madelung, play) '
                         'with the fitted branches along this recorded path (minor loops, e.g. '
-                        'a Sweep with reversal_pressures_pa) and score it; identify learns '
-                        'online as model_node does; --params-out then also sets memory to the '
-                        'best (and, for identify, what it learned)')
+                        'a Sweep with reversal_pressures_pa) and score it; mix and identify '
+                        'learn online as model_node does; --params-out then also sets memory '
+                        'to the best (and, for mix or identify, what they learned)')
     parser.add_argument('--topic', default=STATE_TOPIC,
                         help='PmaState topic of a bag (default: pma/state in any namespace)')
     parser.add_argument('--no-holdout', action='store_true',
@@ -90,9 +91,9 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
                  identified: dict | None = None) -> None:
     """The branch form and the fitted branches (and the memory rule, if one was measured).
 
-    With memory 'identify', what the online identification learned along the memory-check
-    path (`identified`: play shares, branch correction, creep gains) is written too, so
-    model_node starts from there.
+    With memory 'mix' or 'identify', what the online identification learned along the
+    memory-check path (`identified`: play shares, branch corrections, creep gains, the mix's
+    weights) is written too, so model_node starts from there.
 
     Adaptation, deadband and the pressure limit are the node's own settings: a hot reload
     of this file must not reset them. Both forms are written (the sigmoid from the paper's
@@ -115,7 +116,7 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
         params = replace(params, memory=memory)
         only += ('memory',)
         note += f', memory {memory} (the best along the --memory-check path)'
-    if memory == 'identify' and identified:
+    if memory in ONLINE_MEMORIES and identified:
         params = replace(params, identification=replace(params.identification, **identified))
         only += tuple(f'identification.{key}' for key in identified)
         note += ', with what it learned there'

@@ -27,9 +27,11 @@ from pma_model.boucwen import BoucWenFit, fit_bouc_wen, minor_loop_drift
 from pma_model.branches import Branch, HillBranch, SigmoidBranch
 from pma_model.detector import DEFAULT_DEADBAND_PA, detect_branches
 from pma_model.fitting import BranchFit, LeastSquaresFit, fit_branch_multistart
-from pma_model.identification import OnlineModel, run_online
-from pma_model.memory import MEMORY_MODES, HysteresisModel
+from pma_model.forecaster import MIX_MEMORY, RuleMix
+from pma_model.identification import OnlineModel
+from pma_model.memory import HysteresisModel
 from pma_model.metrics import fit_metrics
+from pma_model.params import MEMORIES
 from pma_model.samples import BranchData, Samples, settled_holds
 
 PAPER_C = 6.214
@@ -307,6 +309,10 @@ def failed_models(report: dict) -> dict[str, str]:
             if 'error' in entry}
 
 
+# The memories the memory check runs online, learning (the others run as they are).
+ONLINE_MEMORIES = (MIX_MEMORY, 'identify')
+
+
 def memory_check(samples: Samples, fitted: dict[str, FittedModel],
                  deadband_pa: float = DEFAULT_DEADBAND_PA,
                  predictions: dict[str, np.ndarray] | None = None) -> dict:
@@ -315,10 +321,12 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
     The major loop cannot tell the rules apart (they differ only inside it); a path with
     reversals inside the loop - the Sweep action's `reversal_pressures_pa` - can. Scored
     against the measured length, from rest, so the path must start at rest (a sweep does).
-    'switch', 'madelung' and 'play' run as they are; 'identify' runs online as model_node
-    would, predicting each sample before learning from it (docs/model.md, "Online
-    identification"), and what it learned along the path is reported (`identified`) and
-    written by --params-out when it wins. A staircase is scored on its hold means (the
+    'switch', 'madelung' and 'play' run as they are; 'identify' and 'mix' run online as
+    model_node would, predicting each sample before learning from it (docs/model.md, "Online
+    identification"). 'identify' learns as it would inside the mix, so one run of the mix
+    gives both; what they learned along the path is reported (`identified`, with the mix's
+    final weights in `mix_weights`) and written by --params-out when one of them wins. A
+    staircase is scored on its hold means (the
     settled half of each hold, as the refit reduces holds), so the ultrasonic noise does not
     swamp the differences; the models still run along every sample, since the memory
     depends on the whole path. `predictions`, when given, receives every predicted length
@@ -334,17 +342,23 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
     models: dict = {}
     best: dict[str, str] = {}
     identified: dict[str, dict] = {}
+    mix_weights: dict[str, dict] = {}
     for name, model in fitted.items():
         if name not in BRANCH_MODEL_FORMS:
             continue
         branches = (model.branches['increasing'], model.branches['decreasing'])
+        mix = RuleMix.of_rules(lambda rule, b=branches: OnlineModel(
+            *b, memory=rule, deadband_pa=deadband_pa))
+        online = {memory: [] for memory in ONLINE_MEMORIES}
+        for sample in zip(samples.pressure_pa, samples.length_m, samples.time_s, strict=True):
+            online[MIX_MEMORY].append(mix.step(*sample).length_m)
+            online['identify'].append(mix.last_predictions[0].length_m)
+        identified[name] = mix.learned().learned_values()
+        mix_weights[name] = dict(zip(mix.rules, (float(w) for w in mix.weights), strict=True))
         scores = {}
-        for memory in MEMORY_MODES:
-            if memory == 'identify':
-                online = OnlineModel(*branches, memory=memory, deadband_pa=deadband_pa)
-                predicted = run_online(online, samples.pressure_pa, samples.length_m,
-                                       samples.time_s)
-                identified[name] = online.learned().learned_values()
+        for memory in MEMORIES:
+            if memory in online:
+                predicted = np.array(online[memory])
             else:
                 predicted = HysteresisModel(*branches, memory=memory,
                                             deadband_pa=deadband_pa).predict(samples.pressure_pa)
@@ -359,7 +373,8 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
             'scored_on': f'{len(holds)} hold means' if on_holds else 'every sample',
             'reversals': int(np.count_nonzero(np.diff(
                 detect_branches(samples.pressure_pa, deadband_pa).astype(int)))),
-            'models': models, 'best_memory': best, 'identified': identified}
+            'models': models, 'best_memory': best, 'identified': identified,
+            'mix_weights': mix_weights}
 
 
 def holdout_report(data: BranchData, fitted: dict[str, FittedModel], stroke_cm: float) -> dict:
@@ -464,18 +479,27 @@ def format_table(report: dict) -> str:
         lines.append('  best: ' + ', '.join(f'{name} -> {memory}'
                                              for name, memory in check['best_memory'].items()))
         for name, values in check.get('identified', {}).items():
-            correction = ' '.join(f'{100 * v:.2f}' for v in values['branch_correction_m'])
-            difference = ' '.join(f'{100 * v:.2f}' for v in values['branch_difference_m'])
             lines.append(f"  {name}/identify learned: play share rising "
                          f"{values['play_share_rising']:.2f}, falling "
                          f"{values['play_share_falling']:.2f}; branch correction cm at 0, 50, "
-                         f"... 500 kPa: {correction} (increasing minus decreasing: "
-                         f"{difference}); creep gains "
+                         f"... 500 kPa: {_cm(values['branch_correction_m'])} (increasing "
+                         f"minus decreasing: {_cm(values['branch_difference_m'])}); creep gains "
                          + ', '.join(f'{v:.3f}' for v in values['creep_gains']))
+            weights = check.get('mix_weights', {}).get(name, {})
+            lines.append(f"  {name}/mix: weights at the end "
+                         + ', '.join(f'{rule} {w:.2f}' for rule, w in weights.items())
+                         + f"; the play rule learned branch correction cm "
+                         f"{_cm(values['play_rule_correction_m'])} (increasing minus "
+                         f"decreasing: {_cm(values['play_rule_difference_m'])}); creep gains "
+                         + ', '.join(f'{v:.3f}' for v in values['play_rule_creep_gains']))
     if report['warnings']:
         lines += ['', 'warnings:'] + [f'  - {text}' for text in report['warnings']]
     lines += ['', 'notes:'] + [f'  - {text}' for text in report['notes']]
     return '\n'.join(lines)
+
+
+def _cm(values_m) -> str:
+    return ' '.join(f'{100 * v:.2f}' for v in values_m)
 
 
 def _with_ci(key, value, entry) -> str:

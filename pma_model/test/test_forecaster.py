@@ -15,7 +15,7 @@ from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
 from pma_model.forecaster import RuleMix
 from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
-from pma_model.params import default_params
+from pma_model.params import ModelParams, default_params
 
 NOISE_M = 5e-4
 
@@ -132,6 +132,19 @@ def test_on_the_major_branches_it_inverts_the_mixed_branches():
         assert float(weights @ lengths) == pytest.approx(0.27, abs=1e-7)
 
 
+def test_a_rule_that_carries_the_mix_answers_with_its_own_exact_inverse():
+    mix, _, _ = run_on_truth('play', seed=3)
+    mix.losses_m2s = np.array([0.0, 30 * mix.temperature_m2s])      # play's weight 1e-13
+    identify = mix.experts[0]
+    for branch in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING):
+        answer = mix.pressure_for_length(0.27, branch)
+        assert answer == identify.pressure_for_length(0.27, branch)
+        rising = answer.branch == BRANCH_INCREASING
+        mixed = sum(w * e.settled_map(rising, branch == BRANCH_AUTO)(answer.gauge_pressure_pa)
+                    for w, e in zip(mix.weights, mix.experts, strict=True))
+        assert mixed == pytest.approx(0.27, abs=1e-9)
+
+
 @pytest.mark.parametrize(('target', 'branch', 'says'), [
     (0.10, BRANCH_AUTO, 'not reachable'), (0.40, BRANCH_AUTO, 'not reachable'),
     (math.nan, BRANCH_AUTO, 'finite'), (0.27, 7, 'unknown branch')])
@@ -166,3 +179,59 @@ def test_bad_samples_change_nothing():
 def test_bad_settings_are_refused(bad):
     with pytest.raises(ValueError):
         mix_of_rules(**bad)
+
+
+# --- the 'mix' memory: what the model node builds, saves and resumes --------------------------
+
+def test_the_default_memory_is_the_mix_and_a_saved_file_resumes_it_exactly():
+    params = default_params()
+    assert params.memory == 'mix'
+    mix = params.build_online()
+    assert isinstance(mix, RuleMix) and mix.rules == ('identify', 'play')
+    np.testing.assert_array_equal(mix.weights, [0.5, 0.5])
+    run_online(mix, *measured_truth('play', seed=4)[:3])
+    learned = mix.learned()
+    assert learned.play_rule_excess_loss_m2s < 0.0 and mix.weights[1] > 0.5   # play's truth
+    assert any(learned.play_rule_correction_m) and any(learned.branch_correction_m)
+    assert learned.play_rule_correction_m != learned.branch_correction_m   # each its own
+    saved = ModelParams.from_yaml(params.with_learned(learned).to_yaml())
+    resumed = saved.build_online()
+    np.testing.assert_array_equal(resumed.weights, mix.weights)
+    assert resumed.learned() == learned
+    identify, play = resumed.experts
+    assert identify.learned().branch_correction_m == learned.branch_correction_m
+    assert play.learned().branch_correction_m == learned.play_rule_correction_m
+
+
+def test_with_identification_off_the_weights_stay_as_saved():
+    params = default_params()
+    frozen = replace(params, identification=replace(
+        params.identification, enabled=False, play_rule_excess_loss_m2s=-3e-6))
+    mix = frozen.build_online()
+    before = mix.learned()
+    run_online(mix, *measured_truth('madelung', seed=5)[:3])
+    assert mix.learned() == before
+    np.testing.assert_allclose(mix.weights, np.array([1.0, math.exp(1.5)]) / (1 + math.exp(1.5)))
+
+
+def test_a_sample_every_rule_rejects_teaches_the_weights_nothing():
+    mix, _, _ = run_on_truth('play')
+    before = mix.losses_m2s.copy()
+    mix.step(mix.experts[0].model.pressure_pa, 0.5, mix._time + 0.02)    # 20 cm off
+    np.testing.assert_array_equal(mix.losses_m2s, before)
+
+
+def test_switching_between_the_mix_and_one_rule_keeps_the_pressure_history():
+    mix, _, _ = run_on_truth('play', seed=6)
+
+    def history(online):
+        return online.model.pressure_pa, [p for p, _ in online.model.turning_points]
+
+    single = replace(default_params(), memory='madelung').build_online()
+    single.resume_from(mix)
+    assert history(single) == history(mix.experts[0])
+    back = default_params().build_online()
+    back.resume_from(single)
+    identify, play = back.experts
+    assert history(identify) == history(mix.experts[0])
+    assert play.model.pressure_pa == mix.experts[1].model.pressure_pa   # play keeps no stack

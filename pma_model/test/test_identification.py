@@ -46,8 +46,11 @@ def random_path(seed=0, turns=60, step_pa=3_000.0):
 
 
 def online(**identification):
+    """The defaults with the 'identify' rule alone (the 'mix' memory runs it beside 'play':
+    test_forecaster.py)."""
     params = default_params()
-    return replace(params, identification=replace(params.identification, **identification))
+    return replace(params, memory='identify',
+                   identification=replace(params.identification, **identification))
 
 
 def rms(values):
@@ -190,7 +193,7 @@ def test_a_restart_resumes_what_was_learned():
     truth = truth_with(shares=(0.8, 0.2), correction=correction).predict(pressure)
     first = online().build_online()
     run_online(first, pressure, truth, time_s)
-    saved = default_params().with_learned(first.learned())
+    saved = online().with_learned(first.learned())
     reloaded = ModelParams.from_yaml(saved.to_yaml())
     assert reloaded == saved and reloaded.identification.learned_anything
     fresh, resumed = online().build_online(), reloaded.build_online()

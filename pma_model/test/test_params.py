@@ -104,10 +104,13 @@ def test_flat_ros_parameters_round_trip(defaults):
     assert all(isinstance(v, float) for k, v in flat.items()
                if k not in ('branch_form', 'memory', 'adaptation.enabled',
                             'identification.enabled', 'identification.branch_correction_m',
-                            'identification.branch_difference_m', 'identification.creep_gains'))
+                            'identification.branch_difference_m', 'identification.creep_gains',
+                            'identification.play_rule_correction_m',
+                            'identification.play_rule_difference_m',
+                            'identification.play_rule_creep_gains'))
     assert flat['identification.branch_correction_m'] == [0.0] * 11
     assert flat['identification.branch_difference_m'] == [0.0] * 11
-    assert len(flat) == 4 + 6 + 7 + 16
+    assert len(flat) == 4 + 6 + 11 + 16
     assert ModelParams.from_ros_parameters(flat) == defaults
     changed = ModelParams.from_ros_parameters({'deadband_pa': 5000, 'memory': 'switch'})
     assert changed.deadband_pa == 5000.0 and isinstance(changed.deadband_pa, float)

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pma_driver.sim import families, paths
-from pma_model.forecaster import RuleMix
+from pma_model.forecaster import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel, run_online
 from pma_model.params import ModelParams, default_params
 
@@ -39,7 +39,7 @@ class Config:
     @property
     def label(self) -> str:
         if self.memory == MIX:
-            return 'identify + play, mixed'
+            return 'mix (identify + play)'
         name = {'switch': 'switch (paper)'}.get(self.memory, self.memory) \
             if not self.learn else f'{self.memory} + learned'
         if self.memory == 'identify':
@@ -54,13 +54,10 @@ class Config:
 
     def build(self, form: str) -> OnlineModel | RuleMix:
         """The online model this configuration runs (a RuleMix for MIX)."""
-        if self.memory == MIX:
-            return RuleMix.of_rules(lambda rule: replace(self, memory=rule).params(form)
-                                    .build_online())
         return self.params(form).build_online()
 
 
-MIX = 'mix'   # forecaster.RuleMix over 'identify' and 'play', each learning
+MIX = MIX_MEMORY   # forecaster.RuleMix over 'identify' and 'play', each learning: the default
 PAPER = Config('switch', learn=False)
 STATIC_RULES = (Config('madelung', False), Config('play', False))
 LEARNED_RULES = (Config('switch', True), Config('madelung', True), Config('play', True))
