@@ -62,9 +62,12 @@ class Drift:
         return self.reference_length_m * (1.0 - self.gain) + self.shift_m
 
     def correct(self, model_length_m):
-        """Drifted length(s) for the model's length(s) [m]."""
+        """Drifted length(s) for the model's length(s) [m]; a float stays a float (the
+        inverse's searches call this per evaluation)."""
+        if not isinstance(model_length_m, float):
+            model_length_m = np.asarray(model_length_m, dtype=float)
         return self.reference_length_m + self.shift_m + self.gain * (
-            np.asarray(model_length_m, dtype=float) - self.reference_length_m)
+            model_length_m - self.reference_length_m)
 
     def uncorrect(self, drifted_length_m):
         """The model length(s) whose correction is drifted_length_m (for the inverse)."""

@@ -80,7 +80,6 @@ class RuleMix:
                 not np.all(np.isfinite(self.losses_m2s)):
             raise ValueError(f'losses_m2s must be {len(self.experts)} finite numbers, '
                              f'got {self.losses_m2s!r}')
-        self._time = None
         self.last_predictions: list[Prediction] = []   # each rule's, at the last step
 
     @classmethod
@@ -136,25 +135,23 @@ class RuleMix:
         saves them (IdentificationSettings.for_rule gives each rule its part back)."""
         if self.rules != MIX_RULES:
             raise ValueError(f'only the {MIX_RULES} mix is saved, not {self.rules}')
-        settings = self.experts[0].learned()
-        for rule, expert in zip(self.rules, self.experts, strict=True):
-            settings = settings.with_rule_learned(rule, expert.learned())
-        identify, play = self.losses_m2s
-        return replace(settings, play_rule_excess_loss_m2s=float(play - identify))
+        identify, play = self.experts
+        identify_loss, play_loss = self.losses_m2s
+        return replace(identify.learned().with_play_rule_learned(play.learned()),
+                       play_rule_excess_loss_m2s=float(play_loss - identify_loss))
 
     def step(self, pressure_pa: float, measured_length_m: float = math.nan,
              t_s: float | None = None) -> Prediction:
         """Every rule predicts and learns; the weights learn from the predictions."""
         weights = self.weights
+        previous_s = self.experts[0]._time     # the rules' clock, before they advance it
         predictions = [e.step(pressure_pa, measured_length_m, t_s) for e in self.experts]
         lengths = np.array([p.length_m for p in predictions])
         first = predictions[0]
         self.last_predictions = predictions
         if not math.isfinite(float(pressure_pa)):
             return first
-        dt = elapsed_s(self._time, t_s)
-        if t_s is not None:
-            self._time = float(t_s)
+        dt = elapsed_s(previous_s, t_s)
         measured = float(measured_length_m)
         if self.learning and math.isfinite(measured) and dt > 0.0:
             # Outliers are capped at the limit the rules reject them at.
@@ -234,5 +231,4 @@ class RuleMix:
             source = other.experts[0] if isinstance(other, RuleMix) else other
             for mine in self.experts:
                 mine.resume_from(source)
-        self._time = other._time
 

@@ -159,13 +159,10 @@ class IdentificationSettings:
                        **{own: getattr(self, copy)
                           for own, copy in self._PLAY_RULE_FIELDS.items()})
 
-    def with_rule_learned(self, rule: str, learned: IdentificationSettings
-                          ) -> IdentificationSettings:
-        """These settings with what the mix's OnlineModel for `rule` has learned (the
-        inverse of for_rule)."""
-        if rule != 'play':
-            return replace(self, **{name: getattr(learned, name) for name in (
-                'play_share_rising', 'play_share_falling', *self._PLAY_RULE_FIELDS)})
+    def with_play_rule_learned(self, learned: IdentificationSettings
+                               ) -> IdentificationSettings:
+        """These settings with what the mix's play rule has learned (`learned`, its own
+        OnlineModel's): the inverse of for_rule('play')."""
         return replace(self, **{copy: getattr(learned, own)
                                 for own, copy in self._PLAY_RULE_FIELDS.items()})
 
@@ -676,11 +673,8 @@ class OnlineModel:
         The forward map of `pressure_for_length`, for a caller that must search.
         """
         static = self.model.path_map(rising) if path else self.model.major(rising).length
-        if not self._drifting:
-            return lambda p_pa: float(static(float(p_pa)))
-        reference, shift, gain = (self.drift.reference_length_m, self.drift.shift_m,
-                                  self.drift.gain)    # Drift.correct, on floats
-        return lambda p_pa: reference + shift + gain * (float(static(float(p_pa))) - reference)
+        drift = self.drift
+        return lambda p_pa: drift.correct(float(static(float(p_pa))))
 
     # --- run-time parameter changes -------------------------------------------------
 

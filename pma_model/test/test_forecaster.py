@@ -169,8 +169,8 @@ def test_a_restart_resumes_the_history_and_the_weights():
 def test_bad_samples_change_nothing():
     mix, _, _ = run_on_truth('play')
     before = mix.losses_m2s.copy()
-    assert math.isnan(mix.step(math.nan, 0.28, mix._time + 0.02).length_m)
-    mix.step(mix.experts[0].model.pressure_pa, math.nan, mix._time + 0.02)
+    assert math.isnan(mix.step(math.nan, 0.28, mix.experts[0]._time + 0.02).length_m)
+    mix.step(mix.experts[0].model.pressure_pa, math.nan, mix.experts[0]._time + 0.02)
     np.testing.assert_array_equal(mix.losses_m2s, before)
 
 
@@ -217,7 +217,7 @@ def test_with_identification_off_the_weights_stay_as_saved():
 def test_a_sample_every_rule_rejects_teaches_the_weights_nothing():
     mix, _, _ = run_on_truth('play')
     before = mix.losses_m2s.copy()
-    mix.step(mix.experts[0].model.pressure_pa, 0.5, mix._time + 0.02)    # 20 cm off
+    mix.step(mix.experts[0].model.pressure_pa, 0.5, mix.experts[0]._time + 0.02)    # 20 cm off
     np.testing.assert_array_equal(mix.losses_m2s, before)
 
 
