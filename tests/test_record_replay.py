@@ -76,20 +76,31 @@ def recorded_offsets_s(bag: Path) -> list[float]:
 
 
 def replay_into(procs, tmp_path, bag, *replay_args, listen=(('/pma/state', STATE, 'seq'),),
-                timeout=30.0):
-    """Start subscribers, replay, wait for the end; return {topic: [(recv_ns, value), ...]}."""
+                matched=(), timeout=30.0):
+    """Start subscribers, replay, wait for the end; return {topic: [(recv_ns, value), ...]}.
+
+    The first listener resumes the paused player once it has matched it, and once the
+    listeners of `matched` have too (discovery under load can take over a second: a
+    best-effort reader that matches late misses the playback).
+    """
     outputs = {}
+    gate = tmp_path / 'listeners_matched'
     for index, (topic, type_name, field) in enumerate(listen):
         out = tmp_path / f'got{index}.json'
         extra = ['--best-effort'] if topic == '/clock' else []
         if index == 0:
             extra += ['--resume-service', '/player/resume']
+            if matched:
+                extra += ['--resume-gate', str(gate)]
         sub = procs.python(HELPERS / 'subscriber.py', '--topic', topic, '--type', type_name,
                            '--field', field, '--out', str(out), '--timeout', str(timeout),
                            *extra)
         sub.wait_for_line('subscriber: listening', timeout=20)
         outputs[topic] = (sub, out)
     player = procs.ros2_run('pma_bag', 'play', bag, '--start-paused', *replay_args)
+    for topic in matched:
+        outputs[topic][0].wait_for_line('subscriber: matched', timeout=20)
+    gate.touch()
     player.wait_for_line('play: done', timeout=timeout)
     assert player.popen.wait(10) == 0, player.output
     results = {}
@@ -158,7 +169,7 @@ def test_replay_topics_remap_and_clock(procs, tmp_path, recorded):
         '--clock', '50',
         listen=(('/echo/state', STATE, 'seq'), ('/pma/state', STATE, 'seq'),
                 ('/pma/model_params', 'pma_interfaces/msg/ModelParams', 'form'),
-                ('/clock', 'rosgraph_msgs/msg/Clock', 'clock')))
+                ('/clock', 'rosgraph_msgs/msg/Clock', 'clock')), matched=('/clock',))
     echoed = [v for _, v in results['/echo/state']]
     # With four listeners the player's side may match this reader just after the first
     # message (seen: seq 0 missing); completeness is test_replay_preserves_messages_and_timing's.

@@ -9,6 +9,7 @@ Exits when `count` messages arrived or after `timeout` s (or SIGINT), writing wh
 import argparse
 import importlib
 import json
+import os
 import sys
 import time
 
@@ -25,8 +26,9 @@ def field_value(msg, path):
     return msg
 
 
-def resume(node, subscription, service: str, deadline: float) -> None:
-    """Once our reader has matched the player's writer, call its Trigger service.
+def resume(node, subscription, service: str, deadline: float, gate: str | None) -> None:
+    """Once our reader has matched the player's writer (and `gate`, a file the test creates
+    when its other listeners have matched, exists), call its Trigger service.
 
     The reader matching the writer does not prove the writer has matched the reader yet
     (each side learns of the other from its own SEDP message, and a lost one is resent only
@@ -35,7 +37,8 @@ def resume(node, subscription, service: str, deadline: float) -> None:
     """
     from std_srvs.srv import Trigger
 
-    while subscription.get_publisher_count() < 1 and time.monotonic() < deadline:
+    while (subscription.get_publisher_count() < 1 or (gate and not os.path.exists(gate))) \
+            and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
     client = node.create_client(Trigger, service)
     if not client.wait_for_service(timeout_sec=max(0.0, deadline - time.monotonic())):
@@ -60,6 +63,8 @@ def main() -> int:
     parser.add_argument('--resume-service', metavar='SRV',
                         help='once a publisher matched, call this std_srvs/Trigger service '
                              '(e.g. /player/resume of a player started with --start-paused)')
+    parser.add_argument('--resume-gate', metavar='PATH',
+                        help='with --resume-service: also wait until this file exists')
     args = parser.parse_args()
     package, _, name = args.type.split('/')
     msg_type = getattr(importlib.import_module(f'{package}.msg'), name)
@@ -87,10 +92,14 @@ def main() -> int:
     print(f'subscriber: listening on {args.topic}', flush=True)
     deadline = time.monotonic() + args.timeout
     if args.resume_service:
-        resume(node, subscription, args.resume_service, deadline)
+        resume(node, subscription, args.resume_service, deadline, args.resume_gate)
+    matched = False
     try:
         while time.monotonic() < deadline and not (args.count and len(received) >= args.count):
             rclpy.spin_once(node, timeout_sec=0.05)
+            if not matched and subscription.get_publisher_count() >= 1:
+                matched = True
+                print('subscriber: matched', flush=True)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass  # SIGINT: stop here and write what arrived
     with open(args.out, 'w', encoding='utf-8') as out:
