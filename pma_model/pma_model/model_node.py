@@ -14,6 +14,7 @@ import threading
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
@@ -95,20 +96,30 @@ class ModelNode(Node):
         defaults = default_params()
         # The model's own parameter names (others, e.g. use_sim_time, are not the model's).
         self._model_parameter_names = tuple(defaults.to_ros_parameters())
+        out_of_range = []
         for name, value in defaults.to_ros_parameters().items():
             descriptor = ParameterDescriptor(description=_describe(name))
             if name in _RANGES:
                 low, high = _RANGES[name]
                 descriptor.floating_point_range = [
                     FloatingPointRange(from_value=low, to_value=high, step=0.0)]
-            self.declare_parameter(name, value, descriptor)
+            out_of_range += self._declare_or_keep_default(name, value, descriptor)
         self.declare_parameter('params_file', '', ParameterDescriptor(
             description='params file (refit output) loaded at start and reloaded when it '
                         'changes; empty = none'))
-        self.declare_parameter('params_file_check_period_s', 1.0, ParameterDescriptor(
-            description='how often the params file is checked for changes [s]',
-            floating_point_range=[FloatingPointRange(from_value=0.1, to_value=60.0, step=0.0)]))
+        out_of_range += self._declare_or_keep_default(
+            'params_file_check_period_s', 1.0, ParameterDescriptor(
+                description='how often the params file is checked for changes [s]',
+                floating_point_range=[FloatingPointRange(from_value=0.1, to_value=60.0,
+                                                         step=0.0)]))
 
+        # Why the start-up overrides were not all taken (shown in /diagnostics until a
+        # valid change is applied); None: they were.
+        self._startup_problem: str | None = None
+        self._ready = False
+        if out_of_range:
+            self._startup_problem = f'out of range, kept the defaults: {"; ".join(out_of_range)}'
+            self.get_logger().error(f'invalid parameters {self._startup_problem}')
         try:
             self._params = ModelParams.from_ros_parameters(self._model_parameter_values())
         except ParamsError as error:
@@ -117,6 +128,7 @@ class ModelNode(Node):
             # the parameters (else `ros2 param get` would show values not in use, and every
             # later change would be judged together with the bad one).
             self.get_logger().error(f'invalid model parameters, using the defaults: {error}')
+            self._startup_problem = f'invalid, running on the defaults: {error}'
             self._params = defaults
             self.set_parameters([Parameter(name, value=value) for name, value
                                  in defaults.to_ros_parameters().items()])
@@ -158,11 +170,23 @@ class ModelNode(Node):
         self.create_timer(period, self._check_params_file)
         self._check_params_file(at_start=True)
         self._publish_params()
+        self._ready = True
         self.get_logger().info(
             f'model_node ready: {self._params.branch_form} branches, {self._params.memory} '
             f'memory, adaptation {"on" if self._params.adaptation.enabled else "off"}')
 
     # --- parameters -----------------------------------------------------------------
+
+    def _declare_or_keep_default(self, name: str, value, descriptor) -> list[str]:
+        """Declare a parameter; an override outside its descriptor's range (--ros-args -p,
+        a params file) is refused with the reason and the default kept, as one that fails
+        the model's own validation is (rclpy would raise and end the node). The refusals."""
+        try:
+            self.declare_parameter(name, value, descriptor)
+            return []
+        except InvalidParameterValueException as error:
+            self.declare_parameter(name, value, descriptor, ignore_override=True)
+            return [str(error).rsplit('Reason: ', 1)[-1]]
 
     def _model_parameter_values(self, changes: dict | None = None) -> dict:
         values = {name: self.get_parameter(name).value for name in self._model_parameter_names}
@@ -208,6 +232,8 @@ class ModelNode(Node):
             model.resume_from(self._model)  # keep the muscle's history, not "at rest"
             self._params = params
             self._model = model
+            if self._ready:     # a valid change after start-up replaces what start-up refused
+                self._startup_problem = None
         self.get_logger().info(
             f'model updated: {params.branch_form} branches, {params.memory} memory, adaptation '
             f'{"on" if params.adaptation.enabled else "off"}')
@@ -387,6 +413,9 @@ class ModelNode(Node):
             status.message = f'{stats["nan_pressure"]} samples with non-finite pressure skipped'
         else:
             status.level, status.message = DiagnosticStatus.OK, 'predicting'
+        if self._startup_problem is not None:
+            status.level = DiagnosticStatus.WARN
+            status.message = f'start-up parameters {self._startup_problem}; {status.message}'
         problem = self._params_file_problem
         if problem is not None:
             status.level = DiagnosticStatus.WARN
