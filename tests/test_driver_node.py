@@ -62,6 +62,7 @@ class Probe:
     def __init__(self, spinning: SpinningNode):
         self.node = spinning.node
         self.call = spinning.call
+        self.in_executor = spinning.in_executor
         self.lock = threading.Lock()
         self.states: list[tuple[float, PmaState]] = []
         self.pressures: list[FluidPressure] = []
@@ -325,7 +326,7 @@ def test_sweep_action_gives_feedback_and_a_result(rig, probe):
     driver = sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     goal = Sweep.Goal(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1)
-    result = run_goal(probe.sweep, goal, timeout=60, feedback=feedback).result
+    result = run_goal(probe, goal, timeout=60, feedback=feedback).result
     assert result.success, result.message
     assert result.sample_count > 20 and result.bag_path == ''
     steps = {f.step_index for f in feedback}
@@ -339,7 +340,7 @@ def test_sweep_action_gives_feedback_and_a_result(rig, probe):
     for bad, words in ((dict(max_gauge_pressure_pa=600_000.0), 'above the driver ceiling'),
                        (dict(step_pa=0.01), 'is step_pa 0.01 Pa too small?')):
         fields = dict(max_gauge_pressure_pa=200_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1)
-        answer = run_goal(probe.sweep, Sweep.Goal(**{**fields, **bad}), timeout=10)
+        answer = run_goal(probe, Sweep.Goal(**{**fields, **bad}), timeout=10)
         assert answer.status == GOAL_STATUS_ABORTED, answer
         assert answer.result.message.startswith('goal refused: ') and words in \
             answer.result.message, answer.result.message
@@ -357,14 +358,18 @@ def sweep_ready(rig, probe, *rig_args, **rig_kwargs):
     return driver
 
 
-def run_goal(client: ActionClient, goal, timeout: float, feedback: list | None = None):
-    """Send a goal that must be accepted; its final (status, result)."""
-    sent = client.send_goal_async(goal, feedback_callback=None if feedback is None else (
-        lambda f: feedback.append(f.feedback)))
+def run_goal(probe, goal, timeout: float, feedback: list | None = None,
+             client: ActionClient | None = None):
+    """Send a goal that must be accepted (to pma/sweep, or `client`'s action); its final
+    (status, result)."""
+    client = client or probe.sweep
+    sent = probe.in_executor(client.send_goal_async, goal,
+                             feedback_callback=None if feedback is None else (
+                                 lambda f: feedback.append(f.feedback)))
     wait_until(sent.done, 10, 'goal answer')
     handle = sent.result()
     assert handle.accepted
-    result_future = handle.get_result_async()
+    result_future = probe.in_executor(handle.get_result_async)
     wait_until(result_future.done, timeout, 'sweep result')
     return result_future.result()
 
@@ -376,7 +381,7 @@ def test_a_streamed_sine_is_followed_and_ends_at_rest(rig, probe):
     start = probe.state_count()
     goal = Sweep.Goal(profile='sine', sine_amplitude_pa=80_000.0, sine_offset_pa=150_000.0,
                       sine_frequency_hz=0.25, cycles=1)
-    answer = run_goal(probe.sweep, goal, timeout=30, feedback=feedback)
+    answer = run_goal(probe, goal, timeout=30, feedback=feedback)
     assert answer.result.success, answer.result.message
     assert answer.result.message.startswith('sine done: ') and 'over 4 s' in \
         answer.result.message
@@ -404,7 +409,7 @@ def test_csv_points_travel_in_the_goal_and_bad_profiles_are_refused_with_the_rea
     start = probe.state_count()
     goal = Sweep.Goal(profile='csv', profile_time_s=[5.0, 6.0, 7.5],
                       profile_pressure_pa=[0.0, 120_000.0, 120_000.0], cycles=2, rest_s=1.0)
-    answer = run_goal(probe.sweep, goal, timeout=30)
+    answer = run_goal(probe, goal, timeout=30)
     assert answer.result.success, answer.result.message
     assert answer.result.message.startswith('csv done: ') and 'over 6 s' in \
         answer.result.message
@@ -423,7 +428,7 @@ def test_csv_points_travel_in_the_goal_and_bad_profiles_are_refused_with_the_rea
              'profile_time_s has 2 points and profile_pressure_pa 1'),
             (dict(max_gauge_pressure_pa=200e3, step_pa=100e3, forc_count=3),
              "forc_count is set, but profile 'staircase' does not use it")):
-        answer = run_goal(probe.sweep, Sweep.Goal(cycles=1, **bad), timeout=10)
+        answer = run_goal(probe, Sweep.Goal(cycles=1, **bad), timeout=10)
         assert answer.status == GOAL_STATUS_ABORTED, answer
         assert answer.result.message.startswith('goal refused: ') and words in \
             answer.result.message, answer.result.message
@@ -434,14 +439,14 @@ def test_sweep_cancel_vents(rig, probe):
     sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=5.0, cycles=2)
-    sent = probe.sweep.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
-        f.feedback))
+    sent = probe.in_executor(probe.sweep.send_goal_async, goal,
+                             feedback_callback=lambda f: feedback.append(f.feedback))
     wait_until(sent.done, 10, 'goal answer')
     handle = sent.result()
     wait_until(lambda: any(f.step_index >= 1 for f in feedback), 20, 'second step')
-    cancel = handle.cancel_goal_async()
+    cancel = probe.in_executor(handle.cancel_goal_async)
     wait_until(cancel.done, 10, 'cancel answer')
-    result_future = handle.get_result_async()
+    result_future = probe.in_executor(handle.get_result_async)
     wait_until(result_future.done, 10, 'result')
     assert result_future.result().status == 5                    # GoalStatus.STATUS_CANCELED
     assert 'vented' in result_future.result().result.message
@@ -451,9 +456,9 @@ def test_sweep_cancel_vents(rig, probe):
 def test_sweep_aborts_and_vents_when_the_data_stops(rig, probe):
     sweep_ready(rig, probe, '--stall-after', '5', '--stall-for', '4')
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
-    sent = probe.sweep.send_goal_async(goal)
+    sent = probe.in_executor(probe.sweep.send_goal_async, goal)
     wait_until(sent.done, 10, 'goal answer')
-    result_future = sent.result().get_result_async()
+    result_future = probe.in_executor(sent.result().get_result_async)
     wait_until(result_future.done, 30, 'sweep result')
     result = result_future.result().result
     # Seen either way, depending on where in the plan the stall hits: the link goes to
@@ -720,9 +725,10 @@ def test_a_recording_sweep_asks_the_recorder_in_its_namespace(rig, procs, probe,
         driver.wait_for_line('(protocol v1', 10)                     # the handshake
         assert sweep.wait_for_server(timeout_sec=10)
         bag = tmp_path / 'sweep_bag'
-        answer = run_goal(sweep, Sweep.Goal(
+        answer = run_goal(probe, Sweep.Goal(
             max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=0.5, cycles=1,
-            record=True, bag_path=str(bag), note='new muscle, 21 degC'), timeout=60)
+            record=True, bag_path=str(bag), note='new muscle, 21 degC'), timeout=60,
+            client=sweep)
     finally:
         sweep.destroy()
     result = answer.result
@@ -756,7 +762,7 @@ def test_a_recording_sweep_without_a_recorder_aborts_at_once_and_says_how_to_sta
                       record=True)
     feedback: list[Sweep.Feedback] = []
     sent = time.monotonic()
-    answer = run_goal(probe.sweep, goal, timeout=15, feedback=feedback)
+    answer = run_goal(probe, goal, timeout=15, feedback=feedback)
     assert time.monotonic() - sent < 5.0
     assert answer.status == GOAL_STATUS_ABORTED and not answer.result.success
     message = answer.result.message
@@ -770,7 +776,7 @@ def test_a_recording_sweep_without_a_recorder_aborts_at_once_and_says_how_to_sta
     calls = tmp_path / 'calls.jsonl'
     procs.python(RECORDER_STAND_IN, '--calls', str(calls), '--refuse',
                  'disk full (/data: 0 bytes free)').wait_for_line('recorder_stand_in: ready', 20)
-    answer = run_goal(probe.sweep, goal, timeout=15, feedback=feedback)
+    answer = run_goal(probe, goal, timeout=15, feedback=feedback)
     assert answer.status == GOAL_STATUS_ABORTED
     assert answer.result.message == ('not started: the recorder refused to start: disk full '
                                      '(/data: 0 bytes free)')

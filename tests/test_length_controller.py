@@ -53,7 +53,7 @@ class Probe:
     def send_goal(self, length_m: float, timeout_s: float = 20.0, **fields):
         assert self.move.wait_for_server(20), 'no pma/move_to_length server'
         goal = MoveToLength.Goal(length_m=length_m, timeout_s=timeout_s, **fields)
-        accepted = self._wait(self.move.send_goal_async(goal), 10)
+        accepted = self._wait(self.spinning.in_executor(self.move.send_goal_async, goal), 10)
         assert accepted.accepted
         return accepted
 
@@ -63,7 +63,7 @@ class Probe:
         return future.result()
 
     def result(self, handle, timeout: float = 40.0):
-        return self._wait(handle.get_result_async(), timeout).result
+        return self._wait(self.spinning.in_executor(handle.get_result_async), timeout).result
 
     def close(self):
         self.spinning.close()

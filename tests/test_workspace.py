@@ -128,12 +128,13 @@ def test_sweep_action_runs_with_feedback_across_processes(procs, probe):
     try:
         assert client.wait_for_server(timeout_sec=20), 'action server not discovered'
         goal = Sweep.Goal(max_gauge_pressure_pa=200e3, step_pa=50e3, hold_s=0.0, cycles=1)
-        sent = client.send_goal_async(goal, feedback_callback=lambda f: feedback.append(
-            f.feedback.gauge_setpoint_pa))
+        sent = probe.in_executor(client.send_goal_async, goal,
+                                 feedback_callback=lambda f: feedback.append(
+                                     f.feedback.gauge_setpoint_pa))
         wait_until(sent.done, 20, 'goal acceptance')
         handle = sent.result()
         assert handle.accepted
-        result_future = handle.get_result_async()
+        result_future = probe.in_executor(handle.get_result_async)
         wait_until(result_future.done, 20, 'sweep result')
         result = result_future.result().result
         assert result.success and result.sample_count == 5

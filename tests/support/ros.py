@@ -83,6 +83,33 @@ class SpinningNode:
         wait_until(future.done, timeout, f'{name} answer')
         return future.result()
 
+    def in_executor(self, function, *args, timeout: float = 10.0, **kwargs):
+        """`function(*args, **kwargs)` run on the spinning thread; what it returns.
+
+        For rclpy's ActionClient requests (send_goal_async, cancel_goal_async,
+        get_result_async): they register the request only after sending it, with no lock
+        against the executor, so an answer the spinning thread takes in between is dropped
+        ('Ignoring unexpected goal response') and the future never completes (seen in CI:
+        test_pipeline's sweep, goal never accepted). From the executor's own thread there is
+        no in between.
+        """
+        done, outcome = threading.Event(), {}
+
+        def run():
+            try:
+                outcome['value'] = function(*args, **kwargs)
+            except BaseException as error:   # re-raised in the caller's thread
+                outcome['error'] = error
+            finally:
+                done.set()
+
+        self.executor.create_task(run)
+        if not done.wait(timeout):
+            raise TimeoutError(f'the executor did not run {function} within {timeout} s')
+        if 'error' in outcome:
+            raise outcome['error']
+        return outcome['value']
+
     def close(self) -> None:
         self._clients.clear()   # destroy_node destroys them
         self._stopping.set()
