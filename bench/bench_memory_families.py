@@ -3,7 +3,8 @@
 Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid hill]
 (OMP_NUM_THREADS=1; about 10 minutes on one core for the defaults). Prints the table of
 docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of stroke) and
-checks, for every family, path and seed:
+checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
+tests/support/muscle_families.py), path and seed:
   - the default memory ('mix': forecaster.RuleMix, identify and play mixed), from the
     third reversal on: RMSE <= 0.9x and max <= 0.7x the paper's switch;
   - the mix vs the best single fixed rule (static and with the same learning): <= 1.1x RMSE;
@@ -33,6 +34,7 @@ from support.muscle_families import (
     MIXED,
     PAPER,
     PATH_KINDS,
+    SCORED_FAMILIES,
     STATIC_RULES,
     STROKE_M,
     Config,
@@ -45,13 +47,13 @@ DRIFT_DURATION_S = 300.0
 RECOVERED_WINDOW_S = (DRIFT_START_S + 120.0, DRIFT_DURATION_S)
 
 
-def table(form: str, seeds: list[int], duration_s: float) -> list[str]:
+def table(form: str, seeds: list[int], duration_s: float, families) -> list[str]:
     lines = [f'\n### {form} branches (RMSE | max error, cm (% of stroke), from the third '
              f'reversal on; mean RMSE and worst max over seeds {seeds})', '',
              '| family | rule | adaptation | ' + ' | '.join(
                  f'{kind} RMSE | {kind} max' for kind in PATH_KINDS) + ' |',
              '|---|---|---|' + '---|---|' * len(PATH_KINDS)]
-    for family in FAMILY_NAMES:
+    for family in families:
         for config in ALL_CONFIGS:
             for adapt in (False, True):
                 variant = Config(config.memory, config.learn, adapt)
@@ -68,13 +70,13 @@ def table(form: str, seeds: list[int], duration_s: float) -> list[str]:
     return lines
 
 
-def criteria(form: str, seeds: list[int], duration_s: float,
+def criteria(form: str, seeds: list[int], duration_s: float, families,
              candidate: Config = MIXED) -> tuple[list[str], bool]:
     lines = [f'\n### criteria, {form} branches ({candidate.label}, learning on)', '',
              '| scenario | RMSE / switch | max / switch | RMSE / best fixed rule (which) | '
              'adaptation on / off | RMSE % of stroke |', '|---|---|---|---|---|---|']
     passed = True
-    for family in FAMILY_NAMES:
+    for family in families:
         for kind in PATH_KINDS:
             for seed in seeds:
                 scenario = Scenario(family, kind, seed, duration_s)
@@ -97,7 +99,7 @@ def criteria(form: str, seeds: list[int], duration_s: float,
     return lines, passed
 
 
-def drift(form: str, seed: int) -> tuple[list[str], bool]:
+def drift(form: str, seed: int, families) -> tuple[list[str], bool]:
     lines = [f'\n### drift, {form} branches ({MIXED.label}; drift +1.5 mm rest length, '
              f'x1.08 stroke from {DRIFT_START_S:.0f} s, time constant 30 s; random path, '
              f'seed {seed}; RMSE % of stroke per minute)', '',
@@ -106,7 +108,7 @@ def drift(form: str, seed: int) -> tuple[list[str], bool]:
                                                                      60)) + ' | recovered |',
              '|---|---|---|' + '---|' * (int(DRIFT_DURATION_S) // 60) + '---|']
     passed = True
-    for family in FAMILY_NAMES:
+    for family in families:
         clean = Scenario(family, 'random', seed, DRIFT_DURATION_S)
         drifting = Scenario(family, 'random', seed, DRIFT_DURATION_S, DRIFT_START_S)
         floor = score(clean, Config(MIXED.memory, True, False), form, RECOVERED_WINDOW_S)
@@ -133,18 +135,23 @@ def main() -> int:
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--forms', nargs='+', default=['sigmoid', 'hill'])
     parser.add_argument('--duration', type=float, default=180.0, help='path length [s]')
+    parser.add_argument('--families', nargs='+', default=list(SCORED_FAMILIES),
+                        choices=SCORED_FAMILIES,
+                        help='default: every simulated family and the held-out bouc-wen')
     args = parser.parse_args()
     start = time.monotonic()
     print(f'# Minor loops on every muscle family (paths of {args.duration:.0f} s at 50 Hz, '
           f'stroke {STROKE_M * 100:.2f} cm)')
     verdicts = []
     for form in args.forms:
-        print('\n'.join(table(form, args.seeds, args.duration)), flush=True)
-        lines, passed = criteria(form, args.seeds, args.duration)
+        print('\n'.join(table(form, args.seeds, args.duration, args.families)), flush=True)
+        lines, passed = criteria(form, args.seeds, args.duration, args.families)
         print('\n'.join(lines), flush=True)
-        alone_lines, alone_passed = criteria(form, args.seeds, args.duration, IDENTIFY)
+        alone_lines, alone_passed = criteria(form, args.seeds, args.duration, args.families,
+                                             IDENTIFY)
         print('\n'.join(alone_lines), flush=True)
-        drift_lines, drift_passed = drift(form, args.seeds[0])
+        drifting = [family for family in args.families if family in FAMILY_NAMES]
+        drift_lines, drift_passed = drift(form, args.seeds[0], drifting)
         print('\n'.join(drift_lines), flush=True)
         verdicts.append(f'{form}: minor-loop criteria {"met" if passed else "NOT met"} '
                         f'(identify alone: {"met" if alone_passed else "NOT met"}), '

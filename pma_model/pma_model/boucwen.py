@@ -89,19 +89,30 @@ class BoucWenModel:
 
     def simulate_path(self, p_pa, z0: float = 0.0) -> np.ndarray:
         """Lengths along an arbitrary pressure path (sub-stepped like the loop), from z0."""
-        path = np.asarray(p_pa, dtype=float) / self.p_ref_pa
-        h_max = 1.0 / self.steps_per_sweep
-        z = np.array([z0], dtype=float)
-        params = self.hysteresis_vector()[None, 1:]
-        zs = np.empty(path.size)
+        p_pa = np.asarray(p_pa, dtype=float)
+        zs = np.empty(p_pa.size)
         zs[0] = z0
-        for i in range(1, path.size):
-            du = path[i] - path[i - 1]
-            steps = max(1, int(np.ceil(abs(du) / h_max - 1e-9)))
+        for i in range(1, p_pa.size):
+            zs[i] = self.advance_state(zs[i - 1], p_pa[i - 1], p_pa[i])
+        return self.length_m(p_pa, zs)
+
+    def advance_state(self, z: float, from_pa: float, to_pa: float) -> float:
+        """The state z after pressure moves from `from_pa` to `to_pa` (steps of the loop's size).
+
+        One step at a time is what a simulated muscle needs: it sees its pressure per sample.
+        """
+        du = (float(to_pa) - float(from_pa)) / self.p_ref_pa
+        steps = max(1, int(np.ceil(abs(du) * self.steps_per_sweep - 1e-9)))
+        state = np.array([z], dtype=float)
+        if du != 0.0:
+            params = self.hysteresis_vector()[None, 1:]
             for _ in range(steps):
-                z = _step(z, du / steps, params)
-            zs[i] = z[0]
-        return self.backbone.length(path * self.p_ref_pa) + self.k_h_m * zs
+                state = _step(state, du / steps, params)
+        return float(state[0])
+
+    def length_m(self, p_pa, z):
+        """Backbone plus the hysteresis term."""
+        return self.backbone.length(p_pa) + self.k_h_m * np.asarray(z)
 
     def params_dict(self) -> dict[str, float]:
         values = {f'backbone_{k}': float(v) for k, v in self.backbone.to_dict().items()}
