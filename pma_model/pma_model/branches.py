@@ -194,8 +194,12 @@ class SigmoidBranch(Branch):
         _require(_finite_positive(self.c), 'c', self.c, 'finite and > 0')
 
     def length(self, p_pa):
-        p = np.maximum(np.asarray(p_pa, dtype=float), 0.0)
         # (1 + exp(-bP))**-c written as exp(-c*log(1 + exp(-bP))) so no power overflows.
+        if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
+            saturation = math.exp(-self.c * math.log1p(math.exp(-self.b_per_pa
+                                                                * max(p_pa, 0.0))))
+            return self.l0_m - self.a * self.l0_m * saturation
+        p = np.maximum(np.asarray(p_pa, dtype=float), 0.0)
         saturation = np.exp(-self.c * np.logaddexp(0.0, -self.b_per_pa * p))
         result = self.l0_m - self.a * self.l0_m * saturation
         return float(result) if result.ndim == 0 else result
@@ -244,9 +248,19 @@ class HillBranch(Branch):
         _require(_finite_positive(self.n), 'n', self.n, 'finite and > 0')
 
     def length(self, p_pa):
+        if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
+            try:
+                powered = (max(p_pa, 0.0) / self.k_pa) ** self.n
+            except OverflowError:     # numpy's inf, below
+                powered = math.inf
+            fraction = 1.0 if powered == math.inf else powered / (1.0 + powered)
+            return self.l0_m - self.dl_m * fraction
         ratio = np.maximum(np.asarray(p_pa, dtype=float), 0.0) / self.k_pa
-        powered = np.power(ratio, self.n)
-        result = self.l0_m - self.dl_m * powered / (1.0 + powered)
+        with np.errstate(over='ignore'):
+            powered = np.power(ratio, self.n)
+        with np.errstate(invalid='ignore'):   # inf / inf: saturated, set below
+            fraction = np.where(np.isposinf(powered), 1.0, powered / (1.0 + powered))
+        result = self.l0_m - self.dl_m * fraction
         return float(result) if result.ndim == 0 else result
 
     def inverse_unchecked(self, length_m):

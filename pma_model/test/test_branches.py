@@ -65,6 +65,22 @@ def test_length_is_vectorised_and_monotone(name):
 
 @pytest.mark.parametrize('name', sorted(ALL_BRANCHES))
 @settings(max_examples=150, deadline=None)
+@given(p_pa=st.floats(allow_nan=True, allow_infinity=True))
+def test_one_sample_and_an_array_give_the_same_length(name, p_pa):
+    # A float takes math's path (online steps, the inverse's searches), an array numpy's.
+    branch = ALL_BRANCHES[name]
+    with np.errstate(invalid='ignore'):
+        from_array = branch.length(np.array([p_pa]))[0]
+    one = branch.length(p_pa)
+    assert isinstance(one, float)
+    if math.isnan(from_array):
+        assert math.isnan(one)
+    else:
+        assert one == pytest.approx(from_array, rel=1e-14, abs=1e-15)
+
+
+@pytest.mark.parametrize('name', sorted(ALL_BRANCHES))
+@settings(max_examples=150, deadline=None)
 @given(p_kpa=st.floats(min_value=20.0, max_value=480.0))
 def test_inverse_of_forward_within_one_pascal(name, p_kpa):
     branch = ALL_BRANCHES[name]
@@ -135,10 +151,12 @@ def test_ends_of_the_range_invert_exactly():
 
 def test_extreme_pressures_stay_finite():
     for branch in ALL_BRANCHES.values():
-        lengths = branch.length(np.array([-1e9, -1.0, 0.0, 1e7, 1e12]))
+        lengths = branch.length(np.array([-1e9, -1.0, 0.0, 1e7, 1e12, 1e300, np.inf]))
         assert np.all(np.isfinite(lengths))
         assert lengths[0] == lengths[1] == lengths[2]  # no data below ambient: held at rest
         assert lengths[-1] == pytest.approx(branch.saturation_length_m())
+        assert lengths[-3] == pytest.approx(branch.saturation_length_m())
+        assert branch.length(1e300) == branch.length(math.inf) == lengths[-1]
 
 
 def test_parameter_vector_interface_round_trips():
