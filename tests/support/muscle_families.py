@@ -87,6 +87,12 @@ class Scenario:
             else ''
         return f'{self.family}/{self.kind}/seed {self.seed}{drift}'
 
+    @property
+    def drift(self) -> families.DriftSpec | None:
+        """The default drift (DriftSpec), from drift_start_s on."""
+        return None if self.drift_start_s is None else families.DriftSpec(
+            start_s=self.drift_start_s)
+
 
 BOUC_WEN = 'bouc-wen'
 SCORED_FAMILIES = (*families.FAMILY_NAMES, BOUC_WEN)   # bouc-wen has no drift option
@@ -138,9 +144,7 @@ def simulate(scenario: Scenario) -> paths.Run:
     turns = (paths.nested_turns if scenario.kind == 'nested' else paths.random_turns)(
         scenario.duration_s, seed=scenario.seed)
     path = paths.ramp_path(turns, seed=scenario.seed)
-    drift = None if scenario.drift_start_s is None else families.DriftSpec(
-        start_s=scenario.drift_start_s)
-    return paths.simulate(muscle_for(scenario.family, drift), path,
+    return paths.simulate(muscle_for(scenario.family, scenario.drift), path,
                           seed=scenario.seed)
 
 
@@ -170,7 +174,10 @@ def score(scenario: Scenario, config: Config, form: str = 'sigmoid',
           window_s: tuple[float, float] | None = None) -> Score:
     """Error against the true length: from the third reversal on, or within `window_s`."""
     run = simulate(scenario)
-    error = predict(scenario, config, form) - run.length_m
+    return _score(predict(scenario, config, form) - run.length_m, run, window_s)
+
+
+def _score(error: np.ndarray, run: paths.Run, window_s: tuple[float, float] | None) -> Score:
     if window_s is None:
         start = run.reversal_times_s[SCORED_FROM_REVERSAL - 1]
         keep = run.time_s >= start
@@ -178,6 +185,22 @@ def score(scenario: Scenario, config: Config, form: str = 'sigmoid',
         keep = (run.time_s >= window_s[0]) & (run.time_s < window_s[1])
     error = error[keep]
     return Score(float(np.sqrt(np.mean(error ** 2))), float(np.max(np.abs(error))))
+
+
+def perfectly_corrected(scenario: Scenario, config: Config, form: str = 'sigmoid',
+                        window_s: tuple[float, float] | None = None) -> Score:
+    """What a perfect drift correction would leave on a drifting scenario: the drift-free
+    run's predictions through the muscle's true drift, against the drifting truth.
+
+    The noise floor for a drifting muscle: its stroke has grown (x1.08 by default), so the
+    same shape error is that much larger in metres (1.08x the drift-free error).
+    """
+    clean, drift = replace(scenario, drift_start_s=None), scenario.drift
+    rest = muscle_for(scenario.family).rest_length_m
+    run = simulate(clean)
+    corrected = np.array([drift.drifted(length, rest, t) for length, t in
+                          zip(predict(clean, config, form), run.time_s, strict=True)])
+    return _score(corrected - simulate(scenario).length_m, run, window_s)
 
 
 def largest_step_m(scenario: Scenario, config: Config, form: str = 'sigmoid') -> float:

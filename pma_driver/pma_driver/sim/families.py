@@ -312,6 +312,12 @@ class DriftSpec:
             return 0.0
         return -math.expm1(-(t_s - self.start_s) / self.time_constant_s)
 
+    def drifted(self, length_m: float, rest_length_m: float, t_s: float) -> float:
+        """What a muscle of length `length_m` without drift measures at t_s with it."""
+        done = self.progress(float(t_s))
+        gain = 1.0 + done * (self.gain - 1.0)
+        return rest_length_m + done * self.shift_m + gain * (length_m - rest_length_m)
+
 
 class DriftingMuscle(_Wrapped):
     """`inner` with its rest length shifted and its stroke scaled as DriftSpec says."""
@@ -322,10 +328,7 @@ class DriftingMuscle(_Wrapped):
 
     def update(self, pressure_pa: float, t_s: float = 0.0) -> float:
         inner = self.inner.update(pressure_pa, t_s)
-        rest = self.inner.rest_length_m
-        done = self.drift.progress(float(t_s))
-        gain = 1.0 + done * (self.drift.gain - 1.0)
-        self.length_m = rest + done * self.drift.shift_m + gain * (inner - rest)
+        self.length_m = self.drift.drifted(inner, self.inner.rest_length_m, t_s)
         return self.length_m
 
 
