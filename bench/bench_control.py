@@ -3,8 +3,9 @@
     . tools/env.sh && python bench/bench_control.py [--seconds 20] [--families NAME ...]
 
 * tracking (ROS-free, simulated time, the simulated device's own sensors and regulator;
-  the true length is known only to the evaluation): feedforward only ('ff'), feedback only
-  ('fb'), feedforward + feedback ('ff_fb') on
+  the true length is known only to the evaluation), on every simulated muscle family and
+  the held-out Bouc-Wen muscle: feedforward only ('ff'), feedback only ('fb'),
+  feedforward + feedback ('ff_fb') on
   - steps 25.5 -> 28.5 -> 26.5 cm: settle time to +/-2 mm of the truth, overshoot, steady
     error (mean of the last 2 s of each step);
   - sines 25 <-> 29.5 cm at 0.05, 0.1 and 0.2 Hz: RMSE and max error against the truth in %
@@ -36,8 +37,10 @@ from benchlib import check, isolate_ros_graph, load_row, print_table, read_line,
 from pma_control.controller import ControllerSettings, LengthController
 from pma_driver.sim.closed_loop import run_closed_loop
 from pma_driver.sim.device import DeviceConfig, Rig
-from pma_driver.sim.families import FAMILY_NAMES, muscle_family
 from pma_model.params import default_params
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
+from support.muscle_families import SCORED_FAMILIES, muscle_for
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTROLLER = ROOT / 'ros2_ws' / 'install' / 'pma_control' / 'lib' / 'pma_control' / \
@@ -59,9 +62,10 @@ RESOLUTION_M = 0.003
 # --- tracking on the simulated muscles -----------------------------------------------------
 
 def muscles() -> dict[str, object]:
-    """name -> a factory of the simulated rig; every muscle family the simulation offers."""
-    return {name: (lambda config, name=name: Rig(config, muscle_family(name)))
-            for name in FAMILY_NAMES}
+    """name -> a factory of the simulated rig: every muscle family the simulation offers,
+    and the held-out Bouc-Wen muscle of tests/support/muscle_families.py."""
+    return {name: (lambda config, name=name: Rig(config, muscle_for(name)))
+            for name in SCORED_FAMILIES}
 
 
 def run(mode: str, make_rig, profile, duration_s: float, *, rate_hz: int = 20,
@@ -280,7 +284,8 @@ def latency_rows(seconds: float) -> tuple[list[tuple[str, str, str]], bool]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--seconds', type=float, default=20.0, help='latency window')
-    parser.add_argument('--families', nargs='+', help='only these simulated muscles')
+    parser.add_argument('--families', nargs='+', choices=SCORED_FAMILIES,
+                        help='only these simulated muscles')
     parser.add_argument('--publish', type=float, help=argparse.SUPPRESS)
     parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
