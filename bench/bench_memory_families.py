@@ -1,9 +1,9 @@
 """The model on every simulated muscle family: minor-loop errors and the issue's criteria.
 
 Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid hill]
-(OMP_NUM_THREADS=1; about 10 minutes on one core for the defaults). Prints the table of
-docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of stroke) and
-checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
+(OMP_NUM_THREADS=1; about 11 minutes a branch form on one core, five muscles). Prints the
+table of docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of
+stroke) and checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
 tests/support/muscle_families.py), path and seed:
   - the default memory ('mix': forecaster.RuleMix, identify and play mixed), from the
     third reversal on: RMSE <= 0.9x and max <= 0.7x the paper's switch;
