@@ -195,6 +195,44 @@ def _model_diagnostics(probe):
     return latest, sub
 
 
+def test_the_first_state_clears_the_no_data_warning_at_once(procs, probe):
+    # `pma status` read the warning published just before the first sample and showed it
+    # beside that sample's prediction (CI, test_cli). The OK must not wait for the next tick
+    # of the 1 Hz diagnostics timer.
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    from pma_interfaces.msg import PmaState
+
+    received, diag_sub = probe.collect(DiagnosticArray, '/diagnostics')
+
+    def model_statuses():
+        return [status for array in list(received) for status in array.status
+                if status.name.startswith('/model_node:')]
+
+    publisher = probe.node.create_publisher(PmaState, 'pma/state', 10)
+    node = procs.ros2_run('pma_model', 'model_node')
+    try:
+        node.wait_for_line('model_node ready')
+        wait_until(lambda: publisher.get_subscription_count() >= 1, 20, 'model_node subscribed')
+        wait_until(model_statuses, 20, 'model_node diagnostics')
+        # Right after a tick, so the next one is about a second away.
+        ticks = len(model_statuses())
+        wait_until(lambda: len(model_statuses()) > ticks, 5, 'a fresh diagnostics tick')
+        assert model_statuses()[-1].message == 'no pma/state received yet'
+        state = PmaState()
+        state.header.stamp = probe.node.get_clock().now().to_msg()
+        state.gauge_pressure_pa, state.length_m = 100_000.0, 0.29
+        publisher.publish(state)
+        wait_until(lambda: model_statuses()[-1].level == DiagnosticStatus.OK, 0.5,
+                   'OK within 0.5 s of the first state')
+        status = model_statuses()[-1]
+        assert status.message == 'predicting'
+        assert {kv.key: kv.value for kv in status.values}['samples'] == '1'
+    finally:
+        probe.node.destroy_publisher(publisher)
+        probe.node.destroy_subscription(diag_sub)
+
+
 @pytest.mark.timeout(120)
 def test_a_bad_params_file_at_start_leaves_the_node_running_on_the_defaults(procs, probe,
                                                                              tmp_path):

@@ -326,6 +326,7 @@ class ModelNode(Node):
         measured = state.length_m
         with self._lock:
             self._stats['samples'] += 1
+            first = self._stats['samples'] == 1
             self._state_sequence.add(state.seq)
             if not math.isfinite(pressure):
                 # Still one prediction per sample (NaN), so the two streams line up.
@@ -358,6 +359,10 @@ class ModelNode(Node):
         msg.branch = branch
         msg.adaptation_offset_m = offset
         msg.adaptation_gain = gain
+        if first:
+            # 'no pma/state received yet' ends now: say so at once, before the prediction,
+            # not up to a second later (a status read then would show the stale warning).
+            self._publish_diagnostics()
         self._prediction_pub.publish(msg)
 
     # --- service --------------------------------------------------------------------
