@@ -36,7 +36,6 @@ import numpy as np
 from scipy.optimize import brentq
 
 from pma_model.adaptation import Drift
-from pma_model.branches import Branch
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING, BRANCH_NAMES
 from pma_model.identification import IdentificationSettings, OnlineModel, Prediction, elapsed_s
 from pma_model.memory import InverseResult
@@ -49,6 +48,12 @@ PRESSURE_TOLERANCE_PA = 1e-3
 # Rules whose weight is below this move the mixed length by less than 1e-10 m (they differ by
 # centimetres at most), less than the pressure tolerance does on the steepest branch.
 NEGLIGIBLE_WEIGHT = 1e-9
+
+
+def _first_rule(name: str) -> property:
+    """A RuleMix attribute that is its first rule's (OnlineModel's of that name)."""
+    return property(lambda mix: getattr(mix.experts[0], name),
+                    doc=f"The first rule's `{name}`.")
 
 
 @dataclass
@@ -97,29 +102,18 @@ class RuleMix:
     def rules(self) -> tuple[str, ...]:
         return tuple(expert.memory for expert in self.experts)
 
-    @property
-    def max_gauge_pressure_pa(self) -> float:
-        return self.experts[0].max_gauge_pressure_pa
+    # What stands for the mix where one value is needed: its first rule's.
+    max_gauge_pressure_pa = _first_rule('max_gauge_pressure_pa')
+    branch = _first_rule('branch')
+    increasing = _first_rule('increasing')
+    decreasing = _first_rule('decreasing')
+    samples_learned = _first_rule('samples_learned')
+    samples_rejected = _first_rule('samples_rejected')
 
-    @property
-    def branch(self) -> int:
-        return self.experts[0].branch
-
-    @property
-    def increasing(self) -> Branch:
-        return self.experts[0].increasing
-
-    @property
-    def decreasing(self) -> Branch:
-        return self.experts[0].decreasing
-
-    @property
-    def samples_learned(self) -> int:
-        return self.experts[0].samples_learned
-
-    @property
-    def samples_rejected(self) -> int:
-        return self.experts[0].samples_rejected
+    def weights_by_rule(self) -> dict[str, float]:
+        """{rule: weight}, as published and reported."""
+        return {rule: float(weight)
+                for rule, weight in zip(self.rules, self.weights, strict=True)}
 
     @property
     def drift(self) -> Drift:

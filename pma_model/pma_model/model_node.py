@@ -464,9 +464,7 @@ def _millimetres(values) -> str:
 
 def _mix_weights(model) -> dict[str, float]:
     """{rule: weight} of the 'mix' memory; empty for a single rule."""
-    if not isinstance(model, RuleMix):
-        return {}
-    return {rule: float(weight) for rule, weight in zip(model.rules, model.weights, strict=True)}
+    return model.weights_by_rule() if isinstance(model, RuleMix) else {}
 
 
 def main(args=None) -> int:

@@ -354,7 +354,7 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
             online[MIX_MEMORY].append(mix.step(*sample).length_m)
             online['identify'].append(mix.last_predictions[0].length_m)
         identified[name] = mix.learned().learned_values()
-        mix_weights[name] = dict(zip(mix.rules, (float(w) for w in mix.weights), strict=True))
+        mix_weights[name] = mix.weights_by_rule()
         scores = {}
         for memory in MEMORIES:
             if memory in online:
