@@ -19,8 +19,9 @@ from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted
 from pma_driver.sweep import FORC_FAMILIES, PROFILES
 
 DEFAULT_TIMEOUT_S = 10.0
-# `pma status` listens at most this long for every node's diagnostics (usually ~2.2 s).
-STATUS_LISTEN_S = 5.0
+# `pma status` listens at most this long for every node's diagnostics (usually ~4 s:
+# observe.MIN_LISTEN_S).
+STATUS_LISTEN_S = 8.0
 
 
 def _argument(parse, name: str):

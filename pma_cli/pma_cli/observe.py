@@ -34,6 +34,13 @@ DIAGNOSTICS_PERIOD_S = 1.0      # every node of the project publishes at 1 Hz
 # fresh process discovers the others one by one; a busy machine answers late (CI once saw
 # model_node appear after the graph had been still for 1.2 s), so two diagnostics periods.
 GRAPH_SETTLED_S = 2 * DIAGNOSTICS_PERIOD_S + 0.2
+# A fresh process often learns of a running node only at that node's next periodic
+# participant announcement (Fast DDS: every 3 s by default). Measured from a new process
+# beside a running rig: nodes appeared 0.1-3.1 s after it started, and the graph could stand
+# still for over 3 s before the last one came; so listen at least that period and one
+# diagnostics period more, from the start.
+PARTICIPANT_ANNOUNCEMENT_S = 3.0
+MIN_LISTEN_S = PARTICIPANT_ANNOUNCEMENT_S + DIAGNOSTICS_PERIOD_S
 
 
 def level_name(level) -> str:
@@ -152,6 +159,7 @@ def control_line(status: NodeStatus | None, control: ControlState | None) -> str
 
 def status(session: Session, wait_s: float, listen_s: float) -> int:
     """Print the rig's state; OK when the driver streams without an error."""
+    started = time.monotonic()
     diagnostics = Diagnostics(session)
     state = session.latest(PmaState, 'pma/state')
     prediction = session.latest(PmaPrediction, 'pma/prediction')
@@ -174,12 +182,13 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
     graph = {'nodes': _nodes_in(session), 'since': listening_since}
 
     def heard_everyone() -> bool:
-        # Diagnostics heard for a full period from every node seen, and a graph unchanged
-        # for GRAPH_SETTLED_S.
+        # Diagnostics heard from every node seen, a graph unchanged for GRAPH_SETTLED_S, and
+        # MIN_LISTEN_S since the start, for the nodes that announce themselves late.
         now, nodes = time.monotonic(), _nodes_in(session)
         if nodes != graph['nodes']:
             graph.update(nodes=nodes, since=now)
-        if min(now - listening_since, now - graph['since']) < GRAPH_SETTLED_S:
+        if min(now - listening_since, now - graph['since']) < GRAPH_SETTLED_S \
+                or now - started < MIN_LISTEN_S:
             return False
         if diagnostics.get('driver_node') is None or state.message is None:
             return False
