@@ -195,6 +195,13 @@ def _knot_position(p_pa: float) -> tuple[int, bool]:
 _KNOT_STEP_PA = CORRECTION_KNOTS_PA[1] - CORRECTION_KNOTS_PA[0]
 
 
+@functools.lru_cache(maxsize=64)
+def _lengths_at_knots(branch: Branch) -> tuple[float, ...]:
+    """The branch's lengths at the knots: every commit makes new corrected branches over the
+    same two base branches, so this is computed once per base, not once per commit."""
+    return tuple(float(v) for v in branch.length(np.array(CORRECTION_KNOTS_PA)))
+
+
 @dataclass(frozen=True)
 class CorrectedBranch(Branch):
     """`base` plus a correction given at CORRECTION_KNOTS_PA, flat beyond them.
@@ -216,7 +223,7 @@ class CorrectedBranch(Branch):
 
     @functools.cached_property
     def _base_at_knots(self) -> tuple[float, ...]:
-        return tuple(float(v) for v in self.base.length(np.array(CORRECTION_KNOTS_PA)))
+        return _lengths_at_knots(self.base)
 
     def correction_at(self, p_pa: float, base_length_m: float) -> float:
         """delta at one pressure, given the base length there."""
@@ -288,10 +295,11 @@ def correction_caps(branch: Branch) -> np.ndarray:
 def monotone_correction(offsets, caps: np.ndarray) -> tuple[float, ...]:
     """The offsets, bounded, each knot lowered only as needed (from 0 Pa upward) so that
     the corrected branch stays non-increasing."""
-    values = np.clip(np.array(offsets, dtype=float), -MAX_CORRECTION_M, MAX_CORRECTION_M)
-    for k in range(1, values.size):
-        values[k] = min(values[k], values[k - 1] + caps[k - 1])
-    return tuple(float(v) for v in values)
+    values = np.clip(np.array(offsets, dtype=float), -MAX_CORRECTION_M, MAX_CORRECTION_M).tolist()
+    rises = np.asarray(caps, dtype=float).tolist()   # plain floats: it runs on every sample
+    for k in range(1, len(values)):
+        values[k] = min(values[k], values[k - 1] + rises[k - 1])
+    return tuple(values)
 
 
 def correction_weights(p_pa: float, branch: Branch) -> np.ndarray:
@@ -414,6 +422,7 @@ class OnlineModel:
         walk = np.concatenate([np.full(size + knots, learn * _WALK_PER_S['correction'] ** 2),
                                np.full(len(CREEP_TIME_CONSTANTS_S),
                                        learn * _WALK_PER_S['creep'] ** 2), [0.0, 0.0]])
+        self._diagonal = np.diag_indices(prior.size)
         return _Filter(mean, np.diag(prior), walk)
 
     def _drift_directions(self) -> np.ndarray:
@@ -446,7 +455,7 @@ class OnlineModel:
 
     @property
     def drift(self) -> Drift:
-        *_, shift, gain_excess = self._parts()
+        shift, gain_excess = self._filter.mean[-2:]
         return Drift(self.reference_length_m, float(shift), 1.0 + float(gain_excess))
 
     @property
@@ -515,7 +524,7 @@ class OnlineModel:
         spread = abs(play - madelung)
         confidence = 1.0 / (1.0 + (spread / SPREAD_SCALE_M) ** 2)
         dt = self._advance_lags(static, t_s)
-        creep_gains = self._parts()[2]
+        creep_gains = self._filter.mean[-2 - len(CREEP_TIME_CONSTANTS_S):-2]
         creep = self._lags - static
         undrifted = static + float(creep_gains @ creep)
         predicted = float(drift.correct(undrifted))
@@ -573,7 +582,7 @@ class OnlineModel:
             walk[-2] = noise / samples ** 2
             walk[-1] = walk[-2] / GAIN_WALK_LENGTH_M ** 2
         covariance = state.covariance
-        covariance[np.diag_indices_from(covariance)] += walk
+        covariance[self._diagonal] += walk
         spread = covariance @ regressor
         innovation = noise / max(confidence, SPREAD_FLOOR) + float(regressor @ spread)
         kalman_gain = spread / innovation
