@@ -190,6 +190,8 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
         if min(now - listening_since, now - graph['since']) < GRAPH_SETTLED_S \
                 or now - started < MIN_LISTEN_S:
             return False
+        if 'driver_node' not in nodes:
+            return True      # settled without a driver: waiting longer would not bring one
         if diagnostics.get('driver_node') is None or state.message is None:
             return False
         return set(nodes) & {'model_node', 'length_controller'} <= set(diagnostics.by_node)
