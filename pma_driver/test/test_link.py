@@ -118,11 +118,13 @@ class PtyDevice:
         return sum(1 for c in self.commands if c.command == name)
 
 
-def wait_until(predicate, timeout: float, what: str) -> float:
+def wait_until(predicate, timeout: float, what) -> float:
+    """Seconds until predicate() held; `what` (text, or a callable giving it) names it."""
     start = time.monotonic()
     while not predicate():
         if time.monotonic() - start > timeout:
-            raise AssertionError(f'timed out after {timeout} s waiting for {what}')
+            text = what() if callable(what) else what
+            raise AssertionError(f'timed out after {timeout} s waiting for {text}')
         time.sleep(0.01)
     return time.monotonic() - start
 
@@ -243,8 +245,13 @@ def test_a_port_that_vanishes_while_it_is_opened_does_not_end_the_link(tmp_path,
     assert link._thread.is_alive(), 'the link thread died while the port came and went'
     device = PtyDevice(link_path)
     try:
-        wait_until(lambda: len(seen.samples) >= 3, 5.0, 'samples from the device that stayed')
-        assert link.state is LinkState.STREAMING
+        # Streaming with samples, checked together: CI once saw 3 samples and then the
+        # state 'disconnected' at the next look (not reproduced in 85 runs under load; a
+        # late read error from a port of the churn is the likely cause). The link must
+        # recover from that too, which is the claim; the events say what happened.
+        wait_until(lambda: link.state is LinkState.STREAMING and len(seen.samples) >= 3, 5.0,
+                   lambda: f'streaming from the device that stayed ({link.state}, '
+                           f'{link.stats()}, {seen.events[-5:]})')
     finally:
         device.unplug()
 
