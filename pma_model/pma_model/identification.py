@@ -289,7 +289,7 @@ class CorrectedBranch(Branch):
 
 def correction_caps(branch: Branch) -> np.ndarray:
     """Per knot interval: how much the correction may rise and keep the branch monotone."""
-    return np.maximum(-np.diff(branch.length(np.array(CORRECTION_KNOTS_PA))), 0.0)
+    return np.maximum(-np.diff(_lengths_at_knots(branch)), 0.0)
 
 
 def monotone_correction(offsets, caps: np.ndarray) -> tuple[float, ...]:
@@ -423,6 +423,7 @@ class OnlineModel:
                                np.full(len(CREEP_TIME_CONSTANTS_S),
                                        learn * _WALK_PER_S['creep'] ** 2), [0.0, 0.0]])
         self._diagonal = np.diag_indices(prior.size)
+        self._creep_gains = slice(size + knots, -2)     # where the creep gains sit in the state
         return _Filter(mean, np.diag(prior), walk)
 
     def _drift_directions(self) -> np.ndarray:
@@ -495,7 +496,7 @@ class OnlineModel:
         filter's state."""
         size, knots = self._basis.shape[1], len(CORRECTION_KNOTS_PA)
         mean = self._filter.mean
-        return (self._basis @ mean[:size], mean[size:size + knots], mean[size + knots:-2],
+        return (self._basis @ mean[:size], mean[size:size + knots], mean[self._creep_gains],
                 mean[-2], mean[-1])
 
     def _raw_corrections(self) -> tuple[np.ndarray, np.ndarray]:
@@ -524,7 +525,7 @@ class OnlineModel:
         spread = abs(play - madelung)
         confidence = 1.0 / (1.0 + (spread / SPREAD_SCALE_M) ** 2)
         dt = self._advance_lags(static, t_s)
-        creep_gains = self._filter.mean[-2 - len(CREEP_TIME_CONSTANTS_S):-2]
+        creep_gains = self._filter.mean[self._creep_gains]
         creep = self._lags - static
         undrifted = static + float(creep_gains @ creep)
         predicted = float(drift.correct(undrifted))
@@ -594,7 +595,8 @@ class OnlineModel:
         mean = state.mean
         mean[size:size + knots] = np.clip(mean[size:size + knots], -MAX_DIFFERENCE_M,
                                           MAX_DIFFERENCE_M)
-        mean[size + knots:-2] = np.clip(mean[size + knots:-2], -MAX_CREEP_GAIN, MAX_CREEP_GAIN)
+        mean[self._creep_gains] = np.clip(mean[self._creep_gains], -MAX_CREEP_GAIN,
+                                          MAX_CREEP_GAIN)
         limits = self.adaptation
         mean[-2] = min(max(mean[-2], -limits.max_shift_m), limits.max_shift_m)
         mean[-1] = min(max(mean[-1], limits.min_gain - 1.0), limits.max_gain - 1.0)
