@@ -273,7 +273,7 @@ def fit_bouc_wen(p_pa, length_m, rising, backbone: str = 'linear', *,
         best = candidates[np.argsort(sse)[:POLISHED_STARTS]]
     names = (*_backbone_names(backbone), *HYSTERESIS_NAMES)
     fit = multistart_least_squares(residuals, names, (lower, upper), best, jac=jacobian,
-                                   max_nfev=200)
+                                   max_nfev=400)
     return BoucWenFit(model_of(fit.x), fit)
 
 
