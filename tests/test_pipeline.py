@@ -271,24 +271,19 @@ def replayed(swept, module_procs, probe):
     wait_until(lambda: probe.node.count_publishers('/replayed/pma/state') >= 1, 20,
                'the player on /replayed/pma/state')
     from std_srvs.srv import Trigger
-    step = probe.node.create_client(Trigger, '/player/play_next')
-    resume = probe.node.create_client(Trigger, '/player/resume')
-    assert step.wait_for_service(timeout_sec=20) and resume.wait_for_service(timeout_sec=20)
     # The graph shows the player before its writer has matched model_node's best-effort
     # reader, and nothing outside the two processes can see that match: step the bag one
     # message at a time until a prediction comes back, then play on. Only those first
     # messages (the bag starts with a 0 kPa hold) can be lost; the test checks that.
     for _ in range(40):
-        future = step.call_async(Trigger.Request())
-        wait_until(future.done, 10, 'play_next')
-        assert future.result().success, future.result().message
+        stepped = probe.call(Trigger, '/player/play_next', timeout=10)
+        assert stepped.success, stepped.message
         try:
             wait_until(lambda: stream.count('predictions') > 0, 0.5, 'a first prediction')
             break
         except TimeoutError:
             continue
-    future = resume.call_async(Trigger.Request())
-    wait_until(future.done, 10, 'resume')
+    probe.call(Trigger, '/player/resume', timeout=10)
     player.wait_for_line('play: done', timeout=180)
     assert player.popen.wait(10) == 0, player.output
     with BagReader(swept['bag']) as reader:
@@ -380,13 +375,10 @@ def test_refit_of_the_bag_writes_params_that_model_node_loads(swept, replayed, m
     written = yaml.safe_load((out / 'params.yaml').read_text())['/**']['ros__parameters']
     stream = replayed['stream']
     before = stream.count('params')
-    # Clients stay until the probe closes: destroying one under the spinning executor races.
-    client = probe.node.create_client(SetParameters, '/replayed/model_node/set_parameters')
-    assert client.wait_for_service(timeout_sec=20)
-    future = client.call_async(SetParameters.Request(parameters=[
-        Parameter('params_file', value=str(out / 'params.yaml')).to_parameter_msg()]))
-    wait_until(future.done, 10, 'set_parameters answer')
-    assert all(r.successful for r in future.result().results), future.result()
+    answer = probe.call(SetParameters, '/replayed/model_node/set_parameters',
+                        SetParameters.Request(parameters=[Parameter(
+                            'params_file', value=str(out / 'params.yaml')).to_parameter_msg()]))
+    assert all(r.successful for r in answer.results), answer
     wait_until(lambda: stream.count('params') > before, 15, 'model_node reloading the refit')
     replayed['model'].wait_for_line('loaded model parameters from', 10)
     with stream.lock:

@@ -27,12 +27,16 @@ DEFAULT_STARTS = 12
 
 
 class FitError(RuntimeError):
-    """No start converged to a finite solution."""
+    """No start ended at a finite solution."""
 
 
 @dataclass
 class LeastSquaresFit:
-    """A converged fit: the optimum, its residuals and the local uncertainty around it."""
+    """The best start's optimum, its residuals and the local uncertainty around it.
+
+    `converged_starts` counts the starts that met the tolerances; with none, `warnings`
+    says the optimum is where the evaluation budget ran out.
+    """
 
     names: tuple[str, ...]
     x: np.ndarray
@@ -103,11 +107,17 @@ def multistart_least_squares(residuals: Callable[[np.ndarray], np.ndarray],
                              names: Sequence[str], bounds, starts: np.ndarray, *,
                              jac: Callable | str = '2-point',
                              max_nfev: int | None = None) -> LeastSquaresFit:
-    """Run least_squares (trf, x_scale='jac') from each start and keep the best optimum."""
+    """Run least_squares (trf, x_scale='jac') from each start and keep the best optimum.
+
+    A start that meets the tolerances beats one stopped by `max_nfev`. When every start
+    stops at the budget (a flat valley of a poorly identified model: the optimizer still
+    creeps along it at a cost that no longer changes what the fit predicts), the best of
+    them is returned with a warning rather than no fit at all.
+    """
     lower, upper = (np.asarray(b, float) for b in bounds)
-    best = None
-    converged = 0
-    for start in np.atleast_2d(starts):
+    starts = np.atleast_2d(starts)
+    converged, unfinished = [], []
+    for start in starts:
         x0 = np.clip(start, lower, upper)
         try:
             result = least_squares(residuals, x0, jac=jac, bounds=(lower, upper),
@@ -115,16 +125,24 @@ def multistart_least_squares(residuals: Callable[[np.ndarray], np.ndarray],
                                    gtol=1e-12, max_nfev=max_nfev)
         except (ValueError, FloatingPointError):
             continue
-        if not (np.all(np.isfinite(result.fun)) and result.status > 0):
+        if not np.all(np.isfinite(result.fun)) or result.status < 0:
             continue
-        converged += 1
-        if best is None or result.cost < best.cost:
-            best = result
-    if best is None:
+        (converged if result.status > 0 else unfinished).append(result)
+    warnings = []
+    if converged:
+        best = min(converged, key=lambda result: result.cost)
+    elif unfinished:
+        best = min(unfinished, key=lambda result: result.cost)
+        costs = [result.cost for result in unfinished]
+        spread = (max(costs) - min(costs)) / min(costs) if min(costs) > 0 else 0.0
+        warnings.append(f'no start met the tolerances within {best.nfev} evaluations; the '
+                        f'best of {len(unfinished)} is reported (their costs differ by up to '
+                        f'{100 * spread:.2g} %)')
+    else:
         raise FitError(f'the fit of ({", ".join(names)}) did not converge from any of '
-                       f'{len(np.atleast_2d(starts))} starts')
-    return LeastSquaresFit(tuple(names), best.x, best.fun, best.jac,
-                           starts=len(np.atleast_2d(starts)), converged_starts=converged)
+                       f'{len(starts)} starts')
+    return LeastSquaresFit(tuple(names), best.x, best.fun, best.jac, starts=len(starts),
+                           converged_starts=len(converged), warnings=warnings)
 
 
 @dataclass

@@ -119,6 +119,22 @@ def test_a_fit_that_never_converges_raises():
         multistart_least_squares(residuals, ['x'], ([-1.0], [1.0]), np.array([[0.5]]))
 
 
+def test_starts_that_all_run_out_of_budget_give_their_best_with_a_warning():
+    def rosenbrock(x):   # its curved valley takes far more than 6 evaluations
+        return np.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+
+    starts = np.array([[-1.2, 1.0], [-1.5, 2.0]])
+    fit = multistart_least_squares(rosenbrock, ['x', 'y'], ([-3, -3], [3, 3]), starts,
+                                   max_nfev=6)
+    assert fit.converged_starts == 0 and fit.starts == 2
+    assert any('no start met the tolerances within 6 evaluations' in w for w in fit.warnings)
+    assert fit.sse < min(float(rosenbrock(s) @ rosenbrock(s)) for s in starts)
+    # Given the budget, the same starts converge and nothing is said.
+    done = multistart_least_squares(rosenbrock, ['x', 'y'], ([-3, -3], [3, 3]), starts)
+    assert done.converged_starts == 2 and not done.warnings
+    assert done.x == pytest.approx([1.0, 1.0])
+
+
 def test_too_few_points_is_a_clear_error(table):
     with pytest.raises(ValueError, match='needs more than'):
         fit_branch_multistart(HillBranch, table.pressure_pa[:4], table.increasing_length_m[:4])

@@ -7,6 +7,7 @@ own probe on the same DDS domain (subscriber, client, parameter caller).
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 
 import rclpy
@@ -15,6 +16,11 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from pma_common.service import ask, poll
+
+# Fast DDS's server waits only 100 ms for a new client's reply reader to match before it
+# drops the reply (ros2/rmw_fastrtps#467); wait_for_service sees only the client's side of
+# the match. A command is sent once, so a new client gives the server's side this long.
+NEW_CLIENT_SETTLE_S = 0.5
 
 
 class SpinningNode:
@@ -67,10 +73,12 @@ class SpinningNode:
 
         An idempotent request (a query) is resent while unanswered, as the product's tools
         do (pma_common.service: Fast DDS can drop the first reply to a new client); a
-        command is sent once, since sending it twice would change what the test measures.
+        command is sent once, since sending it twice would change what the test measures,
+        and a new client first lets discovery settle (NEW_CLIENT_SETTLE_S).
         """
         client = self._clients.get(name)
-        if client is None:
+        new_client = client is None
+        if new_client:
             client = self._clients[name] = self.node.create_client(srv_type, name)
         assert client.wait_for_service(timeout_sec=timeout), f'{name} not available'
         request = srv_type.Request() if request is None else request
@@ -79,6 +87,8 @@ class SpinningNode:
             if response is None:
                 raise TimeoutError(f'no answer from {name} within {timeout} s')
             return response
+        if new_client:
+            time.sleep(NEW_CLIENT_SETTLE_S)
         future = client.call_async(request)
         wait_until(future.done, timeout, f'{name} answer')
         return future.result()
