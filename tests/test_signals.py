@@ -6,10 +6,12 @@ terminal SIGHUP. The trials here send such bursts at random moments (before, dur
 after start-up) to processes started as `ros2 launch` starts them: their own process group,
 default signal dispositions. The seed of each trial is in its name, so a failure repeats.
 
-The trials start 0.25 s after the process: before that Python is still importing what its
-console-script wrapper needs (importlib.metadata), none of our code has run and nothing is
-open, and a SIGINT there gets Python's default (KeyboardInterrupt). From the entry point on
-(pma_common.stop.entry_point, before rclpy is imported) every signal is a clean stop.
+The trials start once the process has installed its stop handlers (pma_common.stop.entry_point,
+before rclpy is imported), seen from outside in /proc/PID/status: before that, Python is
+still importing what its console-script wrapper needs (importlib.metadata), none of our code
+has run and nothing is open, and a SIGINT there gets Python's default (KeyboardInterrupt).
+That takes about 0.1 s on an idle machine, and over 0.25 s when CI starts four at once. From
+the entry point on, every signal is a clean stop.
 """
 
 from __future__ import annotations
@@ -38,7 +40,25 @@ pytestmark = pytest.mark.integration
 
 ALARMING = ('Traceback', 'KeyboardInterrupt', 'failed to shutdown', 'rcl_shutdown')
 TRIALS = 4
-FIRST_MOMENT_S = 0.25   # see the module docstring
+
+
+def handlers_installed(pid: int) -> bool:
+    """True once the process catches SIGTERM: Python alone catches only SIGINT, so this is
+    pma_common.stop.entry_point at work."""
+    try:
+        status = Path(f'/proc/{pid}/status').read_text()
+    except OSError:    # gone already
+        return True
+    caught = int(next(line for line in status.splitlines()
+                      if line.startswith('SigCgt:')).split()[1], 16)
+    return bool(caught & (1 << (signal.SIGTERM - 1)))
+
+
+def start_moment(proc: Proc, rng: random.Random, latest_s: float) -> None:
+    """Wait for the stop handlers, then a random moment of start-up (rclpy's import and on)."""
+    wait_until(lambda: handlers_installed(proc.popen.pid), 20,
+               f'{proc.name} installing its stop handlers')
+    time.sleep(rng.uniform(0.0, latest_s))
 
 
 def burst(rng: random.Random) -> list[tuple[float, int, bool]]:
@@ -114,7 +134,7 @@ def test_driver_node_closes_the_port_under_any_burst(procs, tmp_path, seed):
         fake.wait_for_line('device at', 20)
         driver = procs.ros2_run('pma_driver', 'driver_node', name=f'driver{k}',
                                 ros_args=['-r', f'__ns:=/t{seed}_{k}', '-p', f'port:={port}'])
-        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        start_moment(driver, rng, 2.75)
         send(driver, burst(rng))
         output = finish(driver)
         if 'configured:' in output:                # the port was open: it must be closed
@@ -166,7 +186,7 @@ def test_model_node_and_fake_arduino_exit_quietly(procs, tmp_path, seed):
         else:
             proc = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(tmp_path / f'f{k}'),
                                   name=f'fake{k}')
-        time.sleep(rng.uniform(FIRST_MOMENT_S, 2.5))
+        start_moment(proc, rng, 2.25)
         send(proc, burst(rng))
         output = finish(proc)
         if proc.name.startswith('fake') and 'device at' in output:
@@ -182,7 +202,7 @@ def test_simavr_arduino_exits_quietly_and_ends_its_simulator(procs, tmp_path, se
     def trial(k: int, rng: random.Random) -> None:
         proc = procs.ros2_run('pma_driver', 'simavr_arduino', '--link', str(tmp_path / f's{k}'),
                               *build.simavr_args(), name=f'simavr{k}')
-        time.sleep(rng.uniform(FIRST_MOMENT_S, 2.5))
+        start_moment(proc, rng, 2.25)
         send(proc, burst(rng))
         output = finish(proc)
         if 'device at' in output:
@@ -199,7 +219,7 @@ def test_recorder_finishes_its_bag_under_any_burst(procs, tmp_path, seed):
         bag = tmp_path / f'bag{k}'
         recorder = procs.ros2_run('pma_bag', 'record', '-o', str(bag), name=f'record{k}',
                                   ros_args=['-r', f'__ns:=/r{k}'])
-        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        start_moment(recorder, rng, 2.75)
         send(recorder, burst(rng))
         finish(recorder)
         assert (bag / 'metadata.yaml').is_file(), sorted(bag.iterdir())
@@ -214,7 +234,7 @@ def test_live_bridge_stops_its_server_quietly_under_any_burst(procs, seed):
     def trial(k: int, rng: random.Random) -> None:
         bridge = procs.ros2_run('pma_bringup', 'foxglove_live', name=f'live{k}',
                                 ros_args=['-r', f'__ns:=/l{k}', '-p', 'port:=0'])
-        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        start_moment(bridge, rng, 2.75)
         send(bridge, burst(rng))
         output = finish(bridge)
         if 'ws://' in output:                 # the server was up: it was stopped
@@ -241,7 +261,7 @@ def test_player_stops_quietly_while_looping(procs, tmp_path, seed):
     def trial(k: int, rng: random.Random) -> None:
         player = procs.ros2_run('pma_bag', 'play', str(bag), '--loop', '--rate', '20',
                                 name=f'play{k}', ros_args=['-r', f'__ns:=/p{k}'])
-        time.sleep(rng.uniform(FIRST_MOMENT_S, 3.0))
+        start_moment(player, rng, 2.75)
         send(player, burst(rng))
         finish(player)
 
