@@ -30,6 +30,7 @@ from rosbags.highlevel import AnyReader
 from std_msgs.msg import Float64
 
 from pma_bag import BagWriter
+from pma_common.stop import STOP_SIGNALS
 from pma_driver import protocol
 from pma_interfaces.msg import PmaState
 from support import firmware
@@ -43,15 +44,15 @@ TRIALS = 4
 
 
 def handlers_installed(pid: int) -> bool:
-    """True once the process catches SIGTERM: Python alone catches only SIGINT, so this is
-    pma_common.stop.entry_point at work."""
+    """True once the process catches every stop signal: Python alone catches only SIGINT,
+    so this is pma_common.stop.entry_point at work."""
     try:
         status = Path(f'/proc/{pid}/status').read_text()
     except OSError:    # gone already
         return True
     caught = int(next(line for line in status.splitlines()
                       if line.startswith('SigCgt:')).split()[1], 16)
-    return bool(caught & (1 << (signal.SIGTERM - 1)))
+    return all(caught & (1 << (sig - 1)) for sig in STOP_SIGNALS)
 
 
 def start_moment(proc: Proc, rng: random.Random, latest_s: float) -> None:
