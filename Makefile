@@ -26,8 +26,9 @@ firmware:
 
 # Two workers (pytest-xdist), a test module per worker so module fixtures are shared; each
 # worker has its own range of ROS domains (conftest.py). Tests that measure timing or loss
-# (marked `serial`) run afterwards, alone on the machine.
-PARALLEL := -n 2 --dist loadfile
+# (marked `serial`) run afterwards, alone on the machine. Modules with a `slow` test start
+# first (conftest.py), in that order: xdist's own reorder (by number of tests) left them last.
+PARALLEL := -n 2 --dist loadfile --no-loadscope-reorder
 
 # (Exit code 5: PYTEST_ARGS selected no test of that part.)
 test: setup lint firmware

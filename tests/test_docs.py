@@ -153,6 +153,7 @@ def test_a_failing_documented_command_fails_the_run(tmp_path):
 
 
 @pytest.mark.timeout(TIMEOUT_S + 60)   # its own limit first: it reports where the run was
+@pytest.mark.slow
 def test_the_documented_commands_run_in_order_in_one_shell(tmp_path):
     if PORT.exists():
         pytest.fail(f'{PORT} exists: another simulated rig runs here; the documents use it')
