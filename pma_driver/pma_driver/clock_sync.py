@@ -8,7 +8,10 @@ latency. We track that envelope and stamp with it: the minimum of the observed o
 in blocks of `block_s` of device time, a straight line through the block minima of the
 last `window_s` (the slope is the drift of the device's resonator against the host
 clock), lowered until no block minimum lies below it. A stamp is never later than the
-sample's receive time. docs/driver.md describes the method and its limits.
+sample's receive time, and stamps only go forward while the host clock does: when the
+envelope drops (the first lines came late) or lines read together share a receive time, a
+stamp that would not follow the last one is put a nanosecond after it. docs/driver.md
+describes the method and its limits.
 """
 
 from __future__ import annotations
@@ -52,6 +55,8 @@ class ClockSync:
         self._intercept = math.inf   # offset line: y = intercept + slope * x  [s]
         self._slope = 0.0
         self._late_since: float | None = None
+        self._last_stamp_ns: int | None = None
+        self._last_receive_ns: int | None = None
         self.samples = 0
         self.resets += 1
 
@@ -102,7 +107,12 @@ class ClockSync:
         self._add_point(x, y)
         estimate_ns = device_ns + self._ref_offset_ns + round(
             (self._intercept + self._slope * x) * NS_PER_S)
-        return min(estimate_ns, receive_ns)
+        stamp_ns = min(estimate_ns, receive_ns)
+        # In order, unless the host clock went back (then follow it).
+        if self._last_stamp_ns is not None and receive_ns >= self._last_receive_ns:
+            stamp_ns = max(stamp_ns, self._last_stamp_ns + 1)
+        self._last_stamp_ns, self._last_receive_ns = stamp_ns, receive_ns
+        return stamp_ns
 
     def _jumped(self, x: float, y: float) -> bool:
         """True when the host clock jumped (not latency): the estimate must start over."""

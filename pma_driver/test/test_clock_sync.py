@@ -89,3 +89,26 @@ def test_host_clock_jump_back_restarts_estimate():
     jumped = sync.stamp(int(device_ms[-1]) + 20, int(receive_ns[-1]) - 10 * 10**9)
     assert sync.resets == 1
     assert jumped <= int(receive_ns[-1]) - 10 * 10**9
+
+
+
+def test_stamps_keep_increasing_when_lines_are_read_together():
+    """A busy host (seen on a loaded CI machine with the simulated AVR) reads several lines in
+    one read(), so they share a receive time, and the first ones come late. Consumers sort and
+    difference the stamps: they must go forward, and stay at the receive time (ties are kept
+    in order a nanosecond apart)."""
+    sync = ClockSync()
+    device_ms, _, receive_ns = simulate(20.0, 5.0)
+    backlog = np.clip(0.3 - np.arange(device_ms.size) * 0.05, 0.0, None)   # 300 ms, draining
+    chunk_ns = np.maximum.accumulate(receive_ns + np.round(backlog * 1e9).astype(np.int64))
+    assert np.count_nonzero(np.diff(chunk_ns) == 0) >= 3                 # lines read together
+    stamps = [sync.stamp(int(t), int(r)) for t, r in zip(device_ms, chunk_ns, strict=True)]
+    assert np.all(np.diff(stamps) > 0)
+    assert all(s <= r + 10 for s, r in zip(stamps, chunk_ns, strict=True))
+
+
+def test_stamps_follow_the_host_clock_back():
+    sync = ClockSync()
+    first = sync.stamp(1000, 5_000_000_000)
+    # Back by less than the jump threshold: no reset, and no stamp after the receive time.
+    assert sync.stamp(1050, 4_600_000_000) <= 4_600_000_000 < first
