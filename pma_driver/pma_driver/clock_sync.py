@@ -10,8 +10,9 @@ last `window_s` (the slope is the drift of the device's resonator against the ho
 clock), lowered until no block minimum lies below it. A stamp is never later than the
 sample's receive time, and stamps only go forward while the host clock does: when the
 envelope drops (the first lines came late) or lines read together share a receive time, a
-stamp that would not follow the last one is put a nanosecond after it. docs/driver.md
-describes the method and its limits.
+stamp that would not follow the last one is put a nanosecond after it (for lines read
+together, a few nanoseconds past their shared receive time). docs/driver.md describes the
+method and its limits.
 """
 
 from __future__ import annotations
