@@ -91,7 +91,6 @@ def test_host_clock_jump_back_restarts_estimate():
     assert jumped <= int(receive_ns[-1]) - 10 * 10**9
 
 
-
 def test_stamps_keep_increasing_when_lines_are_read_together():
     """A busy host (seen on a loaded CI machine with the simulated AVR) reads several lines in
     one read(), so they share a receive time, and the first ones come late. Consumers sort and
