@@ -46,6 +46,12 @@ class BranchDetector:
         self.branch = self._initial_branch
         self._extreme_pa = math.nan  # highest (increasing) or lowest (decreasing) since reversal
 
+    def __copy__(self) -> BranchDetector:
+        # As HysteresisModel.__copy__: the default costs five times this, once per commit.
+        clone = object.__new__(type(self))
+        clone.__dict__.update(self.__dict__)
+        return clone
+
     def resume_from(self, other: BranchDetector) -> None:
         """Continue where `other` is (branch and extreme), keeping this deadband."""
         self.branch = other.branch

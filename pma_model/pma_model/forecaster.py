@@ -154,11 +154,12 @@ class RuleMix:
             if np.any(errors <= cap):    # one every rule rejects says nothing about them
                 self.losses_m2s = self.losses_m2s * math.exp(-dt / self.time_constant_s) + \
                     np.minimum(errors, cap) ** 2 * dt
-        return replace(
-            first, length_m=float(weights @ lengths),
+        # Built directly: dataclasses.replace costs as much as the mixing.
+        return Prediction(
+            length_m=float(weights @ lengths), branch=first.branch,
             static_length_m=float(weights @ [p.static_length_m for p in predictions]),
             offset_m=float(weights @ [p.offset_m for p in predictions]),
-            gain=float(weights @ [p.gain for p in predictions]))
+            gain=float(weights @ [p.gain for p in predictions]), confidence=first.confidence)
 
     # --- inverse --------------------------------------------------------------------
 

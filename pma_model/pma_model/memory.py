@@ -39,7 +39,6 @@ branch, drives 'switch', and is the one the offline refit uses.
 from __future__ import annotations
 
 import copy
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -103,21 +102,23 @@ class _Curve:
     target: tuple[float, float] | None = None
     play_share: float = 0.0
 
-    @functools.cached_property
-    def _span(self):
-        return float(self.major.length(self.origin[0])), float(self.major.length(self.target[0]))
-
-    @functools.cached_property
-    def _knee(self) -> float:
-        """q: where the play-like shape stops holding (1 when it would not reach T)."""
+    def __post_init__(self):
+        # Computed once, here: every curve is evaluated, and a commit of the online learning
+        # rebuilds the curves of the whole stack (cached_property's first access cost more).
+        if self.origin is None:
+            return
         (_, l_origin), (_, l_target) = self.origin, self.target
-        b_origin, b_target = self._span
-        ratio = (l_origin - l_target) / (b_origin - b_target)
-        return ratio if 0.0 < ratio < 1.0 else 1.0
+        b_origin = float(self.major.length(self.origin[0]))
+        b_target = float(self.major.length(self.target[0]))
+        flat = abs(b_origin - b_target) < _FLAT_SPAN_M
+        ratio = 1.0 if flat else (l_origin - l_target) / (b_origin - b_target)
+        object.__setattr__(self, '_span', (b_origin, b_target))
+        object.__setattr__(self, '_is_flat', flat)
+        # q: where the play-like shape stops holding (1 when it would not reach T).
+        object.__setattr__(self, '_knee', ratio if 0.0 < ratio < 1.0 else 1.0)
 
     def _flat(self) -> bool:
-        b_origin, b_target = self._span
-        return abs(b_origin - b_target) < _FLAT_SPAN_M
+        return self._is_flat
 
     def _coordinate(self, shape):
         b_origin, b_target = self._span
@@ -141,6 +142,8 @@ class _Curve:
         knee = self._knee
         held = min(1.0, s / knee) if isinstance(s, float) else np.minimum(1.0, s / knee)
         result = l_target + (l_origin - l_target) * (w * held + (1.0 - w) * s)
+        if isinstance(result, float):   # one sample (np.ndim costs more than the curve)
+            return float(result)
         return float(result) if np.ndim(result) == 0 else result
 
     def shapes_at(self, p_pa: float) -> tuple[float, float]:
@@ -241,6 +244,13 @@ class HysteresisModel:
         self._stack: list[tuple[float, float]] = []
         self._cached_key = None
         self._cached_curve: _Curve | None = None
+
+    def __copy__(self) -> HysteresisModel:
+        # copy.copy's default goes through pickling's reduce protocol, five times the cost
+        # of this, and every commit of the online learning copies the model (relearn).
+        clone = object.__new__(type(self))
+        clone.__dict__.update(self.__dict__)
+        return clone
 
     def relearn(self, increasing: Branch, decreasing: Branch,
                 play_shares: tuple[float, float] | None = None) -> None:

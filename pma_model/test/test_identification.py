@@ -85,6 +85,20 @@ def test_corrected_branches_stay_monotone_and_invert_in_closed_form(values, form
         assert float(corrected.length(pressure)) == pytest.approx(target, abs=1e-9)
 
 
+def test_a_corrected_branch_remembers_lengths_without_changing_them():
+    # It keeps the lengths it computed at single pressures (the online step asks for the
+    # same few again and again), up to a bound, then starts again: each answer must be the
+    # one a branch that remembers nothing gives, before and after the bound.
+    increasing, _ = default_params().branches()
+    offsets = monotone_correction(SMOOTH_BUMP, correction_caps(increasing))
+    remembering = CorrectedBranch(increasing, offsets)
+    pressures = [float(p) for p in np.random.default_rng(3).uniform(0.0, 520e3, 700)]
+    for p_pa in pressures + pressures[::-1]:   # past the bound, then what was forgotten
+        assert remembering.length(p_pa) == CorrectedBranch(increasing, offsets).length(p_pa)
+    assert 0 < len(remembering._known_lengths) <= 256
+    assert CorrectedBranch(increasing, offsets) == remembering   # not part of its value
+
+
 def test_the_correction_can_make_the_sigmoid_flat_in_the_dead_zone():
     # The paper's sigmoid falls 3.5 mm between 0 and 50 kPa, where the muscle is flat.
     increasing, _ = default_params().branches()
