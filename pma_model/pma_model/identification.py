@@ -618,8 +618,9 @@ class OnlineModel:
         difference = mean[size:size + knots]
         np.minimum(np.maximum(difference, -MAX_DIFFERENCE_M, out=difference), MAX_DIFFERENCE_M,
                    out=difference)
-        creep = mean[self._creep_gains]
-        np.minimum(np.maximum(creep, -MAX_CREEP_GAIN, out=creep), MAX_CREEP_GAIN, out=creep)
+        creep_gains = mean[self._creep_gains]
+        np.minimum(np.maximum(creep_gains, -MAX_CREEP_GAIN, out=creep_gains), MAX_CREEP_GAIN,
+                   out=creep_gains)
         limits = self.adaptation
         mean[-2] = min(max(mean[-2], -limits.max_shift_m), limits.max_shift_m)
         mean[-1] = min(max(mean[-1], limits.min_gain - 1.0), limits.max_gain - 1.0)
