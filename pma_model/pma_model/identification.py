@@ -16,10 +16,12 @@ its state (docs/model.md, "Online identification"):
   can flatten the sigmoid's dead zone and still invert in closed form. It is learned as a
   mean for both branches plus a difference (increasing minus decreasing, half added to each):
   the paper's two sigmoids miss a muscle in different places (on the simulated families the
-  two branches' misfits differ by up to 3.4 mm at a knot), which a mean cannot follow. On a
-  scanning curve a residual cannot be told to one branch, so the difference learns in
-  proportion to the confidence below and has a tighter prior (DIFFERENCE_PRIOR_M; a loose
-  one trades off against the play shares: docs/model.md §5).
+  two branches' misfits differ by up to 3.4 mm at a knot), which a mean cannot follow. The
+  knots learn through the exact derivative of the length (HysteresisModel.length_gradient):
+  on a scanning curve the length is pinned to turning points that came from earlier curves,
+  often of the other branch, so a residual there says something about both. The difference
+  has a tighter prior (DIFFERENCE_PRIOR_M; a loose one trades off against the play shares:
+  docs/model.md §5).
 - creep: length = static + sum_j k_j (lag_j(static) - static), the model's static length
   through first-order lags of CREEP_TIME_CONSTANTS_S: a share of each change arriving late,
   which vanishes in a hold (so the inverse, a steady-state answer, ignores it).
@@ -320,17 +322,23 @@ def monotone_correction(offsets, caps) -> tuple[float, ...]:
     return tuple(values)
 
 
-def correction_weights(p_pa: float, branch: Branch) -> np.ndarray:
-    """d delta / d d_k at p_pa along `branch` (the filter's regressor for the knots)."""
-    weights = np.zeros(len(CORRECTION_KNOTS_PA))
+def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
+    """d branch length(p_pa) / d [increasing knots, decreasing knots, the two play shares]
+    (memory.BranchSensitivity): the interpolation weights of the branch's own correction,
+    whichever branch of the pair `rising` says it is."""
+    knots = len(CORRECTION_KNOTS_PA)
+    gradient = np.zeros(2 * knots + 2)
+    start = 0 if rising else knots
     k, inside = _knot_position(p_pa)
     if not inside:
-        weights[k] = 1.0
-        return weights
-    low, high = (float(branch.length(CORRECTION_KNOTS_PA[i])) for i in (k, k + 1))
-    share = (low - float(branch.length(p_pa))) / (low - high) if low > high else 0.0
-    weights[k], weights[k + 1] = 1.0 - share, share
-    return weights
+        gradient[start + k] = 1.0
+        return gradient
+    base = branch.base if isinstance(branch, CorrectedBranch) else branch
+    at_knots = _lengths_at_knots(base)
+    low, high = at_knots[k], at_knots[k + 1]
+    share = (low - float(base.length(p_pa))) / (low - high) if low > high else 0.0
+    gradient[start + k], gradient[start + k + 1] = 1.0 - share, share
+    return gradient
 
 
 # --- the online model -----------------------------------------------------------------------
@@ -586,14 +594,15 @@ class OnlineModel:
         if self._learning and self.memory == 'identify':
             self._learn_share(residual, shape_difference * gain, noise, dt)
         size, knots = self._basis.shape[1], len(CORRECTION_KNOTS_PA)
-        weights, rising = self._correction_regressor()
-        # Which branch a residual belongs to is clear on a major branch and not just after a
-        # reversal, so the difference's regressor is scaled by the confidence (the mean's is
-        # not: it is the same for both branches).
-        side = (0.5 if rising else -0.5) * gain * confidence
+        # d length / d knots, exact through the memory's turning points: on a scanning curve
+        # the length is pinned to them, and their lengths came from earlier curves, often of
+        # the other branch (the branch's own weights at this pressure, used until
+        # 2026-11-26, had the difference's sign wrong just after a reversal: docs/model.md §5).
+        gradient = self.model.length_gradient(knot_sensitivity)
+        increasing, decreasing = gradient[:knots], gradient[knots:2 * knots]
         regressor = np.concatenate([
-            gain * (weights @ self._basis),
-            side * weights,
+            gain * ((increasing + decreasing) @ self._basis),
+            (0.5 * gain) * (increasing - decreasing),
             gain * creep,
             [1.0, undrifted - self.reference_length_m]])
         walk = state.walk_per_s * dt
@@ -644,15 +653,6 @@ class OnlineModel:
         if self._drifting:
             left = projected - self._basis @ state.mean[:size]
             state.mean[-2:] += np.linalg.lstsq(self._drift_directions(), left, rcond=None)[0]
-
-    def _correction_regressor(self) -> tuple[np.ndarray, bool]:
-        """(d length / d knots at the current pressure along the current direction's branch,
-        that direction: True rising). Exact on a major branch; on a scanning curve a shift of
-        the correction there moves the length by about as much. The direction is the
-        stack's ('switch' has none)."""
-        tracker = self._shapes if self._shapes is not None else self.model
-        rising = tracker.rising
-        return correction_weights(tracker.pressure_pa, tracker.major(rising)), rising
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
         """Scalar RLS on the current direction's play share (prediction linear in it)."""

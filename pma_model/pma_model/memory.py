@@ -56,6 +56,10 @@ from pma_model.detector import (
 )
 
 MEMORY_MODES = ('identify', 'madelung', 'switch', 'play')
+# (branch, rising, p_pa) -> d (that major branch's length at p_pa) / d the learned parameters,
+# a vector whose last two entries are the rising and falling play shares (zero here: a branch
+# does not depend on them). HysteresisModel.length_gradient carries it through the memory.
+BranchSensitivity = Callable[[Branch, bool, float], np.ndarray]
 # Modes whose state is the Madelung turning-point stack.
 _STACK_MODES = ('identify', 'madelung')
 
@@ -89,6 +93,17 @@ class InverseResult:
 
 
 @dataclass(frozen=True)
+class _CurveEnds:
+    """Gradients a scanning curve's own gradient is made from: of its lengths at O and T,
+    and of its major branch at their pressures."""
+
+    origin: np.ndarray
+    target: np.ndarray
+    shape_at_origin: np.ndarray
+    shape_at_target: np.ndarray
+
+
+@dataclass(frozen=True)
 class _Curve:
     """A scanning curve through O and T shaped like `major`; O is None for the major itself.
 
@@ -116,6 +131,7 @@ class _Curve:
         object.__setattr__(self, '_is_flat', flat)
         # q: where the play-like shape stops holding (1 when it would not reach T).
         object.__setattr__(self, '_knee', ratio if 0.0 < ratio < 1.0 else 1.0)
+        object.__setattr__(self, '_knee_moves', not flat and 0.0 < ratio < 1.0)
 
     def _flat(self) -> bool:
         return self._is_flat
@@ -158,6 +174,43 @@ class _Curve:
         s = float(self._coordinate(shape))
         return (l_target + (l_origin - l_target) * min(1.0, s / self._knee),
                 l_target + (l_origin - l_target) * s)
+
+    def gradient(self, p_pa: float, shape_gradient: np.ndarray, ends: _CurveEnds,
+                 share_index: int | None) -> np.ndarray:
+        """d length(p_pa) / d parameters, forward mode through the curve's two points.
+
+        `shape_gradient`: d major(p_pa) / d parameters; `ends`: those of O and T and of the
+        major branch at their pressures (`HysteresisModel` carries them along the stack).
+        The play share is parameter `share_index` (None: the rule has none). With
+        D = L_O - L_T, E = B(P_O) - B(P_T), s = (B(P) - B(P_T)) / E and
+        Phi(s) = w min(1, s / q) + (1 - w) s, the length L_T + D Phi(s) moves by
+        dL = dL_T + (dL_O - dL_T) Phi + D (Phi'(s) ds + (min(1, s / q) - s) dw + dPhi/dq dq).
+        """
+        if self.origin is None:
+            return shape_gradient
+        if self._flat():
+            return ends.origin + shape_gradient - ends.shape_at_origin
+        b_origin, b_target = self._span
+        span = b_origin - b_target
+        difference = self.origin[1] - self.target[1]
+        raw = (float(self.major.length(p_pa)) - b_target) / span
+        s = min(max(raw, 0.0), 1.0)
+        w, knee = self.play_share, self._knee
+        held = min(1.0, s / knee)
+        linear = raw if w == 0.0 else s   # as length(): Madelung extrapolates, a mix clips
+        between = ends.origin - ends.target
+        result = ends.target + between * (w * held + (1.0 - w) * linear)
+        span_gradient = ends.shape_at_origin - ends.shape_at_target
+        if w == 0.0 or 0.0 < raw < 1.0:
+            slope = (w / knee if s < knee else 0.0) + (1.0 - w)
+            result += (difference * slope / span) * (
+                shape_gradient - ends.shape_at_target - s * span_gradient)
+        if w > 0.0 and s < knee and self._knee_moves:
+            result -= (difference * w * s / (knee * knee * span)) * (
+                between - knee * span_gradient)
+        if share_index is not None:
+            result[share_index] += difference * (held - s)
+        return result
 
     def pressure(self, length_m: float) -> float:
         """P with length(P) == length_m, through B^-1 (NaN when the shape has none)."""
@@ -244,6 +297,12 @@ class HysteresisModel:
         self._stack: list[tuple[float, float]] = []
         self._cached_key = None
         self._cached_curve: _Curve | None = None
+        # Play: the branch (True increasing) and pressure the held length was last set on.
+        self._play_source = (True, 0.0)
+        # length_gradient's: the stack it was computed for and its turning points' gradients,
+        # and the current curve with its ends' gradients.
+        self._gradient_cache: tuple[list, list] = ([], [])
+        self._gradient_ends: tuple[_Curve | None, _CurveEnds | None] = (None, None)
 
     def __copy__(self) -> HysteresisModel:
         # copy.copy's default goes through pickling's reduce protocol, five times the cost
@@ -286,8 +345,12 @@ class HysteresisModel:
             # The play state is the length itself: kept, inside the new band at this pressure.
             self._stack = []
             self._rising = other._rising
-            self._l = min(max(other.length_m, float(self.decreasing.length(self._p))),
-                          float(self.increasing.length(self._p)))
+            low = float(self.decreasing.length(self._p))
+            high = float(self.increasing.length(self._p))
+            self._l = min(max(other.length_m, low), high)
+            # Moved onto a branch by the new band: that branch is what it depends on now.
+            self._play_source = (other._play_source if low < other.length_m < high
+                                 else (other.length_m >= high, self._p))
         self._detector.resume_from(other._detector)
 
     @property
@@ -349,6 +412,70 @@ class HysteresisModel:
             return self._l, self._l
         return self._current_curve().shapes_at(self._p)
 
+    def length_gradient(self, sensitivity: BranchSensitivity) -> np.ndarray:
+        """d length / d parameters at the current state, the parameters being those
+        `sensitivity` gives the branches' derivatives over (its last two: the rising and the
+        falling play share).
+
+        What the online identification learns from. Exact for the stack rules: it is
+        carried through every remembered turning point, since a scanning curve's length is
+        pinned to its turning points, whose lengths came from earlier curves, often on the
+        other branch. Play: the branch and pressure its held length was set at; switch: the
+        detector's branch. Cost: the current curve's, plus the stack's once it changes.
+        """
+        if self.memory == 'switch':
+            rising = self._detector.branch == BRANCH_INCREASING
+            return sensitivity(self.major(rising), rising, self._p)
+        if self.memory == 'play':
+            rising, p_pa = self._play_source
+            return sensitivity(self.major(rising), rising, p_pa)
+        gradients = self._turning_point_gradients(sensitivity)
+        curve = self._current_curve()
+        cached_curve, ends = self._gradient_ends
+        if curve is not cached_curve:
+            ends = self._ends(curve, self._rising, gradients, sensitivity)
+            self._gradient_ends = (curve, ends)
+        return curve.gradient(self._p, sensitivity(curve.major, self._rising, self._p), ends,
+                              self._share_index(self._rising))
+
+    def _share_index(self, rising: bool) -> int | None:
+        return (-2 if rising else -1) if self.memory == 'identify' else None
+
+    def _turning_point_gradients(self, sensitivity: BranchSensitivity) -> list[np.ndarray]:
+        """The gradient of each remembered turning point's length, oldest first (kept while
+        the stack below the top is the same)."""
+        stack = self._stack
+        known, gradients = self._gradient_cache
+        if known == stack:
+            return gradients
+        kept = 0
+        while kept < min(len(known), len(stack)) and known[kept] == stack[kept]:
+            kept += 1
+        gradients = gradients[:kept]
+        for depth in range(kept, len(stack)):
+            # Turning points alternate: the top was reached moving against the current way.
+            arriving = self._rising if (len(stack) - 1 - depth) % 2 else not self._rising
+            curve = self._curve(arriving, stack[:depth])
+            p_pa = stack[depth][0]
+            gradients.append(curve.gradient(
+                p_pa, sensitivity(curve.major, arriving, p_pa),
+                self._ends(curve, arriving, gradients, sensitivity),
+                self._share_index(arriving)))
+        self._gradient_cache = (list(stack), gradients)
+        return gradients
+
+    @staticmethod
+    def _ends(curve: _Curve, rising: bool, gradients: list[np.ndarray],
+              sensitivity: BranchSensitivity) -> _CurveEnds | None:
+        """The gradients at the curve's O and T; `gradients`: its turning points', oldest
+        first (O is the last; T the one before, or the anchor on the major branch)."""
+        if curve.origin is None:
+            return None
+        at_origin = sensitivity(curve.major, rising, curve.origin[0])
+        at_target = sensitivity(curve.major, rising, curve.target[0])
+        target = gradients[-2] if len(gradients) >= 2 else at_target
+        return _CurveEnds(gradients[-1], target, at_origin, at_target)
+
     def _push(self, point: tuple[float, float]) -> None:
         self._stack.append(point)
         if len(self._stack) > MAX_TURNING_POINTS:
@@ -386,10 +513,14 @@ class HysteresisModel:
 
     def _step_play(self, p_pa: float) -> None:
         if p_pa > self._p:
-            self._l = min(self._l, float(self.increasing.length(p_pa)))
+            bound = float(self.increasing.length(p_pa))
+            if bound <= self._l:
+                self._l, self._play_source = bound, (True, p_pa)
             self._rising = True
         elif p_pa < self._p:
-            self._l = max(self._l, float(self.decreasing.length(p_pa)))
+            bound = float(self.decreasing.length(p_pa))
+            if bound >= self._l:
+                self._l, self._play_source = bound, (False, p_pa)
             self._rising = False
         self._p = p_pa
 
@@ -454,10 +585,10 @@ class HysteresisModel:
         out = np.empty(values.size)
         for start, end, rising in self._monotone_runs(values):
             run = values[start:end]
-            if rising:
-                out[start:end] = np.minimum(self._l, self.increasing.length(run))
-            else:
-                out[start:end] = np.maximum(self._l, self.decreasing.length(run))
+            bound = np.asarray(self.major(rising).length(run), dtype=float)
+            out[start:end] = np.minimum(self._l, bound) if rising else np.maximum(self._l, bound)
+            if out[end - 1] == bound[-1]:   # on the branch at the end of the run (it stays)
+                self._play_source = (rising, float(run[-1]))
             self._rising = rising
             self._p, self._l = float(run[-1]), float(out[end - 1])
         return out
