@@ -194,6 +194,17 @@ def _knot_position(p_pa: float) -> tuple[int, bool]:
     return int(position), True
 
 
+def _knot_share(p_pa: float, base_length_m: float, at_knots) -> tuple[int, float]:
+    """(k, share): the correction at p_pa is d_k + (d_{k+1} - d_k) * share, interpolated
+    along the base branch's own length (`at_knots`: its lengths at the knots); share is 0
+    beyond the knots and on an interval where the base does not fall."""
+    k, inside = _knot_position(p_pa)
+    if not inside:
+        return k, 0.0
+    drop = at_knots[k] - at_knots[k + 1]
+    return k, ((at_knots[k] - base_length_m) / drop if drop > 0.0 else 0.0)
+
+
 _KNOT_STEP_PA = CORRECTION_KNOTS_PA[1] - CORRECTION_KNOTS_PA[0]
 _MAX_KNOWN_LENGTHS = 256     # single-pressure lengths a CorrectedBranch keeps
 
@@ -237,14 +248,9 @@ class CorrectedBranch(Branch):
 
     def correction_at(self, p_pa: float, base_length_m: float) -> float:
         """delta at one pressure, given the base length there."""
-        k, inside = _knot_position(p_pa)
-        if not inside:
+        k, share = _knot_share(p_pa, base_length_m, self._base_at_knots)
+        if share == 0.0:
             return self.offsets_m[k]
-        knots = self._base_at_knots
-        drop = knots[k] - knots[k + 1]
-        if drop <= 0.0:
-            return self.offsets_m[k]
-        share = (knots[k] - base_length_m) / drop
         return self.offsets_m[k] + (self.offsets_m[k + 1] - self.offsets_m[k]) * share
 
     def length(self, p_pa):
@@ -329,15 +335,11 @@ def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
     knots = len(CORRECTION_KNOTS_PA)
     gradient = np.zeros(2 * knots + 2)
     start = 0 if rising else knots
-    k, inside = _knot_position(p_pa)
-    if not inside:
-        gradient[start + k] = 1.0
-        return gradient
     base = branch.base if isinstance(branch, CorrectedBranch) else branch
-    at_knots = _lengths_at_knots(base)
-    low, high = at_knots[k], at_knots[k + 1]
-    share = (low - float(base.length(p_pa))) / (low - high) if low > high else 0.0
-    gradient[start + k], gradient[start + k + 1] = 1.0 - share, share
+    k, share = _knot_share(p_pa, float(base.length(p_pa)), _lengths_at_knots(base))
+    gradient[start + k] = 1.0 - share
+    if share != 0.0:
+        gradient[start + k + 1] = share
     return gradient
 
 
