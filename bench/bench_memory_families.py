@@ -16,6 +16,9 @@ tests/support/muscle_families.py), path and seed:
     .perfectly_corrected): the stroke grew 8 %, so the same shape error is 1.08x the
     drift-free error in metres; both ratios are printed;
   - the moonshot: minor-loop RMSE <= 1.5 % of stroke.
+Beside them, the oracle: the muscle itself made to keep return-point memory (what a model
+with that property, knowing the muscle exactly, would err; 0 on a muscle that has it;
+support.muscle_families.return_point_oracle), as its max error over the switch's.
 The figures are model errors (not speeds), so no in-run baseline is needed; the reference
 is the paper's switch on the same samples.
 """
@@ -37,11 +40,13 @@ from support.muscle_families import (
     MIXED,
     PAPER,
     PATH_KINDS,
+    RATE_DEPENDENT_FAMILIES,
     SCORED_FAMILIES,
     STATIC_RULES,
     STROKE_M,
     Config,
     Scenario,
+    oracle_score,
     perfectly_corrected,
     score,
 )
@@ -78,7 +83,8 @@ def criteria(form: str, seeds: list[int], duration_s: float, families,
              candidate: Config = MIXED) -> tuple[list[str], bool]:
     lines = [f'\n### criteria, {form} branches ({candidate.label}, learning on)', '',
              '| scenario | RMSE / switch | max / switch | RMSE / best fixed rule (which) | '
-             'adaptation on / off | RMSE % of stroke |', '|---|---|---|---|---|---|']
+             'adaptation on / off | RMSE % of stroke | oracle max / switch |',
+             '|---|---|---|---|---|---|---|']
     passed = True
     for family in families:
         for kind in PATH_KINDS:
@@ -96,10 +102,12 @@ def criteria(form: str, seeds: list[int], duration_s: float, families,
                       ours.rmse_pct <= 1.5)
                 passed &= all(ok[:4])
                 marks = ['' if good else ' **x**' for good in ok]
+                oracle = '-' if family in RATE_DEPENDENT_FAMILIES else \
+                    f'{oracle_score(scenario).max_m / paper.max_m:.2f}'
                 lines.append(
                     f'| {scenario.label} | {ratios[0]:.2f}{marks[0]} | {ratios[1]:.2f}{marks[1]}'
                     f' | {ratios[2]:.2f} ({best_label}){marks[2]} | {ratios[3]:.3f}{marks[3]} | '
-                    f'{ours.rmse_pct:.2f}{marks[4]} |')
+                    f'{ours.rmse_pct:.2f}{marks[4]} | {oracle} |')
     return lines, passed
 
 

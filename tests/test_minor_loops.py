@@ -33,7 +33,11 @@ from support.muscle_families import (
     STATIC_RULES,
     Config,
     Scenario,
+    bouc_wen_fit,
+    oracle_score,
+    return_point_oracle,
     score,
+    simulate,
 )
 
 # The module fixture runs every scenario once (about 90 s of one core, more when the
@@ -73,8 +77,9 @@ def test_the_default_memory_beats_the_papers_switch_in_rmse(family):
 # after a nest of small loops inside a long fall it is millimetres longer than before the
 # nest, and a model with return-point memory (which the issue requires) comes back to its
 # own length. Seed 1: nested 0.71x the switch's max (t = 175 s, 3.0 mm), random 0.66x;
-# seeds 1-8: 9 of 16 runs within 0.7x, the rest 0.71-0.96x (docs/model.md §3.1). Strict:
-# when it is met, this mark must go.
+# seeds 1-8: 9 of 16 runs within 0.7x, the rest 0.71-0.96x (docs/model.md §3.1). Even the
+# muscle itself, made to keep return-point memory, misses it on 6 of those 16 runs (the
+# oracle tests below). Strict: when it is met, this mark must go.
 NO_RETURN_POINT_MEMORY = pytest.mark.xfail(
     strict=True, reason='asymmetric (Duhem) loops do not close; docs/model.md §3.1')
 
@@ -93,6 +98,39 @@ def test_on_the_duhem_muscle_the_max_error_stays_near_the_criterion():
     ours, paper = scores('asymmetric', MIXED), scores('asymmetric', PAPER)
     for kind in PATH_KINDS:
         assert ours[kind].max_m <= 0.75 * paper[kind].max_m, kind
+
+
+@pytest.mark.parametrize('family', ['narrow', 'wide'])
+def test_the_return_point_oracle_is_the_muscle_itself_where_loops_close(family):
+    # A yardstick for the muscles without the property only if exact on those with it.
+    for kind in PATH_KINDS:
+        scenario = Scenario(family, kind)
+        gap = np.abs(return_point_oracle(scenario) - simulate(scenario).length_m)
+        assert np.max(gap) < 1e-9, kind
+
+
+@pytest.mark.parametrize('family', ['asymmetric', BOUC_WEN])
+def test_the_muscles_without_return_point_memory_leave_their_oracle(family):
+    # Seed 1, nested / random: asymmetric 2.7 / 3.5 mm, bouc-wen 0.8 / 0.9 mm.
+    for kind in PATH_KINDS:
+        scenario = Scenario(family, kind)
+        gap = np.abs(return_point_oracle(scenario) - simulate(scenario).length_m)
+        assert np.max(gap) > 0.0005, kind
+
+
+def test_the_oracle_refuses_a_muscle_whose_state_depends_on_time():
+    with pytest.raises(ValueError, match='rate-independent'):
+        return_point_oracle(Scenario('creep'))
+    with pytest.raises(ValueError, match='without drift'):
+        return_point_oracle(Scenario('narrow', drift_start_s=60.0))
+
+
+def test_on_the_duhem_muscle_even_the_exact_muscle_with_return_point_memory_misses_the_max():
+    # Why the mark above is expected to stay: on random/seed 3 the Duhem muscle, knowing its
+    # own state at every turning point, errs 0.92x the switch's max (4.1 mm at t = 166 s),
+    # only by keeping return-point memory. The mix: 0.89x.
+    scenario = Scenario('asymmetric', 'random', seed=3)
+    assert oracle_score(scenario).max_m > 0.7 * score(scenario, PAPER).max_m
 
 
 @pytest.mark.parametrize('family', FAMILY_NAMES)
@@ -114,6 +152,7 @@ def test_on_a_held_out_bouc_wen_muscle_the_default_meets_the_switch_criteria():
     # Chosen on none of the families above: the paper's comparison model fitted to Table 1
     # (support.muscle_families.BOUC_WEN), no return-point memory. bench_memory_families
     # adds the best-fixed-rule criterion and the second seed.
+    assert bouc_wen_fit().loop_width_m > 0.003   # a muscle with hysteresis (4.0 mm)
     ours, paper = scores(BOUC_WEN, MIXED), scores(BOUC_WEN, PAPER)
     for kind in PATH_KINDS:
         assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind

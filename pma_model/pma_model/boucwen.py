@@ -33,6 +33,7 @@ _BETA_MAX = 50.0
 _N_RANGE = (1.0, 3.0)
 SCREENING_CANDIDATES = 256
 POLISHED_STARTS = 4
+LOOPLESS_FRACTION = 0.01   # a fitted loop narrower than this share of the stroke is none
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,12 @@ class BoucWenModel:
         grid, z_up, z_down = _steady_loop_batch(self.hysteresis_vector()[None, 1:],
                                                 self.steps_per_sweep)
         return grid, z_up[0], z_down[0]
+
+    @property
+    def loop_width_m(self) -> float:
+        """Widest gap between the steady loop's sweeps: 0 when the fit has no hysteresis."""
+        _, z_up, z_down = self.steady_loop()
+        return float(abs(self.k_h_m) * np.max(np.abs(z_up - z_down)))
 
     def loop_lengths(self, p_pa, rising) -> np.ndarray:
         """Length on the steady loop at each pressure; `rising` picks the sweep per sample."""
@@ -274,7 +281,15 @@ def fit_bouc_wen(p_pa, length_m, rising, backbone: str = 'linear', *,
     names = (*_backbone_names(backbone), *HYSTERESIS_NAMES)
     fit = multistart_least_squares(residuals, names, (lower, upper), best, jac=jacobian,
                                    max_nfev=400)
-    return BoucWenFit(model_of(fit.x), fit)
+    model = model_of(fit.x)
+    # Least squares may prefer the backbone alone (beta or k_h at 0): then nothing of the
+    # fit is Bouc-Wen, and whoever compares models or simulates it as a muscle must know.
+    if model.loop_width_m < LOOPLESS_FRACTION * stroke:
+        fit.warnings.append(
+            f'the fitted loop is {1000 * model.loop_width_m:.2g} mm wide (the data\'s stroke '
+            f'{1000 * stroke:.3g} mm): with this backbone Bouc-Wen fits best without '
+            'hysteresis, and its hysteresis parameters mean nothing')
+    return BoucWenFit(model, fit)
 
 
 def _backbone_names(form: str) -> Sequence[str]:

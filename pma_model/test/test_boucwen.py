@@ -49,6 +49,17 @@ def test_hill_backbone_fits_far_better(linear_fit, loop):
     assert metrics.r2 > 0.995
 
 
+def test_a_fit_without_hysteresis_says_so(loop, linear_fit):
+    # With the sigmoid backbone, Table 1's least-squares optimum has beta at 0: the
+    # backbone alone, no loop (RMSE 0.18 cm against the hysteretic Hill fit's 0.14 cm).
+    loopless = fit_bouc_wen(*loop, backbone='sigmoid')
+    assert loopless.model.loop_width_m < 1e-4
+    assert any('without hysteresis' in text for text in loopless.fit.warnings)
+    for fitted in (linear_fit, fit_bouc_wen(*loop, backbone='hill')):
+        assert fitted.model.loop_width_m > 0.003   # Table 1's loop: up to 5.9 mm wide
+        assert not any('without hysteresis' in text for text in fitted.fit.warnings)
+
+
 def test_preconditioned_loop_is_steady():
     model = BoucWenModel(LinearBackbone(0.30, -0.06, 5e5), 0.01, 5.0, 0.5, 1.5, 5e5)
     _, z_up, z_down = model.steady_loop()
