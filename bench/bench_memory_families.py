@@ -32,6 +32,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
 
+import numpy as np
+
 from pma_driver.sim.families import FAMILY_NAMES
 from support.muscle_families import (
     ALL_CONFIGS,
@@ -46,6 +48,8 @@ from support.muscle_families import (
     STROKE_M,
     Config,
     Scenario,
+    duhem_variant_fit_errors_m,
+    duhem_variant_scales_pa,
     oracle_score,
     perfectly_corrected,
     score,
@@ -145,18 +149,36 @@ def drift(form: str, seed: int, families) -> tuple[list[str], bool]:
     return lines, passed
 
 
+def family_name(text: str) -> str:
+    """argparse type: a scored family or a held-out Duhem variant."""
+    try:
+        if text in SCORED_FAMILIES or duhem_variant_scales_pa(text) is not None:
+            return text
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    raise argparse.ArgumentTypeError(f'{text!r}: choose from {", ".join(SCORED_FAMILIES)} '
+                                     'or duhem:RISING:FALLING')
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--forms', nargs='+', default=['sigmoid', 'hill'])
     parser.add_argument('--duration', type=float, default=180.0, help='path length [s]')
     parser.add_argument('--families', nargs='+', default=list(SCORED_FAMILIES),
-                        choices=SCORED_FAMILIES,
-                        help='default: every simulated family and the held-out bouc-wen')
+                        type=family_name,
+                        help='default: every simulated family and the held-out bouc-wen; '
+                             'duhem:RISING:FALLING (kPa) adds a Duhem muscle with other '
+                             'approach scales, fitted to Table 1 (asymmetric is duhem:15:100)')
     args = parser.parse_args()
     start = time.monotonic()
     print(f'# Minor loops on every muscle family (paths of {args.duration:.0f} s at 50 Hz, '
           f'stroke {STROKE_M * 100:.2f} cm)')
+    for family in args.families:
+        if duhem_variant_scales_pa(family) is not None:
+            errors = duhem_variant_fit_errors_m(family)
+            print(f'{family}: Table 1 fit RMSE {100 * np.sqrt(np.mean(errors ** 2)):.3f} cm, '
+                  f'max {100 * np.max(np.abs(errors)):.3f} cm over {errors.size} points')
     verdicts = []
     for form in args.forms:
         print('\n'.join(table(form, args.seeds, args.duration, args.families)), flush=True)

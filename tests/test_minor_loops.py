@@ -34,6 +34,7 @@ from support.muscle_families import (
     Config,
     Scenario,
     bouc_wen_fit,
+    duhem_variant_scales_pa,
     oracle_score,
     return_point_oracle,
     score,
@@ -123,6 +124,14 @@ def test_the_oracle_refuses_a_muscle_whose_state_depends_on_time():
         return_point_oracle(Scenario('creep'))
     with pytest.raises(ValueError, match='without drift'):
         return_point_oracle(Scenario('narrow', drift_start_s=60.0))
+
+
+def test_a_held_out_duhem_variant_is_named_by_its_approach_scales():
+    assert duhem_variant_scales_pa('duhem:30:60') == (30e3, 60e3)
+    assert duhem_variant_scales_pa('asymmetric') is None
+    for bad in ('duhem:30', 'duhem:a:b', 'duhem:0:60', 'duhem:30:60:90'):
+        with pytest.raises(ValueError, match='duhem'):
+            duhem_variant_scales_pa(bad)
 
 
 def test_on_the_duhem_muscle_even_the_exact_muscle_with_return_point_memory_misses_the_max():

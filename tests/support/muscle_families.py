@@ -17,6 +17,9 @@ loops ratchet. (With the sigmoid backbone the least-squares optimum has no loop 
 that fit would be a muscle without hysteresis.) It lives here, not in pma_driver.sim, so the
 simulator does not depend on the model package.
 
+More held-out muscles on demand: `duhem:RISING:FALLING` is a Duhem muscle like `asymmetric`
+with other approach scales (kPa), fitted to Table 1 the same way.
+
 `return_point_oracle` is the yardstick for muscles without return-point memory: the muscle
 itself, made to keep that property, which the model must.
 """
@@ -29,7 +32,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pma_driver.sim import families, paths
+from pma_driver.sim import families, fit_families, paths
 from pma_model.boucwen import BoucWenModel, fit_bouc_wen
 from pma_model.forecaster import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel, run_online
@@ -137,11 +140,52 @@ class BoucWenMuscle:
         return self.length_m
 
 
+DUHEM_VARIANT = 'duhem'   # 'duhem:30:60': a Duhem muscle with other approach scales
+
+
+def duhem_variant_scales_pa(family: str) -> tuple[float, float] | None:
+    """'duhem:30:60' -> (30e3, 60e3): the rising and falling approach scales [kPa in the
+    name, Pa returned] of a held-out Duhem muscle; None for any other family name.
+
+    The `asymmetric` family is the Duhem muscle with 15 and 100 kPa; any other pair, fitted
+    to Table 1 the same way (fit_families.fit_asymmetric, about 30 s), is a muscle the
+    defaults were not chosen on.
+    """
+    name, _, scales = family.partition(':')
+    if name != DUHEM_VARIANT:
+        return None
+    try:
+        rising_kpa, falling_kpa = (float(text) for text in scales.split(':'))
+    except ValueError:
+        raise ValueError(f'{family!r}: a Duhem variant is duhem:RISING:FALLING, its approach '
+                         'scales in kPa (e.g. duhem:30:60)') from None
+    if not (1.0 <= rising_kpa <= 1000.0 and 1.0 <= falling_kpa <= 1000.0):
+        raise ValueError(f'{family!r}: approach scales must be within 1..1000 kPa')
+    return 1e3 * rising_kpa, 1e3 * falling_kpa
+
+
+@functools.lru_cache(maxsize=8)
+def _duhem_variant_fit(rising_scale_pa: float, falling_scale_pa: float) -> families.DuhemParams:
+    return fit_families.fit_asymmetric(rising_scale_pa=rising_scale_pa,
+                                       falling_scale_pa=falling_scale_pa)
+
+
+def duhem_variant_fit_errors_m(family: str) -> np.ndarray:
+    """A Duhem variant's steady major loop minus Table 1 (22 values): how well it matches."""
+    params = _duhem_variant_fit(*duhem_variant_scales_pa(family))
+    up, down = families.duhem_major_loop_m(params, fit_families.TABLE1_PRESSURE_PA)
+    return np.concatenate([up, down]) - fit_families.TARGET
+
+
 def muscle_for(family: str, drift: families.DriftSpec | None = None) -> families.Muscle:
     if family == BOUC_WEN:
         if drift is not None:
             raise ValueError('the held-out bouc-wen muscle has no drift option')
         return BoucWenMuscle(bouc_wen_fit())
+    scales = duhem_variant_scales_pa(family)
+    if scales is not None:
+        muscle = families.DuhemMuscle(_duhem_variant_fit(*scales))
+        return muscle if drift is None else families.DriftingMuscle(muscle, drift)
     return families.muscle_family(family, drift)
 
 
