@@ -57,6 +57,7 @@ CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
 MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
 MAX_DIFFERENCE_M = 2 * MAX_CORRECTION_M   # each branch's own correction stays within the above
 MAX_CREEP_GAIN = 1.0
+ROUNDING_M = 1e-12           # a bound missed by less than this is met (float rounding)
 # Far beyond any loss difference of the mix (errors are capped at adaptation.outlier_m, at
 # most 0.05 m, and forgotten over 100 s: 0.25 m^2 s).
 MAX_EXCESS_LOSS_M2S = 1.0
@@ -511,10 +512,14 @@ class OnlineModel:
         correction, difference, creep, shift, gain_excess = self._parts()
         mean = correction + self._drift_directions() @ np.array([shift, gain_excess])
         increasing, decreasing = self._branch_offsets(mean, difference)
-        if not (np.array_equal(increasing, mean + 0.5 * difference)
-                and np.array_equal(decreasing, mean - 0.5 * difference)):
+        if not (np.allclose(increasing, mean + 0.5 * difference, rtol=0.0, atol=ROUNDING_M)
+                and np.allclose(decreasing, mean - 0.5 * difference, rtol=0.0,
+                                atol=ROUNDING_M)):
             # A limit bound: save what the branches use. Otherwise the filter's own numbers,
-            # so that a saved file gives them back to the last bit.
+            # so that a saved file gives them back to the last bit. Numbers saved from a
+            # bound meet it again only to rounding, which must not count as a bound: their
+            # mean +/- half the difference can land an ulp outside it, and then every
+            # restart would save them an ulp off.
             mean, difference = 0.5 * (increasing + decreasing), increasing - decreasing
         return replace(self.identification, play_share_rising=float(self._shares[0]),
                        play_share_falling=float(self._shares[1]),
