@@ -172,9 +172,7 @@ def _duhem_variant_fit(rising_scale_pa: float, falling_scale_pa: float) -> famil
 
 def duhem_variant_fit_errors_m(family: str) -> np.ndarray:
     """A Duhem variant's steady major loop minus Table 1 (22 values): how well it matches."""
-    params = _duhem_variant_fit(*duhem_variant_scales_pa(family))
-    up, down = families.duhem_major_loop_m(params, fit_families.TABLE1_PRESSURE_PA)
-    return np.concatenate([up, down]) - fit_families.TARGET
+    return fit_families.duhem_loop_errors_m(_duhem_variant_fit(*duhem_variant_scales_pa(family)))
 
 
 def muscle_for(family: str, drift: families.DriftSpec | None = None) -> families.Muscle:

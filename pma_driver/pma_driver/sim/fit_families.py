@@ -110,8 +110,7 @@ def fit_asymmetric(starts: int = 4, seed: int = 0, rising_scale_pa: float = RISI
         return _duhem(z, rising_scale_pa, falling_scale_pa)
 
     def residuals(z):
-        up, down = families.duhem_major_loop_m(model(z), TABLE1_PRESSURE_PA)
-        return np.concatenate([up, down]) - TARGET
+        return duhem_loop_errors_m(model(z))
 
     lower = np.concatenate([[2.9], np.tile(np.array(_ENVELOPE_LOWER) / _ENVELOPE_SCALE, 2)])
     upper = np.concatenate([[3.1], np.tile(np.array(_ENVELOPE_UPPER) / _ENVELOPE_SCALE, 2)])
@@ -127,6 +126,11 @@ def fit_asymmetric(starts: int = 4, seed: int = 0, rising_scale_pa: float = RISI
         if best is None or result.cost < best.cost:
             best = result
     return model(best.x)
+
+
+def duhem_loop_errors_m(params: families.DuhemParams) -> np.ndarray:
+    """A Duhem muscle's steady loop minus Table 1 (22 values)."""
+    return np.concatenate(families.duhem_major_loop_m(params, TABLE1_PRESSURE_PA)) - TARGET
 
 
 def creep_steady_loop_m(hold_s: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
@@ -153,8 +157,7 @@ def loop_errors_m(name: str) -> np.ndarray:
     elif name == 'wide':
         up, down = families.play_major_loop_m(families.wide_params(), TABLE1_PRESSURE_PA)
     elif name == 'asymmetric':
-        up, down = families.duhem_major_loop_m(families.asymmetric_params(),
-                                               TABLE1_PRESSURE_PA)
+        return duhem_loop_errors_m(families.asymmetric_params())
     else:
         up, down = creep_steady_loop_m()
     return np.concatenate([up, down]) - TARGET
@@ -207,8 +210,7 @@ def main(argv: list[str] | None = None) -> None:
             ('narrow', loop_errors_m('narrow')),
             ('wide', np.concatenate(families.play_major_loop_m(wide, TABLE1_PRESSURE_PA))
              - TARGET),
-            ('asymmetric', np.concatenate(families.duhem_major_loop_m(
-                asymmetric, TABLE1_PRESSURE_PA)) - TARGET)):
+            ('asymmetric', duhem_loop_errors_m(asymmetric))):
         fits[name] = _summary(errors)
     fits['creep'] = ('the narrow fit at the end of each hold (creep share '
                      f"{CREEP['share']}, time constant {CREEP['time_constant_s']} s)")
