@@ -3,7 +3,7 @@
 fake_arduino re-implements the firmware in Python; this runs the firmware itself: the .elf
 that `make firmware` builds for the Mega executes on simavr at 16 MHz (the C program
 `pma_simavr`, pma_driver/firmware/simavr/), so 16-bit `int`, the 8 KiB of RAM, the Arduino
-core's timers and interrupts, `pulseIn` and the UART at its baud rate all behave as on the
+core's timers and interrupts, `pulseInLong` and the UART at its baud rate all behave as on the
 board. Everything around the board is fake_arduino's: the pty, `--link`, the link faults, the
 stalls and unplugs, and the rig (`sim.device.Rig`: pneumatics, muscle, sensor noise), so the
 same commands work against either.

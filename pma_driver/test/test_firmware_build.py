@@ -536,7 +536,7 @@ def test_50_hz_keeps_its_period_with_or_without_echo(rig_binary):
 
 @pytest.mark.parametrize(('echo_us', 'measured'), [(5500, True), (5600, False)])
 def test_echo_timeout_is_about_a_metre_of_range(rig_binary, echo_us, measured):
-    # pulseIn's timeout also covers the ~0.45 ms before the sensor raises Echo.
+    # pulseInLong's timeout also covers the ~0.45 ms before the sensor raises Echo.
     assert calibration.LengthCalibration().echo_to_range_m(5500) > 0.9
     run = run_rig(rig_binary, f'!adc {adc_for(0)}', f'!echo {echo_us}', '!run 500')
     assert {s.echo_us for s in run.samples} == {echo_us if measured else 0}

@@ -6,7 +6,7 @@ on any machine. Built by tools/firmware.sh (firmware_build.py), which installs s
 is missing; without it these tests are skipped, saying so.
 
 What the host build (test_firmware_build.py) cannot show: 16-bit `int`, the stack in 8 KiB,
-the Arduino core's timers and interrupts, pulseIn's counted loop, the UART at its baud rate.
+the Arduino core's timers and interrupts, pulseInLong's micros(), the UART at its baud rate.
 """
 
 from __future__ import annotations
@@ -180,7 +180,7 @@ def test_boots_with_the_banner_and_streams_at_20_hz(bench):
     assert [s.seq for s in samples] == list(range(len(samples)))
     assert len(samples) in (99, 100)
     assert set(gaps_ms(samples)) <= {49, 50, 51}
-    # The rig at rest, through the real ADC and pulseIn: ~0 kPa and the 30 cm muscle.
+    # The rig at rest, through the real ADC and pulseInLong: ~0 kPa and the 30 cm muscle.
     counts = [s.adc for s in samples]
     assert abs(sum(counts) / len(counts) - adc_for(0)) < 1 and max(counts) - min(counts) < 16
     rest_us = b.rig.range_sensor.length_to_echo_us(b.rig.length_m)
@@ -219,14 +219,27 @@ def test_the_image_answers_every_line_as_the_host_build(bench):
         assert b.replies()[1:] == replies, line     # [0] is the boot banner
 
 
-def test_pulse_in_reads_the_echo_within_a_few_microseconds(bench):
-    # pulseIn counts loop turns, and the timer interrupt that keeps millis() steals some:
-    # the board under-reads by a few microseconds, never over-reads.
+def test_the_echo_is_timed_within_a_few_microseconds_also_under_serial_traffic(bench):
+    """An interrupt may delay an edge, never shorten the echo by the time it steals.
+
+    The image once timed the echo with pulseIn, which counts loop turns: every UART interrupt
+    during the echo stole some. With commands arriving and their ACKs leaving it read up to
+    97 us short (a muscle 17 mm too long; CI saw 0.318 m at rest). pulseInLong times the edges
+    with micros() (4 us steps), so each edge is late by at most one interrupt and one turn.
+    """
     b = bench(length_noise_m=0.0)
     b.run(3_000, heartbeat_ms=500)
     truth = b.rig.range_sensor.length_to_echo_us(round(b.rig.length_m / 0.003) * 0.003)
-    errors = {s.echo_us - truth for s in b.samples()}
-    assert errors <= set(range(-12, 1)), errors
+    quiet = [s.echo_us - truth for s in b.samples()]
+    start = b.t_ms
+    for burst in range(100):          # 12 commands a sample, both UART directions kept busy
+        b.send(*[command('SET', 0)] * 12)
+        b.run(47 + burst % 7)
+    busy = [s.echo_us - truth for s in b.samples(since_ms=start + 50)]
+    assert len(busy) > 90
+    for errors in (quiet, busy):
+        assert all(-16 <= error <= 16 for error in errors), sorted(set(errors))
+    assert b.stats().values['rx_overruns'] == 0
 
 
 # ---- Rates, loop time, stack, UART ----------------------------------------------------------

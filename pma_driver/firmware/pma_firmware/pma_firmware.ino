@@ -50,8 +50,8 @@ const int32_t DEADBAND_PA = 5000;
 // The valves are decided between samples too, so the pressure is held at 200 Hz.
 const uint8_t REGULATION_PERIOD_MS = 5;
 
-// ---- HC-SR04. pulseIn() blocks until the echo ends or this timeout passes, and nothing else
-// runs meanwhile (no regulation, no ceiling check), so it is only as long as the rig needs.
+// ---- HC-SR04. pulseInLong() blocks until the echo ends or this timeout passes, and nothing
+// else runs meanwhile (no regulation, no ceiling check), so it is only as long as the rig needs.
 // The timeout runs from the call: it covers the ~0.45 ms the sensor takes to raise Echo
 // and the echo itself, which leaves echoes up to ~5.5 ms, a target up to ~0.95 m away.
 // The sensor sits within ~0.5 m of the plate; anything farther is no echo from it.
@@ -154,13 +154,17 @@ void regulate() {
 // ---- HC-SR04.
 
 // Echo pulse width in us, 0 when no echo came back within ECHO_TIMEOUT_US.
+// pulseInLong times the edges with micros(), so an interrupt delays an edge by its own length
+// at most. pulseIn counts turns of a loop instead, and every UART interrupt during the echo
+// steals turns: with the host's commands arriving and their ACKs leaving it read up to ~100 us
+// short, a muscle 17 mm too long (test_firmware_simavr.py measures both).
 uint16_t measureEchoUs() {
   digitalWrite(PIN_ULTRASONIC_TRIGGER, LOW);
   delayMicroseconds(2);
   digitalWrite(PIN_ULTRASONIC_TRIGGER, HIGH);
   delayMicroseconds(TRIGGER_PULSE_US);
   digitalWrite(PIN_ULTRASONIC_TRIGGER, LOW);
-  return (uint16_t)pulseIn(PIN_ULTRASONIC_ECHO, HIGH, ECHO_TIMEOUT_US);
+  return (uint16_t)pulseInLong(PIN_ULTRASONIC_ECHO, HIGH, ECHO_TIMEOUT_US);
 }
 
 // ---- Frames out: `$body*HH\n`, the checksum kept while the body is written.

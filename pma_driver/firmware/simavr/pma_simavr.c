@@ -2,7 +2,7 @@
  * pma_simavr: the firmware's own AVR image on a simulated ATmega2560, wired to a controller.
  *
  * simavr (Debian: libsimavr-dev) runs the unmodified .elf at 16 MHz, cycle by cycle: the
- * Arduino core's timers, interrupts, ADC, pulseIn's counted loop and the UART at its baud
+ * Arduino core's timers, interrupts, ADC, pulseInLong's micros() and the UART at its baud
  * rate. This program owns only the board's wiring and never reads a clock: it runs the AVR
  * for as many cycles as it is told and asks its controller (pma_driver.simavr_arduino, which
  * keeps the rig's physics and the USB-serial pty in the same simulated time) whenever the

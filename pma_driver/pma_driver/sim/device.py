@@ -40,7 +40,7 @@ TARE_MAX_OFFSET_PA = 25_000     # TARE only when the untared reading is this clo
 DEADBAND_PA = 5_000             # bang-bang band around the setpoint
 REGULATION_PERIOD_MS = 5        # valves decided this often between samples
 ADC_OVERSAMPLING = 4            # conversions averaged into one reading
-ECHO_TIMEOUT_US = 6_000         # pulseIn timeout, counted from the trigger
+ECHO_TIMEOUT_US = 6_000         # pulseInLong timeout, counted from the trigger
 ECHO_START_US = 450             # HC-SR04: trigger to rising echo, inside that timeout
 NAK_NAME_MAX = 12               # a NAK echoes at most this much of the command's name
 MIN_HEARTBEAT_TIMEOUT_MS = 100
@@ -120,7 +120,7 @@ class Rig:
         return self.pressure_sensor.pa_to_adc(noisy)
 
     def read_echo_us(self) -> int:
-        """One HC-SR04 reading as pulseIn() returns it; 0 when the echo timed out.
+        """One HC-SR04 reading as pulseInLong() returns it; 0 when the echo timed out.
 
         Lost at random (`echo_timeout_rate`), or when the rising edge plus the echo do not
         fit in the firmware's ECHO_TIMEOUT_US (a target farther than ~0.95 m).

@@ -23,7 +23,7 @@ void pinMode(uint8_t pin, uint8_t mode);
 void digitalWrite(uint8_t pin, uint8_t level);
 int analogRead(uint8_t pin);
 void analogReference(uint8_t mode);
-unsigned long pulseIn(uint8_t pin, uint8_t state, unsigned long timeout_us);
+unsigned long pulseInLong(uint8_t pin, uint8_t state, unsigned long timeout_us);
 char *ultoa(unsigned long value, char *buffer, int radix);
 char *ltoa(long value, char *buffer, int radix);
 

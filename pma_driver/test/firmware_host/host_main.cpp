@@ -2,7 +2,7 @@
 //
 // Reads a script on stdin, one item a line:
 //   !adc N       the pressure sensor's ADC count from now on
-//   !echo N      the HC-SR04 echo width in us from now on (0 or too long: pulseIn times out)
+//   !echo N      the HC-SR04 echo width in us from now on (0 or too long: pulseInLong times out)
 //   !run MS      run loop() for MS ms of simulated time
 //   !loop_us N   simulated time one pass of loop() takes besides the sensor reads (default 40)
 //   !pins        print "!pins <inlet> <exhaust>", 1 for an open valve (from the pins' levels)
@@ -58,11 +58,11 @@ int analogRead(uint8_t) {
   return adcCount;
 }
 
-// The HC-SR04 raises its echo line ~450 us after the trigger; pulseIn's timeout runs from its
-// call, so it covers that wait too (as in the Arduino core's countPulseASM).
+// The HC-SR04 raises its echo line ~450 us after the trigger; pulseInLong's timeout runs from
+// its call, so it covers that wait too (as in the Arduino core's wiring_pulse.c).
 const unsigned long ECHO_START_US = 450;
 
-unsigned long pulseIn(uint8_t, uint8_t, unsigned long timeoutUs) {
+unsigned long pulseInLong(uint8_t, uint8_t, unsigned long timeoutUs) {
   if (echoUs == 0 || ECHO_START_US + echoUs > timeoutUs) {
     nowUs += timeoutUs;
     return 0;
