@@ -126,6 +126,10 @@ class PtyPort:
 
     def wait_readable(self, timeout_s: float) -> bool:
         if not self.host_attached:
+            # What a host wrote just before it closed was on the wire: a board's UART
+            # receives it (a driver's last VENT). It is read until the buffer is empty.
+            if dict(self._poll.poll(0)).get(self.master, 0) & select.POLLIN:
+                return True
             time.sleep(min(max(0.0, timeout_s), IDLE_POLL_S))
             return False
         events = dict(self._poll.poll(max(0.0, timeout_s) * 1000.0)).get(self.master, 0)

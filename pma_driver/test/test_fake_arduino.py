@@ -10,7 +10,7 @@ import pytest
 import serial
 
 from pma_common.sequence import SequenceStats, SequenceTracker
-from pma_driver import protocol
+from pma_driver import fake_arduino, protocol
 from pma_driver.calibration import PressureCalibration
 from pma_driver.protocol import Ack, FrameDecoder, Hello, Sample
 
@@ -162,6 +162,28 @@ def test_heartbeat_loss_over_the_wire(procs):
     frames = port.collect(2.0, heartbeat_s=0)
     lost = [s for s in samples_of(frames) if s.status & protocol.STATUS_HEARTBEAT_LOST]
     assert lost and all(s.valve == protocol.Valve.VENT for s in lost)
+
+
+def test_what_a_host_wrote_just_before_it_closed_is_still_received():
+    """A board's UART receives what was on the wire when the host closed the port.
+
+    The driver writes VENT as it closes. fake_arduino read nothing from a closed pty, so
+    when it saw the close before the bytes the VENT was lost and the device kept its
+    setpoint (CI: test_ctrl_c_under_launch_vents_the_muscle, the device at 150 kPa).
+    """
+    port = fake_arduino.PtyPort()
+    try:
+        host = os.open(port.path, os.O_RDWR | os.O_NOCTTY)
+        assert port.check_host()
+        vent = protocol.encode_command(protocol.Command.VENT)
+        os.write(host, vent)
+        os.close(host)
+        assert not port.check_host()          # the close is noticed first
+        assert port.wait_readable(0.0)
+        assert port.read() == vent
+        assert not port.wait_readable(0.0)    # then nothing: no busy loop on a closed pty
+    finally:
+        port.close()
 
 
 def test_host_may_open_close_and_stop_reading(procs):
