@@ -28,8 +28,8 @@ its state (docs/model.md, "Online identification"):
 - drift (adaptation.enabled): rest-length shift and stroke gain (adaptation.Drift).
 
 delta, the creep gains and the drift are one Kalman filter (random walks: delta and creep
-nearly static, drift moving over adaptation.time_constant_s; with drift on, delta is kept
-out of the two directions drift moves the knots in, so they cannot trade off). Its
+nearly static, drift moving over adaptation.time_constant_s; drift starts at 0 with no prior
+spread, so how the muscle differs from Table 1 is learned as shape and later change as drift). Its
 measurement noise is the sensor's, divided by a confidence that is 1 on the major branches
 and falls as the two memory shapes disagree: a residual the memory could explain is not
 learned as shape or drift. The learned numbers are applied to the memory model when they have
@@ -73,8 +73,8 @@ SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth not
 # 1.5 mm give minor-loop RMSE 0.90, 0.87 and 0.90 % of stroke (1.13 % with no difference);
 # looser, it trades off against the play shares: 2 mm 0.93 %, 4 mm 1.17 %.
 DIFFERENCE_PRIOR_M = 0.001
-_PRIOR = {'correction': 0.004, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5, 'shift': 0.003,
-          'gain': 0.1, 'share': 1.0}
+# Drift has none: it starts at 0 (OnlineModel._new_filter).
+_PRIOR = {'correction': 0.004, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5, 'share': 1.0}
 _PRIOR_RESUMED = {'correction': 0.001, 'difference': 0.0005, 'creep': 0.1, 'share': 0.2}
 _WALK_PER_S = {'correction': 1e-5, 'creep': 1e-3, 'share': 0.003}
 
@@ -425,37 +425,29 @@ class OnlineModel:
     # --- construction ---------------------------------------------------------------
 
     def _new_filter(self, settings: IdentificationSettings, priors: dict) -> _Filter:
-        """The filter's state: [shape coordinates z, difference, creep gains, shift, gain - 1].
+        """The filter's state: [mean correction, difference, creep gains, shift, gain - 1].
 
-        The mean correction is basis @ z; the difference is free at every knot. With
-        adaptation on, the basis leaves out the two directions drift moves the knots in (a
-        constant, and the stroke-like B - L_ref), so shape and drift cannot trade off against
-        each other; without it, every knot is free.
+        Drift is what has changed since the model started: it starts at exactly 0 with no
+        prior spread, and only its random walk lets it move. How this muscle differs from
+        Table 1 at start is shape (the correction's wide prior). The shape used to be kept
+        out of the two directions drift moves the knots in, with a prior on drift as wide
+        as the shape's: then the filter had to explain the muscle's rest length and stroke
+        misfit as drift, and any local correction had to be balanced elsewhere, so the
+        knots zigzagged to their limits (play memory on the Bouc-Wen muscle: 20 mm errors
+        with adaptation on, 3.4 mm off; docs/model.md §5).
         """
         knots = len(CORRECTION_KNOTS_PA)
-        drift_directions = self._drift_directions()
-        if self._drifting:
-            full, _, _ = np.linalg.svd(drift_directions, full_matrices=True)
-            self._basis = full[:, drift_directions.shape[1]:]
-        else:
-            self._basis = np.eye(knots)
-        saved = np.array(settings.branch_correction_m)
-        shape = self._basis.T @ saved
-        drift = np.zeros(2)
-        if self._drifting:
-            drift = np.linalg.lstsq(drift_directions, saved - self._basis @ shape, rcond=None)[0]
-        size = self._basis.shape[1]
-        mean = np.concatenate([shape, settings.branch_difference_m, settings.creep_gains, drift])
+        mean = np.concatenate([settings.branch_correction_m, settings.branch_difference_m,
+                               settings.creep_gains, [0.0, 0.0]])
         learn = 1.0 if self._learning else 0.0
-        on = 1.0 if self._drifting else 0.0
-        prior = np.concatenate([np.full(size, learn * priors['correction'] ** 2),
+        prior = np.concatenate([np.full(knots, learn * priors['correction'] ** 2),
                                 np.full(knots, learn * priors['difference'] ** 2),
                                 np.full(len(CREEP_TIME_CONSTANTS_S), learn * priors['creep'] ** 2),
-                                on * np.array([_PRIOR['shift'], _PRIOR['gain']]) ** 2])
-        walk = np.concatenate([np.full(size + knots, learn * _WALK_PER_S['correction'] ** 2),
+                                [0.0, 0.0]])
+        walk = np.concatenate([np.full(2 * knots, learn * _WALK_PER_S['correction'] ** 2),
                                np.full(len(CREEP_TIME_CONSTANTS_S),
                                        learn * _WALK_PER_S['creep'] ** 2), [0.0, 0.0]])
-        self._creep_gains = slice(size + knots, -2)     # where the creep gains sit in the state
+        self._creep_gains = slice(2 * knots, -2)     # where the creep gains sit in the state
         return _Filter(mean, np.diag(prior), walk)
 
     def _drift_directions(self) -> np.ndarray:
@@ -530,10 +522,10 @@ class OnlineModel:
     def _parts(self):
         """(mean correction, difference, creep gains, shift, gain - 1) at the knots, from the
         filter's state."""
-        size, knots = self._basis.shape[1], len(CORRECTION_KNOTS_PA)
+        knots = len(CORRECTION_KNOTS_PA)
         mean = self._filter.mean
-        return (self._basis @ mean[:size], mean[size:size + knots], mean[self._creep_gains],
-                mean[-2], mean[-1])
+        return (mean[:knots], mean[knots:2 * knots], mean[self._creep_gains], mean[-2],
+                mean[-1])
 
     def _raw_corrections(self) -> tuple[np.ndarray, np.ndarray]:
         """(mean correction, difference) as the filter has them (no drift, no limits)."""
@@ -600,7 +592,7 @@ class OnlineModel:
         noise = self.identification.length_noise_m ** 2
         if self._learning and self.memory == 'identify':
             self._learn_share(residual, shape_difference * gain, noise, dt)
-        size, knots = self._basis.shape[1], len(CORRECTION_KNOTS_PA)
+        knots = len(CORRECTION_KNOTS_PA)
         # d length / d knots, exact through the memory's turning points: on a scanning curve
         # the length is pinned to them, and their lengths came from earlier curves, often of
         # the other branch (the branch's own weights at this pressure, used until
@@ -608,7 +600,7 @@ class OnlineModel:
         gradient = self.model.length_gradient(knot_sensitivity)
         increasing, decreasing = gradient[:knots], gradient[knots:2 * knots]
         regressor = np.concatenate([
-            gain * ((increasing + decreasing) @ self._basis),
+            gain * (increasing + decreasing),
             (0.5 * gain) * (increasing - decreasing),
             gain * creep,
             [1.0, undrifted - self.reference_length_m]])
@@ -631,7 +623,7 @@ class OnlineModel:
         self._project_shape(state)
         mean = state.mean
         # np.minimum/maximum: the same bounds as np.clip, at a third of its cost per call.
-        difference = mean[size:size + knots]
+        difference = mean[knots:2 * knots]
         np.minimum(np.maximum(difference, -MAX_DIFFERENCE_M, out=difference), MAX_DIFFERENCE_M,
                    out=difference)
         creep_gains = mean[self._creep_gains]
@@ -650,16 +642,11 @@ class OnlineModel:
         binds only where the data ask for a branch that rises with pressure (noise, early
         on); the mean is moved back inside, the covariance is left alone.
         """
-        size = self._basis.shape[1]
-        shape = self._basis @ state.mean[:size]
+        knots = len(CORRECTION_KNOTS_PA)
+        shape = state.mean[:knots]
         projected = self._monotone(shape)
-        if projected == tuple(shape.tolist()):   # the usual case: compared as plain floats
-            return
-        projected = np.array(projected)
-        state.mean[:size] = self._basis.T @ projected
-        if self._drifting:
-            left = projected - self._basis @ state.mean[:size]
-            state.mean[-2:] += np.linalg.lstsq(self._drift_directions(), left, rcond=None)[0]
+        if projected != tuple(shape.tolist()):   # usually equal: compared as plain floats
+            state.mean[:knots] = projected
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
         """Scalar RLS on the current direction's play share (prediction linear in it)."""
