@@ -74,31 +74,25 @@ def test_the_default_memory_beats_the_papers_switch_in_rmse(family):
         assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind
 
 
-# The issue's max criterion is not met on the Duhem muscle, whose minor loops do not close:
-# after a nest of small loops inside a long fall it is millimetres longer than before the
-# nest, and a model with return-point memory (which the issue requires) comes back to its
-# own length. Seed 1: nested 0.71x the switch's max (t = 175 s, 3.0 mm), random 0.66x;
-# seeds 1-8: 9 of 16 runs within 0.7x, the rest 0.71-0.96x (docs/model.md §3.1). Even the
-# muscle itself, made to keep return-point memory, misses it on 6 of those 16 runs (the
-# oracle tests below). Strict: when it is met, this mark must go.
-NO_RETURN_POINT_MEMORY = pytest.mark.xfail(
-    strict=True, reason='asymmetric (Duhem) loops do not close; docs/model.md §3.1')
-
-
-@pytest.mark.parametrize('family', [
-    pytest.param(family, marks=NO_RETURN_POINT_MEMORY) if family == 'asymmetric' else family
-    for family in FAMILY_NAMES])
+@pytest.mark.parametrize('family', FAMILY_NAMES)
 def test_the_default_memorys_max_error_is_at_most_0_7_of_the_switch(family):
+    # On the Duhem muscle (asymmetric) only just, on this seed: nested 0.696x (0.71x before
+    # the share's slope across the loop), random 0.66x. See the next test.
     ours, paper = scores(family, MIXED), scores(family, PAPER)
     for kind in PATH_KINDS:
         assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
 
 
-def test_on_the_duhem_muscle_the_max_error_stays_near_the_criterion():
-    # What the strict mark above cannot say: how far from it (seed 1: 0.71x / 0.66x).
-    ours, paper = scores('asymmetric', MIXED), scores('asymmetric', PAPER)
-    for kind in PATH_KINDS:
-        assert ours[kind].max_m <= 0.75 * paper[kind].max_m, kind
+def test_on_the_duhem_muscle_the_max_error_stays_near_the_criterion_where_it_misses():
+    # The Duhem muscle's minor loops do not close: after a nest of small loops inside a long
+    # fall it is millimetres longer than before the nest, and a model with return-point
+    # memory (which the issue requires) comes back to its own length. On random/seed 2 the
+    # mix errs 0.72x the switch's max (t = 179.6 s); over seeds 1-8 it misses on 7 of 16
+    # runs, and even the muscle itself made to keep return-point memory misses on 6 (the
+    # oracle tests below; docs/model.md §3.1). How far from the criterion, then:
+    scenario = Scenario('asymmetric', 'random', seed=2)
+    ours, paper = score(scenario, MIXED), score(scenario, PAPER)
+    assert ours.max_m <= 0.75 * paper.max_m
 
 
 @pytest.mark.parametrize('family', ['narrow', 'wide'])

@@ -69,6 +69,7 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         assert list(first.mix_rules) == ['identify', 'play']
         assert list(first.mix_weights) == [0.5, 0.5]
         assert (first.play_share_rising, first.play_share_falling) == (0.5, 0.5)
+        assert (first.play_share_slope_rising, first.play_share_slope_falling) == (0.0, 0.0)
         assert list(first.branch_correction_m) == [0.0] * len(CORRECTION_KNOTS_PA)
         assert list(first.branch_difference_m) == [0.0] * len(CORRECTION_KNOTS_PA)
         run = publish_run(probe)
@@ -77,13 +78,16 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
                    'model_params with what it learned')
         learned = published[-1]
         print(f'\nlearned from {learned.samples_learned} of {count} samples: play shares '
-              f'{learned.play_share_rising:.2f} / {learned.play_share_falling:.2f}, '
+              f'{learned.play_share_rising:.2f} / {learned.play_share_falling:.2f} (slopes '
+              f'{learned.play_share_slope_rising:+.2f} / '
+              f'{learned.play_share_slope_falling:+.2f}), '
               f'correction mm {np.round(np.array(learned.branch_correction_m) * 1e3, 2)}, '
               f'difference mm {np.round(np.array(learned.branch_difference_m) * 1e3, 2)}')
         assert list(learned.branch_correction_pressures_pa) == list(CORRECTION_KNOTS_PA)
         assert np.max(np.abs(learned.branch_correction_m)) > 5e-4   # the sigmoid is wrong
         assert len(learned.branch_difference_m) == len(CORRECTION_KNOTS_PA)
         assert (learned.play_share_rising, learned.play_share_falling) != (0.5, 0.5)
+        assert (learned.play_share_slope_rising, learned.play_share_slope_falling) != (0.0, 0.0)
         assert len(learned.creep_gains) == len(learned.creep_time_constants_s) == 2
         print(f'mix weights {list(learned.mix_weights)}, play rule correction mm '
               f'{np.round(np.array(learned.play_rule_correction_m) * 1e3, 2)}')
@@ -94,10 +98,13 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         assert len(published) < 60     # republished at most once a second while learning
         values = yaml.safe_load(learned.parameters_yaml)['/**']['ros__parameters']
         assert values['identification']['play_share_rising'] == learned.play_share_rising
+        assert values['identification']['play_share_slope_falling'] == \
+            learned.play_share_slope_falling
         wait_until(lambda: any(kv.key == 'samples_learned' for a in diagnostics
                                for s in a.status for kv in s.values), 10, 'diagnostics')
         keys = {kv.key for a in diagnostics for s in a.status for kv in s.values}
-        assert {'play_share_rising', 'play_share_falling', 'branch_correction_mm',
+        assert {'play_share_rising', 'play_share_falling', 'play_share_slope_rising',
+                'play_share_slope_falling', 'branch_correction_mm',
                 'branch_difference_mm', 'creep_gains', 'mix_weights', 'play_rule_correction_mm',
                 'play_rule_difference_mm', 'play_rule_creep_gains'} <= keys
     finally:
@@ -115,6 +122,8 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         start = again[-1]
         assert start.play_share_rising == learned.play_share_rising
         assert start.play_share_falling == learned.play_share_falling
+        assert start.play_share_slope_rising == learned.play_share_slope_rising
+        assert start.play_share_slope_falling == learned.play_share_slope_falling
         assert list(start.branch_correction_m) == list(learned.branch_correction_m)
         assert list(start.branch_difference_m) == list(learned.branch_difference_m)
         assert list(start.creep_gains) == list(learned.creep_gains)

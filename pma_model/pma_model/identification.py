@@ -5,11 +5,13 @@ so the model keeps learning, sample by sample, three things about the muscle and
 its state (docs/model.md, "Online identification"):
 
 - the minor-loop rule: the play share of the 'identify' memory for rising and for falling
-  pressure (0 = Madelung, 1 = hold-then-branch; memory.py). The prediction is linear in
-  each share, with regressor (play-like - Madelung) length on the current scanning curve,
-  so each is a scalar recursive least-squares estimate, clamped to 0..1: a continuous
-  memory parameter between the two rules, whose regret against the best fixed share
-  grows only logarithmically. It learns only where the shapes differ: after reversals.
+  pressure (0 = Madelung, 1 = hold-then-branch; memory.py), and how it changes with where
+  the reversal lies across the loop (the slope). The prediction is linear in both, with
+  regressor (play-like - Madelung) length on the current scanning curve, so each
+  direction's pair is a recursive least-squares estimate, kept so that every curve's share
+  is within 0..1: a continuous memory parameter between the two rules, whose regret
+  against the best fixed pair grows only logarithmically. It learns only where the shapes
+  differ: after reversals.
 - the branch shape: a correction delta(P) given at knots every 50 kPa (CORRECTION_KNOTS_PA),
   added inside both branches (CorrectedBranch) so every memory rule uses it and keeps its
   continuity and return-point memory. Between knots it follows the branch's own length, so it
@@ -50,7 +52,7 @@ import numpy as np
 from pma_model.adaptation import AdaptationSettings, Drift
 from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
 from pma_model.detector import BRANCH_AUTO, DEFAULT_DEADBAND_PA
-from pma_model.memory import HysteresisModel, InverseResult
+from pma_model.memory import MID_DEPTH, HysteresisModel, InverseResult, play_share_at
 
 CORRECTION_KNOTS_PA = tuple(float(p) for p in np.linspace(0.0, 500_000.0, 11))
 CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
@@ -63,7 +65,7 @@ ROUNDING_M = 1e-12           # a bound missed by less than this is met (float ro
 MAX_EXCESS_LOSS_M2S = 1.0
 SPREAD_SCALE_M = 0.0005      # memory shapes this far apart halve the confidence (quarter R)
 COMMIT_M = 2e-5              # apply learned branch changes once they move 0.02 mm somewhere
-COMMIT_SHARE = 0.01          # or a share by this much
+COMMIT_SHARE = 0.01          # or a share or its slope by this much
 MAX_STEP_S = 1.0             # a longer gap between samples counts as this (a pause)
 GAIN_WALK_LENGTH_M = 0.03    # the gain may move as fast as the shift does at this |L - L_ref|
 SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth nothing)
@@ -74,9 +76,11 @@ SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth not
 # looser, it trades off against the play shares: 2 mm 0.93 %, 4 mm 1.17 %.
 DIFFERENCE_PRIOR_M = 0.001
 # Drift has none: it starts at 0 (OnlineModel._new_filter).
-_PRIOR = {'correction': 0.004, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5, 'share': 1.0}
-_PRIOR_RESUMED = {'correction': 0.001, 'difference': 0.0005, 'creep': 0.1, 'share': 0.2}
-_WALK_PER_S = {'correction': 1e-5, 'creep': 1e-3, 'share': 0.003}
+_PRIOR = {'correction': 0.004, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5, 'share': 1.0,
+          'share_slope': 0.5}
+_PRIOR_RESUMED = {'correction': 0.001, 'difference': 0.0005, 'creep': 0.1, 'share': 0.2,
+                  'share_slope': 0.1}
+_WALK_PER_S = {'correction': 1e-5, 'creep': 1e-3, 'share': 0.003, 'share_slope': 0.003}
 
 
 @dataclass(frozen=True)
@@ -86,6 +90,10 @@ class IdentificationSettings:
     enabled: bool = True
     play_share_rising: float = 0.5
     play_share_falling: float = 0.5
+    # How each share changes with where the reversal lies across the loop (memory.py,
+    # origin_depth): the shares above are those of a reversal mid-loop.
+    play_share_slope_rising: float = 0.0
+    play_share_slope_falling: float = 0.0
     branch_correction_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
     # Increasing minus decreasing correction: each branch gets the mean plus or minus half.
     branch_difference_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
@@ -106,6 +114,14 @@ class IdentificationSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):
                 raise ValueError(f'{name} must be within 0..1, got {value!r}')
+        for name, share in (('play_share_slope_rising', self.play_share_rising),
+                            ('play_share_slope_falling', self.play_share_falling)):
+            value = getattr(self, name)
+            # The share at either end of the loop, share -/+ slope / 2, stays within 0..1.
+            if not (math.isfinite(value) and abs(value) <= 2.0 * min(share, 1.0 - share)
+                    + ROUNDING_M):
+                raise ValueError(f'{name} must keep the share within 0..1 across the loop '
+                                 f'(|slope| <= 2 * min(share, 1 - share)), got {value!r}')
         for name, size, limit in (
                 ('branch_correction_m', len(CORRECTION_KNOTS_PA), MAX_CORRECTION_M),
                 ('branch_difference_m', len(CORRECTION_KNOTS_PA), MAX_DIFFERENCE_M),
@@ -127,8 +143,19 @@ class IdentificationSettings:
     def play_shares(self) -> tuple[float, float]:
         return self.play_share_rising, self.play_share_falling
 
+    @property
+    def share_slopes(self) -> tuple[float, float]:
+        return self.play_share_slope_rising, self.play_share_slope_falling
+
+    def share_at(self, rising: bool, depth: float) -> float:
+        """The play share a curve gets from a reversal at `depth` across the loop."""
+        index = 0 if rising else 1
+        return play_share_at(self.play_shares[index], self.share_slopes[index], depth)
+
     # What identification learns (the rest are settings): saved, published, carried over.
     LEARNED: ClassVar[tuple[str, ...]] = ('play_share_rising', 'play_share_falling',
+                                          'play_share_slope_rising',
+                                          'play_share_slope_falling',
                                           'branch_correction_m', 'branch_difference_m',
                                           'creep_gains', 'play_rule_correction_m',
                                           'play_rule_difference_m', 'play_rule_creep_gains',
@@ -148,7 +175,7 @@ class IdentificationSettings:
     def learned_anything(self) -> bool:
         """True when an OnlineModel starts from learned numbers (tighter priors)."""
         return any(self.branch_correction_m) or any(self.branch_difference_m) or \
-            any(self.creep_gains) or self.play_shares != (0.5, 0.5)
+            any(self.creep_gains) or self.play_shares != (0.5, 0.5) or any(self.share_slopes)
 
     def for_rule(self, rule: str) -> IdentificationSettings:
         """What the mix's OnlineModel for `rule` starts from: the play rule its own
@@ -159,6 +186,8 @@ class IdentificationSettings:
         default = IdentificationSettings()
         return replace(self, play_share_rising=default.play_share_rising,
                        play_share_falling=default.play_share_falling,
+                       play_share_slope_rising=default.play_share_slope_rising,
+                       play_share_slope_falling=default.play_share_slope_falling,
                        **{own: getattr(self, copy)
                           for own, copy in self._PLAY_RULE_FIELDS.items()})
 
@@ -399,23 +428,28 @@ class OnlineModel:
         knots = np.array(CORRECTION_KNOTS_PA)
         self.reference_length_m = float(np.mean(
             0.5 * (self.increasing.length(knots) + self.decreasing.length(knots))))
-        shares = settings.play_shares
-        self._shares = np.array(shares, dtype=float)
+        shares, slopes = settings.play_shares, settings.share_slopes
+        # Per direction [share mid-loop, slope across the loop] (memory.play_share_at), and
+        # their covariance.
+        self._shares = np.array(list(zip(shares, slopes, strict=True)), dtype=float)
         priors = _PRIOR_RESUMED if settings.learned_anything else _PRIOR
-        self._share_variance = np.full(2, priors['share'] ** 2)
+        self._share_covariance = np.array(
+            [np.diag([priors['share'] ** 2, priors['share_slope'] ** 2])] * 2)
+        self._share_prior = np.array([_PRIOR['share'], _PRIOR['share_slope']]) ** 2
+        self._share_walk = np.diag([_WALK_PER_S['share'], _WALK_PER_S['share_slope']]) ** 2
         self._filter = self._new_filter(settings, priors)
-        self._committed = (self._branch_offsets(), shares)
+        self._committed = (self._branch_offsets(), self._shares.copy())
         self._committed_raw = self._raw_corrections()
         branches = self._corrected(self._committed[0])
         self.model = HysteresisModel(*branches, memory=self.memory,
                                      deadband_pa=self.deadband_pa,
                                      max_gauge_pressure_pa=self.max_gauge_pressure_pa,
-                                     play_shares=shares)
+                                     play_shares=shares, share_slopes=slopes)
         # What measures the memory's doubt for every rule: the 'identify' shapes.
         self._shapes = self.model if self.memory == 'identify' else (
             HysteresisModel(*branches, memory='identify', deadband_pa=self.deadband_pa,
                             max_gauge_pressure_pa=self.max_gauge_pressure_pa,
-                            play_shares=shares)
+                            play_shares=shares, share_slopes=slopes)
             if self._learning or self._drifting else None)
         self._lags = None
         self._time = None
@@ -513,8 +547,10 @@ class OnlineModel:
             # mean +/- half the difference can land an ulp outside it, and then every
             # restart would save them an ulp off.
             mean, difference = 0.5 * (increasing + decreasing), increasing - decreasing
-        return replace(self.identification, play_share_rising=float(self._shares[0]),
-                       play_share_falling=float(self._shares[1]),
+        (rising, falling), (slope_rising, slope_falling) = self._mid_shares_and_slopes()
+        return replace(self.identification, play_share_rising=rising,
+                       play_share_falling=falling, play_share_slope_rising=slope_rising,
+                       play_share_slope_falling=slope_falling,
                        branch_correction_m=tuple(float(v) for v in mean),
                        branch_difference_m=tuple(float(v) for v in difference),
                        creep_gains=tuple(float(v) for v in creep))
@@ -649,34 +685,51 @@ class OnlineModel:
             state.mean[:knots] = projected
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
-        """Scalar RLS on the current direction's play share (prediction linear in it)."""
+        """RLS on the current direction's play share and its slope across the loop (the
+        prediction is linear in both, through the curve's share)."""
         if difference == 0.0:
             return
         index = 0 if self.model.rising else 1
-        variance = self._share_variance[index] + _WALK_PER_S['share'] ** 2 * dt
-        gain = variance * difference / (noise + difference * difference * variance)
-        self._shares[index] = min(1.0, max(0.0, self._shares[index] + gain * residual))
-        self._share_variance[index] = min(variance - gain * difference * variance,
-                                          _PRIOR['share'] ** 2)
+        regressor = difference * np.array([1.0, self.model.current_origin_depth() - MID_DEPTH])
+        covariance = self._share_covariance[index] + self._share_walk * dt
+        spread = covariance @ regressor
+        gain = spread / (noise + float(regressor @ spread))
+        share, slope = self._shares[index] + gain * residual
+        # Bounded where it matters: the shares at both ends of the loop (depth 0 and 1), so
+        # every curve's share is within 0..1. Clamping share and slope each on its own bent
+        # the learning (a constant truth of 0.1 came out as 0.9 where its reversals were).
+        near, far = share - 0.5 * slope, share + 0.5 * slope
+        if not (0.0 <= near <= 1.0 and 0.0 <= far <= 1.0):
+            near, far = min(1.0, max(0.0, near)), min(1.0, max(0.0, far))
+            share, slope = 0.5 * (near + far), far - near
+        self._shares[index] = share, slope
+        covariance = covariance - np.outer(gain, spread)
+        # Never less sure than the prior (a long stretch without this direction's curves).
+        scale = np.sqrt(np.minimum(1.0, self._share_prior / np.maximum(np.diag(covariance),
+                                                                      1e-300)))
+        self._share_covariance[index] = 0.5 * (covariance + covariance.T) * np.outer(scale, scale)
+
+    def _mid_shares_and_slopes(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((rising, falling) share mid-loop, (rising, falling) slope)."""
+        return tuple(self._shares[:, 0].tolist()), tuple(self._shares[:, 1].tolist())
 
     def _commit_if_moved(self) -> None:
-        _, shares = self._committed
+        _, committed_shares = self._committed
         raw = self._raw_corrections()
         (correction, difference), (then_correction, then_difference) = raw, self._committed_raw
         if np.abs(correction - then_correction).max() < COMMIT_M and \
                 np.abs(difference - then_difference).max() < COMMIT_M and \
-                max(abs(self._shares[0] - shares[0]), abs(self._shares[1] - shares[1])) \
-                < COMMIT_SHARE:
+                np.abs(self._shares - committed_shares).max() < COMMIT_SHARE:
             return
         self._committed_raw = raw
         offsets = self._branch_offsets(*raw)
         self.commits += 1
-        new_shares = (float(self._shares[0]), float(self._shares[1]))
+        new_shares, new_slopes = self._mid_shares_and_slopes()
         branches = self._corrected(offsets)
-        self.model.relearn(*branches, new_shares)
+        self.model.relearn(*branches, new_shares, new_slopes)
         if self._shapes is not None and self._shapes is not self.model:
-            self._shapes.relearn(*branches, new_shares)
-        self._committed = (offsets, new_shares)
+            self._shapes.relearn(*branches, new_shares, new_slopes)
+        self._committed = (offsets, self._shares.copy())
 
     # --- inverse --------------------------------------------------------------------
 

@@ -23,13 +23,14 @@ Four rules (docs/model.md has the full story and their errors on minor loops):
 - 'identify' (the default): the Madelung stack, with scanning curves that mix two shapes from
   the same two points O and T: Madelung's rescaled branch and a play-like curve that holds
   at L_O and then runs parallel to the (rescaled) branch into T. With s = (B(P) - B(P_T)) /
-  (B(P_O) - B(P_T)), q = min(1, (L_O - L_T) / (B(P_O) - B(P_T))) and w the play share of
-  the current direction (rising or falling):
+  (B(P_O) - B(P_T)), q = min(1, (L_O - L_T) / (B(P_O) - B(P_T))) and w the curve's play
+  share:
       L(P) = L_T + (L_O - L_T) * (w * min(1, s / q) + (1 - w) * s)
-  w = 0 is Madelung, w = 1 hold-then-branch. Every curve passes through O and T, so the
-  rule keeps return-point memory, wiping-out and continuity for any w, and the shape is
-  piecewise linear in s, so the inverse stays closed-form. `identification.OnlineModel`
-  learns the two shares from the measured length.
+  w = 0 is Madelung, w = 1 hold-then-branch. w depends on the direction and on where O lies
+  across the loop (play_share_at, origin_depth), so it is fixed for the curve. Every curve
+  passes through O and T, so the rule keeps return-point memory, wiping-out and continuity
+  for any w, and the shape is piecewise linear in s, so the inverse stays closed-form.
+  `identification.OnlineModel` learns the shares and slopes from the measured length.
 
 The Madelung stack follows every reversal of the pressure signal (loops smaller than the
 noise close on themselves and are wiped out); the deadband detector gives the reported
@@ -75,6 +76,12 @@ _SHORT_RUN = 32
 # below 0 Pa): the curve is then B shifted through O instead.
 _FLAT_SPAN_M = 1e-15
 
+# The 'identify' share of a curve is play_share + slope * (origin_depth - MID_DEPTH): the
+# shares are those of a reversal mid-loop, the slopes how they change across it.
+MID_DEPTH = 0.5
+# Branches closer than this [m] at a reversal's pressure: no loop to place it in.
+_NARROW_LOOP_M = 1e-4
+
 # Lengths this close [m] count as equal when deciding whether a curve reaches a target: a
 # curve evaluated at its own origin can differ from the stored length in the last bit.
 ROUNDING_M = 1e-12
@@ -116,6 +123,7 @@ class _Curve:
     origin: tuple[float, float] | None = None
     target: tuple[float, float] | None = None
     play_share: float = 0.0
+    origin_depth: float = 0.5   # O's place across the loop (HysteresisModel.origin_depth)
 
     def __post_init__(self):
         # Computed once, here: every curve is evaluated, and a commit of the online learning
@@ -181,7 +189,9 @@ class _Curve:
 
         `shape_gradient`: d major(p_pa) / d parameters; `ends`: those of O and T and of the
         major branch at their pressures (`HysteresisModel` carries them along the stack).
-        The play share is parameter `share_index` (None: the rule has none). With
+        The play share is parameter `share_index` (None: the rule has none); the curve's
+        share counts as a constant of the curve (through a slope it also depends on O's
+        place across the loop, which is left out). With
         D = L_O - L_T, E = B(P_O) - B(P_T), s = (B(P) - B(P_T)) / E and
         Phi(s) = w min(1, s / q) + (1 - w) s, the length L_T + D Phi(s) moves by
         dL = dL_T + (dL_O - dL_T) Phi + D (Phi'(s) ds + (min(1, s / q) - s) dw + dPhi/dq dq).
@@ -256,6 +266,22 @@ def _checked_shares(shares) -> tuple[float, float]:
     return rising, falling
 
 
+def play_share_at(share: float, slope: float, depth: float) -> float:
+    """The 'identify' share of a curve whose reversal lies at `depth` across the loop
+    (HysteresisModel.origin_depth), within 0..1."""
+    return min(1.0, max(0.0, share + slope * (depth - MID_DEPTH)))
+
+
+def _checked_slopes(slopes) -> tuple[float, float]:
+    """(rising, falling) change of the play share across the loop (finite; the share a
+    curve gets is clipped to 0..1)."""
+    rising, falling = (float(value) for value in slopes)
+    for name, value in (('rising', rising), ('falling', falling)):
+        if not math.isfinite(value):
+            raise ValueError(f'the {name} play share slope must be finite, got {value!r}')
+    return rising, falling
+
+
 def _as_float(value) -> float:
     try:
         return float(value)
@@ -272,7 +298,8 @@ class HysteresisModel:
     def __init__(self, increasing: Branch, decreasing: Branch, memory: str = 'madelung',
                  deadband_pa: float = DEFAULT_DEADBAND_PA,
                  max_gauge_pressure_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA, *,
-                 play_shares: tuple[float, float] = (0.5, 0.5)):
+                 play_shares: tuple[float, float] = (0.5, 0.5),
+                 share_slopes: tuple[float, float] = (0.0, 0.0)):
         if memory not in MEMORY_MODES:
             raise ValueError(f'memory must be one of {MEMORY_MODES}, got {memory!r}')
         if not (math.isfinite(max_gauge_pressure_pa) and max_gauge_pressure_pa > 0):
@@ -282,6 +309,7 @@ class HysteresisModel:
         self.decreasing = decreasing
         self.memory = memory
         self.play_shares = _checked_shares(play_shares)
+        self.share_slopes = _checked_slopes(share_slopes)
         self.max_gauge_pressure_pa = float(max_gauge_pressure_pa)
         self._detector = BranchDetector(deadband_pa)
         self.reset()
@@ -312,7 +340,8 @@ class HysteresisModel:
         return clone
 
     def relearn(self, increasing: Branch, decreasing: Branch,
-                play_shares: tuple[float, float] | None = None) -> None:
+                play_shares: tuple[float, float] | None = None,
+                share_slopes: tuple[float, float] | None = None) -> None:
         """New branches (and 'identify' shares) for the same pressure history.
 
         The state is rebuilt from the remembered turning points (resume_from), so what
@@ -325,6 +354,8 @@ class HysteresisModel:
         self.increasing, self.decreasing = increasing, decreasing
         if play_shares is not None:
             self.play_shares = _checked_shares(play_shares)
+        if share_slopes is not None:
+            self.share_slopes = _checked_slopes(share_slopes)
         self.resume_from(old)
 
     def resume_from(self, other: HysteresisModel) -> None:
@@ -397,8 +428,33 @@ class HysteresisModel:
         else:
             anchor_pa = self.max_gauge_pressure_pa if rising else 0.0
             target = (anchor_pa, float(major.length(anchor_pa)))
-        share = self.play_shares[0 if rising else 1] if self.memory == 'identify' else 0.0
-        return _Curve(major, stack[-1], target, share)
+        if self.memory != 'identify':
+            return _Curve(major, stack[-1], target)
+        depth = self.origin_depth(rising, stack[-1])
+        index = 0 if rising else 1
+        share = play_share_at(self.play_shares[index], self.share_slopes[index], depth)
+        return _Curve(major, stack[-1], target, share, depth)
+
+    def origin_depth(self, rising: bool, origin: tuple[float, float]) -> float:
+        """Where a reversal O lies across the major loop, seen from the branch its scanning
+        curve heads for: 0 on that branch, 1 on the other (after a full excursion).
+
+        A Duhem-like muscle leaves the far branch at once but barely moves after a short
+        excursion, so the play share may depend on it (`share_slopes`). Where the branches
+        meet (near 0 Pa) every point is on both: 1, as after a full excursion.
+        """
+        p_origin, l_origin = origin
+        toward = float(self.major(rising).length(p_origin))
+        width = float(self.major(not rising).length(p_origin)) - toward
+        if abs(width) < _NARROW_LOOP_M:
+            return 1.0
+        return min(1.0, max(0.0, (l_origin - toward) / width))
+
+    def current_origin_depth(self) -> float:
+        """origin_depth of the scanning curve in force (MID_DEPTH on a major branch)."""
+        if self.memory not in _STACK_MODES:
+            return MID_DEPTH
+        return self._current_curve().origin_depth
 
     def expert_lengths(self) -> tuple[float, float]:
         """(play-like, Madelung) lengths at the current pressure on the current curve.

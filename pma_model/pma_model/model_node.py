@@ -73,6 +73,9 @@ _RANGES = {
     'adaptation.time_constant_s': (1.0, 3600.0),
     'identification.play_share_rising': (0.0, 1.0),
     'identification.play_share_falling': (0.0, 1.0),
+    # Within the share's own limit too (IdentificationSettings): the share stays within 0..1.
+    'identification.play_share_slope_rising': (-1.0, 1.0),
+    'identification.play_share_slope_falling': (-1.0, 1.0),
     'identification.play_rule_excess_loss_m2s': (-MAX_EXCESS_LOSS_M2S, MAX_EXCESS_LOSS_M2S),
 }
 
@@ -305,6 +308,8 @@ class ModelNode(Node):
         msg.identification_enabled = bool(learned.enabled)
         msg.play_share_rising = learned.play_share_rising
         msg.play_share_falling = learned.play_share_falling
+        msg.play_share_slope_rising = learned.play_share_slope_rising
+        msg.play_share_slope_falling = learned.play_share_slope_falling
         msg.branch_correction_pressures_pa = list(CORRECTION_KNOTS_PA)
         msg.branch_correction_m = list(learned.branch_correction_m)
         msg.branch_difference_m = list(learned.branch_difference_m)
@@ -442,6 +447,8 @@ class ModelNode(Node):
                 samples_learned=learned_count,
                 play_share_rising=f'{learned.play_share_rising:.3f}',
                 play_share_falling=f'{learned.play_share_falling:.3f}',
+                play_share_slope_rising=f'{learned.play_share_slope_rising:.3f}',
+                play_share_slope_falling=f'{learned.play_share_slope_falling:.3f}',
                 branch_correction_mm=_millimetres(learned.branch_correction_m),
                 branch_difference_mm=_millimetres(learned.branch_difference_m),
                 creep_gains=' '.join(f'{v:.3f}' for v in learned.creep_gains))

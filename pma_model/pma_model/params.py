@@ -114,7 +114,8 @@ class ModelParams:
         return HysteresisModel(increasing, decreasing, memory=memory,
                                deadband_pa=self.deadband_pa,
                                max_gauge_pressure_pa=self.max_gauge_pressure_pa,
-                               play_shares=self.identification.play_shares)
+                               play_shares=self.identification.play_shares,
+                               share_slopes=self.identification.share_slopes)
 
     def build_online(self) -> OnlineModel | RuleMix:
         """The memory model with what it learns online (identification, drift adaptation);

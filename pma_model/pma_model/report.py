@@ -480,10 +480,13 @@ def format_table(report: dict) -> str:
                                              for name, memory in check['best_memory'].items()))
         for name, values in check.get('identified', {}).items():
             lines.append(f"  {name}/identify learned: play share rising "
-                         f"{values['play_share_rising']:.2f}, falling "
-                         f"{values['play_share_falling']:.2f}; branch correction cm at 0, 50, "
-                         f"... 500 kPa: {_cm(values['branch_correction_m'])} (increasing "
-                         f"minus decreasing: {_cm(values['branch_difference_m'])}); creep gains "
+                         f"{values['play_share_rising']:.2f} (slope across the loop "
+                         f"{values['play_share_slope_rising']:+.2f}), falling "
+                         f"{values['play_share_falling']:.2f} "
+                         f"({values['play_share_slope_falling']:+.2f}); branch correction cm "
+                         f"at 0, 50, ... 500 kPa: {_cm(values['branch_correction_m'])} "
+                         f"(increasing minus decreasing: {_cm(values['branch_difference_m'])}); "
+                         "creep gains "
                          + ', '.join(f'{v:.3f}' for v in values['creep_gains']))
             weights = check.get('mix_weights', {}).get(name, {})
             lines.append(f"  {name}/mix: weights at the end "

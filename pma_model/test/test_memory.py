@@ -356,9 +356,10 @@ def test_resume_from_rebuilds_the_state_with_new_branches(memory):
 
 # --- 'identify': the Madelung stack with a play share -----------------------------------
 
-def identify_model(form='sigmoid', shares=(0.5, 0.5), correction=None):
+def identify_model(form='sigmoid', shares=(0.5, 0.5), correction=None, slopes=(0.0, 0.0)):
     params = replace(default_params(), branch_form=form, memory='identify')
-    model = HysteresisModel(*params.branches(), memory='identify', play_shares=shares)
+    model = HysteresisModel(*params.branches(), memory='identify', play_shares=shares,
+                            share_slopes=slopes)
     if correction is not None:
         from pma_model.identification import CorrectedBranch
 
@@ -384,6 +385,42 @@ def test_identify_spans_madelung_and_a_play_like_hold():
     assert np.array_equal(identify_model(shares=(0.0, 1.0)).predict(path), lengths)
 
 
+def test_the_share_of_a_curve_follows_where_its_reversal_lies_across_the_loop():
+    # Rising slope 1: a rise from the falling major branch (depth 1) holds like play, a rise
+    # right after a short fall from the rising branch (depth near 0) is Madelung's.
+    model = identify_model(shares=(0.5, 0.5), slopes=(1.0, 0.0))
+    model.advance(ramp(0, 500, 0, 150))
+    assert model.current_origin_depth() == 1.0   # both branches meet at 0 Pa
+    model.reset()
+    model.advance(ramp(0, 500, 100, 150))
+    assert model.current_origin_depth() == pytest.approx(1.0, abs=1e-9)
+    assert model._current_curve().play_share == pytest.approx(1.0, abs=1e-9)
+    model.reset()
+    model.advance(ramp(0, 300, 290, 295))
+    shallow = model.current_origin_depth()
+    assert 0.0 < shallow < 0.3
+    assert model._current_curve().play_share == pytest.approx(0.5 + (shallow - 0.5), abs=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(shares=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+       slopes=st.tuples(st.floats(-2.0, 2.0), st.floats(-2.0, 2.0)),
+       top=st.floats(300.0, 500.0), bottom=st.floats(0.0, 100.0),
+       inner=st.tuples(st.floats(0.1, 0.9), st.floats(0.1, 0.9)))
+def test_identify_keeps_return_point_memory_and_continuity_for_any_share_across_the_loop(
+        shares, slopes, top, bottom, inner):
+    # up to top, down to bottom, a minor loop up to C and down to D, then up past C again
+    c = bottom + inner[0] * (top - bottom)
+    d = bottom + inner[1] * (c - bottom)
+    model = identify_model(shares=shares, slopes=slopes)
+    first = model.predict(ramp(0, top, bottom, c))[-1]
+    lengths = model.predict(ramp(0, top, bottom, c, d, c))
+    assert lengths[-1] == pytest.approx(first, abs=1e-12)
+    # 1 kPa steps move the length by at most the branches' slope (~0.25 mm), whatever the
+    # shares: no jump at a reversal or where a loop closes
+    assert np.max(np.abs(np.diff(lengths))) < 5e-4
+
+
 def test_relearn_keeps_the_history_and_moves_the_length_a_little():
     model = identify_model(shares=(0.5, 0.5))
     model.advance(ramp(0, 400, 150, 300, 220))
@@ -399,17 +436,19 @@ def test_relearn_keeps_the_history_and_moves_the_length_a_little():
 @settings(max_examples=60, deadline=None)
 @given(turns=st.lists(st.floats(0.0, 500.0), min_size=2, max_size=10),
        fraction=st.floats(0.0, 1.0), rising=st.booleans(),
-       shares=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+       shares=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0),
+                        st.floats(-1.0, 1.0), st.floats(-1.0, 1.0)),
        bump=st.floats(-0.003, 0.003))
 def test_identify_inverse_round_trip_with_any_shares_and_a_learned_correction(
         turns, fraction, rising, shares, bump):
+    # shares: (rising, falling) mid-loop and (rising, falling) slope across the loop
     correction = tuple(bump * math.sin(k) for k in range(11))
     from pma_model.identification import correction_caps, monotone_correction
 
     params = default_params()
     caps = np.minimum(*(correction_caps(branch) for branch in params.branches()))
     correction = monotone_correction(correction, caps)
-    model = identify_model(shares=shares, correction=correction)
+    model = identify_model(shares=shares[:2], correction=correction, slopes=shares[2:])
     model.advance(ramp(*turns, step_kpa=5.0))
     span = model.path_pressure_for_length(model.length_m, rising)
     if not span.success:

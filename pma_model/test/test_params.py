@@ -110,7 +110,7 @@ def test_flat_ros_parameters_round_trip(defaults):
                             'identification.play_rule_creep_gains'))
     assert flat['identification.branch_correction_m'] == [0.0] * 11
     assert flat['identification.branch_difference_m'] == [0.0] * 11
-    assert len(flat) == 4 + 6 + 11 + 16
+    assert len(flat) == 4 + 6 + 13 + 16
     assert ModelParams.from_ros_parameters(flat) == defaults
     changed = ModelParams.from_ros_parameters({'deadband_pa': 5000, 'memory': 'switch'})
     assert changed.deadband_pa == 5000.0 and isinstance(changed.deadband_pa, float)
