@@ -430,13 +430,12 @@ class OnlineModel:
             0.5 * (self.increasing.length(knots) + self.decreasing.length(knots))))
         shares, slopes = settings.play_shares, settings.share_slopes
         # Per direction [share mid-loop, slope across the loop] (memory.play_share_at), and
-        # their covariance.
+        # their covariance as [var share, covariance, var slope] (plain floats: every sample
+        # after a reversal updates one).
         self._shares = np.array(list(zip(shares, slopes, strict=True)), dtype=float)
         priors = _PRIOR_RESUMED if settings.learned_anything else _PRIOR
-        self._share_covariance = np.array(
-            [np.diag([priors['share'] ** 2, priors['share_slope'] ** 2])] * 2)
-        self._share_prior = np.array([_PRIOR['share'], _PRIOR['share_slope']]) ** 2
-        self._share_walk = np.diag([_WALK_PER_S['share'], _WALK_PER_S['share_slope']]) ** 2
+        self._share_covariance = [[priors['share'] ** 2, 0.0, priors['share_slope'] ** 2]
+                                  for _ in range(2)]
         self._filter = self._new_filter(settings, priors)
         self._committed = (self._branch_offsets(), self._shares.copy())
         self._committed_raw = self._raw_corrections()
@@ -690,11 +689,17 @@ class OnlineModel:
         if difference == 0.0:
             return
         index = 0 if self.model.rising else 1
-        regressor = difference * np.array([1.0, self.model.current_origin_depth() - MID_DEPTH])
-        covariance = self._share_covariance[index] + self._share_walk * dt
-        spread = covariance @ regressor
-        gain = spread / (noise + float(regressor @ spread))
-        share, slope = self._shares[index] + gain * residual
+        h_share = difference
+        h_slope = difference * (self.model.current_origin_depth() - MID_DEPTH)
+        var_share, cov, var_slope = self._share_covariance[index]
+        var_share += _WALK_PER_S['share'] ** 2 * dt
+        var_slope += _WALK_PER_S['share_slope'] ** 2 * dt
+        spread_share = var_share * h_share + cov * h_slope
+        spread_slope = cov * h_share + var_slope * h_slope
+        innovation = noise + h_share * spread_share + h_slope * spread_slope
+        gain_share, gain_slope = spread_share / innovation, spread_slope / innovation
+        share = float(self._shares[index, 0]) + gain_share * residual
+        slope = float(self._shares[index, 1]) + gain_slope * residual
         # Bounded where it matters: the shares at both ends of the loop (depth 0 and 1), so
         # every curve's share is within 0..1. Clamping share and slope each on its own bent
         # the learning (a constant truth of 0.1 came out as 0.9 where its reversals were).
@@ -703,11 +708,15 @@ class OnlineModel:
             near, far = min(1.0, max(0.0, near)), min(1.0, max(0.0, far))
             share, slope = 0.5 * (near + far), far - near
         self._shares[index] = share, slope
-        covariance = covariance - np.outer(gain, spread)
+        var_share -= gain_share * spread_share
+        cov -= gain_share * spread_slope
+        var_slope -= gain_slope * spread_slope
         # Never less sure than the prior (a long stretch without this direction's curves).
-        scale = np.sqrt(np.minimum(1.0, self._share_prior / np.maximum(np.diag(covariance),
-                                                                      1e-300)))
-        self._share_covariance[index] = 0.5 * (covariance + covariance.T) * np.outer(scale, scale)
+        scale_share = math.sqrt(min(1.0, _PRIOR['share'] ** 2 / max(var_share, 1e-300)))
+        scale_slope = math.sqrt(min(1.0, _PRIOR['share_slope'] ** 2 / max(var_slope, 1e-300)))
+        self._share_covariance[index] = [var_share * scale_share ** 2,
+                                         cov * scale_share * scale_slope,
+                                         var_slope * scale_slope ** 2]
 
     def _mid_shares_and_slopes(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """((rising, falling) share mid-loop, (rising, falling) slope)."""
