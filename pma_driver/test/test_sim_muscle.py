@@ -1,5 +1,6 @@
 """The simulated muscle: fit to the paper's Table 1 and the Preisach memory properties."""
 
+import copy
 import csv
 import math
 import time
@@ -64,6 +65,21 @@ def test_dead_zone_below_50_kpa_and_a_real_loop_above():
     sweep(model, 100 * KPA, 500 * KPA)
     down_100 = sweep(model, 500 * KPA, 100 * KPA)[-1]
     assert up_100 - down_100 > 0.003                         # the loop is open at 100 kPa
+
+
+def test_a_deep_copy_carries_on_like_the_original_and_leaves_it_alone():
+    # The return-point oracle of tests/support snapshots the muscle at every reversal.
+    original = PreisachMuscle()
+    for p in (0, 400e3, 100e3, 300e3, 200e3):
+        original.update(p)
+    snapshot = copy.deepcopy(original)
+    path = (250e3, 150e3, 450e3, 50e3, 350e3)
+    ahead = [original.update(p) for p in path]
+    assert [snapshot.update(p) for p in path] == ahead
+    assert snapshot.turning_points_pa() == original.turning_points_pa()
+    snapshot.update(0.0)
+    assert original.turning_points_pa() != snapshot.turning_points_pa()
+    assert original.length_m == ahead[-1]
 
 
 def test_minor_loop_closes_return_point_memory():

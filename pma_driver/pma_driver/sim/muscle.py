@@ -24,6 +24,7 @@ length = rest_length - stroke_hyst * hysteretic - stroke_rev * reversible.
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 from dataclasses import astuple, dataclass, fields
@@ -118,6 +119,14 @@ class PreisachMuscle:
         self._rev_scale = params.rev_sd_pa * math.sqrt(2.0)
         self._rev_at_zero = 0.5 * math.erf(-params.rev_centre_pa / self._rev_scale)
         self.reset()
+
+    def __deepcopy__(self, memo) -> PreisachMuscle:
+        # The state is the turning points and a few floats; the Everett table is read-only
+        # and shared. Copying it made a snapshot of the muscle (the return-point oracle of
+        # tests/support takes one at every reversal) cost 5.6 s a three-minute path.
+        clone = copy.copy(self)
+        clone._turns = list(self._turns)
+        return clone
 
     def reset(self) -> None:
         """Back to the relaxed state (as after a long rest at 0 Pa)."""
