@@ -439,9 +439,10 @@ class HysteresisModel:
         """Where a reversal O lies across the major loop, seen from the branch its scanning
         curve heads for: 0 on that branch, 1 on the other (after a full excursion).
 
-        A Duhem-like muscle leaves the far branch at once but barely moves after a short
-        excursion, so the play share may depend on it (`share_slopes`). Where the branches
-        meet (near 0 Pa) every point is on both: 1, as after a full excursion.
+        The play share may depend on it (`share_slopes`): what a muscle does after a
+        reversal differs between a full excursion and a short one, and how differs by
+        mechanism (the learned slopes: docs/model.md §3.1). Where the branches meet (near
+        0 Pa) every point is on both: 1, as after a full excursion.
         """
         p_origin, l_origin = origin
         toward = float(self.major(rising).length(p_origin))
