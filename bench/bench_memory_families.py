@@ -1,6 +1,7 @@
 """The model on every simulated muscle family: minor-loop errors and the issue's criteria.
 
 Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid hill]
+[--rate-hz 20]
 (OMP_NUM_THREADS=1; about 11 minutes a branch form on one core, five muscles). Prints the
 table of docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of
 stroke) and checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
@@ -60,7 +61,8 @@ DRIFT_DURATION_S = 300.0
 RECOVERED_WINDOW_S = (DRIFT_START_S + 120.0, DRIFT_DURATION_S)
 
 
-def table(form: str, seeds: list[int], duration_s: float, families) -> list[str]:
+def table(form: str, seeds: list[int], duration_s: float, families,
+          rate_hz: float) -> list[str]:
     lines = [f'\n### {form} branches (RMSE | max error, cm (% of stroke), from the third '
              f'reversal on; mean RMSE and worst max over seeds {seeds})', '',
              '| family | rule | adaptation | ' + ' | '.join(
@@ -72,8 +74,8 @@ def table(form: str, seeds: list[int], duration_s: float, families) -> list[str]
                 variant = Config(config.memory, config.learn, adapt)
                 cells = []
                 for kind in PATH_KINDS:
-                    results = [score(Scenario(family, kind, seed, duration_s), variant, form)
-                               for seed in seeds]
+                    results = [score(Scenario(family, kind, seed, duration_s, rate_hz=rate_hz),
+                                     variant, form) for seed in seeds]
                     rmse = sum(r.rmse_m for r in results) / len(results)
                     worst = max(r.max_m for r in results)
                     cells.append(f'{rmse * 100:.3f} ({100 * rmse / STROKE_M:.2f}) | '
@@ -83,7 +85,7 @@ def table(form: str, seeds: list[int], duration_s: float, families) -> list[str]
     return lines
 
 
-def criteria(form: str, seeds: list[int], duration_s: float, families,
+def criteria(form: str, seeds: list[int], duration_s: float, families, rate_hz: float, *,
              candidate: Config = MIXED) -> tuple[list[str], bool]:
     lines = [f'\n### criteria, {form} branches ({candidate.label}, learning on)', '',
              '| scenario | RMSE / switch | max / switch | RMSE / best fixed rule (which) | '
@@ -93,7 +95,7 @@ def criteria(form: str, seeds: list[int], duration_s: float, families,
     for family in families:
         for kind in PATH_KINDS:
             for seed in seeds:
-                scenario = Scenario(family, kind, seed, duration_s)
+                scenario = Scenario(family, kind, seed, duration_s, rate_hz=rate_hz)
                 ours = score(scenario, candidate, form)
                 paper = score(scenario, PAPER, form)
                 fixed = {config.label: score(scenario, config, form)
@@ -115,7 +117,7 @@ def criteria(form: str, seeds: list[int], duration_s: float, families,
     return lines, passed
 
 
-def drift(form: str, seed: int, families) -> tuple[list[str], bool]:
+def drift(form: str, seed: int, families, rate_hz: float) -> tuple[list[str], bool]:
     lines = [f'\n### drift, {form} branches ({MIXED.label}; drift +1.5 mm rest length, '
              f'x1.08 stroke from {DRIFT_START_S:.0f} s, time constant 30 s; random path, '
              f'seed {seed}; RMSE % of stroke per minute)', '',
@@ -125,8 +127,9 @@ def drift(form: str, seed: int, families) -> tuple[list[str], bool]:
              '|---|---|---|' + '---|' * (int(DRIFT_DURATION_S) // 60) + '---|']
     passed = True
     for family in families:
-        clean = Scenario(family, 'random', seed, DRIFT_DURATION_S)
-        drifting = Scenario(family, 'random', seed, DRIFT_DURATION_S, DRIFT_START_S)
+        clean = Scenario(family, 'random', seed, DRIFT_DURATION_S, rate_hz=rate_hz)
+        drifting = Scenario(family, 'random', seed, DRIFT_DURATION_S, DRIFT_START_S,
+                            rate_hz=rate_hz)
         unadapted = Config(MIXED.memory, True, False)
         drift_free = score(clean, unadapted, form, RECOVERED_WINDOW_S)
         floor = perfectly_corrected(drifting, unadapted, form, RECOVERED_WINDOW_S)
@@ -165,6 +168,9 @@ def main() -> int:
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--forms', nargs='+', default=['sigmoid', 'hill'])
     parser.add_argument('--duration', type=float, default=180.0, help='path length [s]')
+    parser.add_argument('--rate-hz', type=float, default=50.0,
+                        help='samples per second (default 50, the firmware\'s maximum; '
+                             'driver_node asks for 20 by default)')
     parser.add_argument('--families', nargs='+', default=list(SCORED_FAMILIES),
                         type=family_name,
                         help='default: every simulated family and the held-out bouc-wen; '
@@ -172,7 +178,8 @@ def main() -> int:
                              'approach scales, fitted to Table 1 (asymmetric is duhem:15:100)')
     args = parser.parse_args()
     start = time.monotonic()
-    print(f'# Minor loops on every muscle family (paths of {args.duration:.0f} s at 50 Hz, '
+    print(f'# Minor loops on every muscle family (paths of {args.duration:.0f} s at '
+          f'{args.rate_hz:g} Hz, '
           f'stroke {STROKE_M * 100:.2f} cm)')
     for family in args.families:
         if duhem_variant_scales_pa(family) is not None:
@@ -181,15 +188,16 @@ def main() -> int:
                   f'max {100 * np.max(np.abs(errors)):.3f} cm over {errors.size} points')
     verdicts = []
     for form in args.forms:
-        print('\n'.join(table(form, args.seeds, args.duration, args.families)), flush=True)
-        lines, passed = criteria(form, args.seeds, args.duration, args.families)
+        print('\n'.join(table(form, args.seeds, args.duration, args.families, args.rate_hz)),
+              flush=True)
+        lines, passed = criteria(form, args.seeds, args.duration, args.families, args.rate_hz)
         print('\n'.join(lines), flush=True)
         alone_lines, alone_passed = criteria(form, args.seeds, args.duration, args.families,
-                                             IDENTIFY)
+                                             args.rate_hz, candidate=IDENTIFY)
         print('\n'.join(alone_lines), flush=True)
         drifting = [family for family in args.families if family in FAMILY_NAMES]
         if drifting:
-            drift_lines, drift_passed = drift(form, args.seeds[0], drifting)
+            drift_lines, drift_passed = drift(form, args.seeds[0], drifting, args.rate_hz)
             print('\n'.join(drift_lines), flush=True)
             drift_verdict = f'drift recovery {"met" if drift_passed else "NOT met"}'
         else:   # the held-out muscle alone has no drift option: nothing was checked

@@ -76,8 +76,9 @@ def test_the_default_memory_beats_the_papers_switch_in_rmse(family):
 
 @pytest.mark.parametrize('family', FAMILY_NAMES)
 def test_the_default_memorys_max_error_is_at_most_0_7_of_the_switch(family):
-    # On the Duhem muscle (asymmetric) only just, on this seed: nested 0.696x (0.71x before
-    # the share's slope across the loop), random 0.66x. See the next test.
+    # On the Duhem muscle (asymmetric) closest, on this seed: nested 0.66x (0.696x with the
+    # correction's prior at 4 mm, 0.71x before the share's slope across the loop), random
+    # 0.65x. See the next test.
     ours, paper = scores(family, MIXED), scores(family, PAPER)
     for kind in PATH_KINDS:
         assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
@@ -87,7 +88,7 @@ def test_on_the_duhem_muscle_the_max_error_stays_near_the_criterion_where_it_mis
     # The Duhem muscle's minor loops do not close: after a nest of small loops inside a long
     # fall it is millimetres longer than before the nest, and a model with return-point
     # memory (which the issue requires) comes back to its own length. On random/seed 2 the
-    # mix errs 0.72x the switch's max (t = 179.6 s); over seeds 1-8 it misses on 7 of 16
+    # mix errs 0.72x the switch's max (t = 179.6 s); over seeds 1-8 it misses on 6 of 16
     # runs, and even the muscle itself made to keep return-point memory misses on 6 (the
     # oracle tests below; docs/model.md §3.1). How far from the criterion, then:
     scenario = Scenario('asymmetric', 'random', seed=2)
@@ -161,6 +162,18 @@ def test_on_a_held_out_bouc_wen_muscle_the_default_meets_the_switch_criteria():
         assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind
         assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
         assert ours[kind].rmse_pct <= 1.5, kind
+
+
+@pytest.mark.parametrize('family', [*FAMILY_NAMES, BOUC_WEN])
+def test_at_the_drivers_default_20_hz_the_default_meets_the_switch_criteria(family):
+    # driver_node asks for 20 Hz unless told otherwise (the firmware allows 50): 2.5x fewer
+    # lengths to learn from. With a 4 mm prior on the branch correction (2 mm now) the
+    # Duhem muscle missed the max here, nested and random 0.79x and 0.77x (docs/model.md §3.1).
+    for kind in PATH_KINDS:
+        scenario = Scenario(family, kind, rate_hz=20.0)
+        ours, paper = score(scenario, MIXED), score(scenario, PAPER)
+        assert ours.rmse_m <= 0.9 * paper.rmse_m, kind
+        assert ours.max_m <= 0.7 * paper.max_m, kind
 
 
 @pytest.mark.parametrize('family', ['narrow', 'creep'])

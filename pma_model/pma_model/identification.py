@@ -75,9 +75,16 @@ SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth not
 # 1.5 mm give minor-loop RMSE 0.90, 0.87 and 0.90 % of stroke (1.13 % with no difference);
 # looser, it trades off against the play shares: 2 mm 0.93 %, 4 mm 1.17 %.
 DIFFERENCE_PRIOR_M = 0.001
+# The mean correction's prior: about the size of what it has to learn (Table 1's branches miss
+# the steady loops of the simulated muscles by 1.8 mm RMS at the knots with the sigmoid, up to
+# 4.2 mm; 1.0 mm with Hill). A wider one lets a few noisy samples near a knot the path has
+# barely reached move it by millimetres, and the first excursion past that pressure errs by as
+# much (4 mm at 444 kPa: wide/random/seed 2, Hill, 20 Hz). Measured on every muscle at 20 and
+# 50 Hz (docs/model.md §3.1): 2 mm against 4 mm, minor-loop RMSE 0.97-0.99x on average.
+CORRECTION_PRIOR_M = 0.002
 # Drift has none: it starts at 0 (OnlineModel._new_filter).
-_PRIOR = {'correction': 0.004, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5, 'share': 1.0,
-          'share_slope': 0.5}
+_PRIOR = {'correction': CORRECTION_PRIOR_M, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5,
+          'share': 1.0, 'share_slope': 0.5}
 _PRIOR_RESUMED = {'correction': 0.001, 'difference': 0.0005, 'creep': 0.1, 'share': 0.2,
                   'share_slope': 0.1}
 _WALK_PER_S = {'correction': 1e-5, 'creep': 1e-3, 'share': 0.003, 'share_slope': 0.003}

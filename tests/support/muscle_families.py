@@ -89,12 +89,15 @@ class Scenario:
     seed: int = 1
     duration_s: float = 180.0
     drift_start_s: float | None = None   # None: no drift
+    # Samples per second: the firmware's maximum; driver_node asks for 20 Hz by default.
+    rate_hz: float = 50.0
 
     @property
     def label(self) -> str:
         drift = f', drift from {self.drift_start_s:.0f} s' if self.drift_start_s is not None \
             else ''
-        return f'{self.family}/{self.kind}/seed {self.seed}{drift}'
+        rate = '' if self.rate_hz == 50.0 else f', {self.rate_hz:g} Hz'
+        return f'{self.family}/{self.kind}/seed {self.seed}{drift}{rate}'
 
     @property
     def drift(self) -> families.DriftSpec | None:
@@ -191,7 +194,7 @@ def muscle_for(family: str, drift: families.DriftSpec | None = None) -> families
 def simulate(scenario: Scenario) -> paths.Run:
     turns = (paths.nested_turns if scenario.kind == 'nested' else paths.random_turns)(
         scenario.duration_s, seed=scenario.seed)
-    path = paths.ramp_path(turns, seed=scenario.seed)
+    path = paths.ramp_path(turns, rate_hz=scenario.rate_hz, seed=scenario.seed)
     return paths.simulate(muscle_for(scenario.family, scenario.drift), path,
                           seed=scenario.seed)
 
