@@ -38,6 +38,7 @@ import numpy as np
 from pma_driver.sim.families import FAMILY_NAMES
 from support.muscle_families import (
     ALL_CONFIGS,
+    DEFAULT_RATE_HZ,
     IDENTIFY,
     LEARNED_RULES,
     MIXED,
@@ -61,8 +62,8 @@ DRIFT_DURATION_S = 300.0
 RECOVERED_WINDOW_S = (DRIFT_START_S + 120.0, DRIFT_DURATION_S)
 
 
-def table(form: str, seeds: list[int], duration_s: float, families,
-          rate_hz: float) -> list[str]:
+def table(form: str, seeds: list[int], duration_s: float, families, *,
+          rate_hz: float = DEFAULT_RATE_HZ) -> list[str]:
     lines = [f'\n### {form} branches (RMSE | max error, cm (% of stroke), from the third '
              f'reversal on; mean RMSE and worst max over seeds {seeds})', '',
              '| family | rule | adaptation | ' + ' | '.join(
@@ -85,7 +86,8 @@ def table(form: str, seeds: list[int], duration_s: float, families,
     return lines
 
 
-def criteria(form: str, seeds: list[int], duration_s: float, families, rate_hz: float, *,
+def criteria(form: str, seeds: list[int], duration_s: float, families, *,
+             rate_hz: float = DEFAULT_RATE_HZ,
              candidate: Config = MIXED) -> tuple[list[str], bool]:
     lines = [f'\n### criteria, {form} branches ({candidate.label}, learning on)', '',
              '| scenario | RMSE / switch | max / switch | RMSE / best fixed rule (which) | '
@@ -117,7 +119,8 @@ def criteria(form: str, seeds: list[int], duration_s: float, families, rate_hz: 
     return lines, passed
 
 
-def drift(form: str, seed: int, families, rate_hz: float) -> tuple[list[str], bool]:
+def drift(form: str, seed: int, families, *,
+          rate_hz: float = DEFAULT_RATE_HZ) -> tuple[list[str], bool]:
     lines = [f'\n### drift, {form} branches ({MIXED.label}; drift +1.5 mm rest length, '
              f'x1.08 stroke from {DRIFT_START_S:.0f} s, time constant 30 s; random path, '
              f'seed {seed}; RMSE % of stroke per minute)', '',
@@ -168,9 +171,9 @@ def main() -> int:
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
     parser.add_argument('--forms', nargs='+', default=['sigmoid', 'hill'])
     parser.add_argument('--duration', type=float, default=180.0, help='path length [s]')
-    parser.add_argument('--rate-hz', type=float, default=50.0,
-                        help='samples per second (default 50, the firmware\'s maximum; '
-                             'driver_node asks for 20 by default)')
+    parser.add_argument('--rate-hz', type=float, default=DEFAULT_RATE_HZ,
+                        help=f'samples per second (default {DEFAULT_RATE_HZ:g}, the '
+                             'firmware\'s maximum; driver_node asks for 20 by default)')
     parser.add_argument('--families', nargs='+', default=list(SCORED_FAMILIES),
                         type=family_name,
                         help='default: every simulated family and the held-out bouc-wen; '
@@ -188,16 +191,18 @@ def main() -> int:
                   f'max {100 * np.max(np.abs(errors)):.3f} cm over {errors.size} points')
     verdicts = []
     for form in args.forms:
-        print('\n'.join(table(form, args.seeds, args.duration, args.families, args.rate_hz)),
-              flush=True)
-        lines, passed = criteria(form, args.seeds, args.duration, args.families, args.rate_hz)
+        print('\n'.join(table(form, args.seeds, args.duration, args.families,
+                               rate_hz=args.rate_hz)), flush=True)
+        lines, passed = criteria(form, args.seeds, args.duration, args.families,
+                                 rate_hz=args.rate_hz)
         print('\n'.join(lines), flush=True)
         alone_lines, alone_passed = criteria(form, args.seeds, args.duration, args.families,
-                                             args.rate_hz, candidate=IDENTIFY)
+                                             rate_hz=args.rate_hz, candidate=IDENTIFY)
         print('\n'.join(alone_lines), flush=True)
         drifting = [family for family in args.families if family in FAMILY_NAMES]
         if drifting:
-            drift_lines, drift_passed = drift(form, args.seeds[0], drifting, args.rate_hz)
+            drift_lines, drift_passed = drift(form, args.seeds[0], drifting,
+                                              rate_hz=args.rate_hz)
             print('\n'.join(drift_lines), flush=True)
             drift_verdict = f'drift recovery {"met" if drift_passed else "NOT met"}'
         else:   # the held-out muscle alone has no drift option: nothing was checked

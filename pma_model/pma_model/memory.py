@@ -123,7 +123,7 @@ class _Curve:
     origin: tuple[float, float] | None = None
     target: tuple[float, float] | None = None
     play_share: float = 0.0
-    origin_depth: float = 0.5   # O's place across the loop (HysteresisModel.origin_depth)
+    origin_depth: float = MID_DEPTH   # O's place across the loop (HysteresisModel.origin_depth)
 
     def __post_init__(self):
         # Computed once, here: every curve is evaluated, and a commit of the online learning

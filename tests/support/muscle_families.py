@@ -40,6 +40,9 @@ from pma_model.params import ModelParams, default_params, paper_table1
 
 STROKE_M = 0.0586            # Table 1: 30.06 - 24.20 cm
 SCORED_FROM_REVERSAL = 3     # "after the first three reversals"
+# Samples per second of the scenarios: the firmware's maximum; driver_node asks for 20 Hz by
+# default.
+DEFAULT_RATE_HZ = 50.0
 PATH_KINDS = ('nested', 'random')
 FORMS = ('sigmoid', 'hill')
 
@@ -89,14 +92,13 @@ class Scenario:
     seed: int = 1
     duration_s: float = 180.0
     drift_start_s: float | None = None   # None: no drift
-    # Samples per second: the firmware's maximum; driver_node asks for 20 Hz by default.
-    rate_hz: float = 50.0
+    rate_hz: float = DEFAULT_RATE_HZ
 
     @property
     def label(self) -> str:
         drift = f', drift from {self.drift_start_s:.0f} s' if self.drift_start_s is not None \
             else ''
-        rate = '' if self.rate_hz == 50.0 else f', {self.rate_hz:g} Hz'
+        rate = '' if self.rate_hz == DEFAULT_RATE_HZ else f', {self.rate_hz:g} Hz'
         return f'{self.family}/{self.kind}/seed {self.seed}{drift}{rate}'
 
     @property
