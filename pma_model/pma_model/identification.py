@@ -83,6 +83,14 @@ DIFFERENCE_PRIOR_M = 0.001
 # 50 Hz (docs/model.md §3.1): 2 mm against 4 mm, minor-loop RMSE 0.97-0.99x on average.
 CORRECTION_PRIOR_M = 0.002
 # Drift has none: it starts at 0 (OnlineModel._new_filter).
+# The first loading of a rested muscle (its virgin curve) can lie off the loop it settles into
+# (the Bouc-Wen muscle starts 5 mm longer). It is learned as its own term, a function of the
+# pressure travelled since start given at VIRGIN_TRAVEL_KNOTS_PA and 0 from VIRGIN_END_PA on,
+# so the first rise is not learned as the rising branch; once the muscle has travelled that
+# far the term is gone and leaves the filter (marginalised: its rows and columns dropped).
+VIRGIN_TRAVEL_KNOTS_PA = tuple(float(p) for p in np.linspace(0.0, 400_000.0, 5))
+VIRGIN_END_PA = 500_000.0
+VIRGIN_PRIOR_M = 0.001
 _PRIOR = {'correction': CORRECTION_PRIOR_M, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5,
           'share': 1.0, 'share_slope': 0.5}
 _PRIOR_RESUMED = {'correction': 0.001, 'difference': 0.0005, 'creep': 0.1, 'share': 0.2,
@@ -460,12 +468,17 @@ class OnlineModel:
         self._lags = None
         self._time = None
         self._static = math.nan
+        # The pressure travelled since start (the virgin term's argument), through a play of
+        # the deadband's width so a noisy hold travels nowhere.
+        self._travel_pa = 0.0
+        self._play_pa = math.nan
         self.commits = 0
 
     # --- construction ---------------------------------------------------------------
 
     def _new_filter(self, settings: IdentificationSettings, priors: dict) -> _Filter:
-        """The filter's state: [mean correction, difference, creep gains, shift, gain - 1].
+        """The filter's state: [mean correction, difference, creep gains, virgin term at
+        VIRGIN_TRAVEL_KNOTS_PA (until it ends), shift, gain - 1].
 
         Drift is what has changed since the model started: it starts at exactly 0 with no
         prior spread, and only its random walk lets it move. How this muscle differs from
@@ -477,18 +490,30 @@ class OnlineModel:
         with adaptation on, 3.4 mm off; docs/model.md §5).
         """
         knots = len(CORRECTION_KNOTS_PA)
+        creeps, virgins = len(CREEP_TIME_CONSTANTS_S), len(VIRGIN_TRAVEL_KNOTS_PA)
         mean = np.concatenate([settings.branch_correction_m, settings.branch_difference_m,
-                               settings.creep_gains, [0.0, 0.0]])
+                               settings.creep_gains, np.zeros(virgins), [0.0, 0.0]])
         learn = 1.0 if self._learning else 0.0
         prior = np.concatenate([np.full(knots, learn * priors['correction'] ** 2),
                                 np.full(knots, learn * priors['difference'] ** 2),
-                                np.full(len(CREEP_TIME_CONSTANTS_S), learn * priors['creep'] ** 2),
-                                [0.0, 0.0]])
+                                np.full(creeps, learn * priors['creep'] ** 2),
+                                np.full(virgins, learn * VIRGIN_PRIOR_M ** 2), [0.0, 0.0]])
         walk = np.concatenate([np.full(2 * knots, learn * _WALK_PER_S['correction'] ** 2),
-                               np.full(len(CREEP_TIME_CONSTANTS_S),
-                                       learn * _WALK_PER_S['creep'] ** 2), [0.0, 0.0]])
-        self._creep_gains = slice(2 * knots, -2)     # where the creep gains sit in the state
+                               np.full(creeps, learn * _WALK_PER_S['creep'] ** 2),
+                               np.zeros(virgins), [0.0, 0.0]])
+        # Where the creep gains and the virgin term sit in the state (None once it ended).
+        self._creep_gains = slice(2 * knots, 2 * knots + creeps)
+        self._virgin = slice(2 * knots + creeps, 2 * knots + creeps + virgins)
         return _Filter(mean, np.diag(prior), walk)
+
+    def _end_virgin_term(self) -> None:
+        """Drop the virgin term from the filter: marginalising a Gaussian is deleting its
+        rows and columns, so what it taught the rest through their covariance is kept."""
+        state, rows = self._filter, np.arange(self._filter.mean.size)[self._virgin]
+        state.mean = np.delete(state.mean, rows)
+        state.covariance = np.delete(np.delete(state.covariance, rows, axis=0), rows, axis=1)
+        state.walk_per_s = np.delete(state.walk_per_s, rows)
+        self._virgin = None
 
     def _drift_directions(self) -> np.ndarray:
         """How a shift and a stroke gain move the knots: columns 1 and B(knots) - L_ref,
@@ -526,6 +551,14 @@ class OnlineModel:
     @property
     def branch(self) -> int:
         return self.model.branch
+
+    @property
+    def virgin_term_m(self) -> float:
+        """What the model adds for a rested muscle's first loading at the pressure travelled
+        so far (0 once it has ended)."""
+        if self._virgin is None:
+            return 0.0
+        return float(virgin_weights(self._travel_pa) @ self._filter.mean[self._virgin])
 
     @property
     def samples_learned(self) -> int:
@@ -588,6 +621,7 @@ class OnlineModel:
             return Prediction(math.nan, self.model.branch, math.nan, drift.offset_m, drift.gain,
                               math.nan)
         static, branch = self.model.update(pressure_pa)
+        virgin_weights = self._advance_travel(pressure_pa)
         if self._shapes is not None and self._shapes is not self.model:
             self._shapes.update(pressure_pa)
         play, madelung = (self._shapes.expert_lengths() if self._shapes is not None
@@ -598,13 +632,31 @@ class OnlineModel:
         creep_gains = self._filter.mean[self._creep_gains]
         creep = self._lags - static
         undrifted = static + float(creep_gains @ creep)
+        if virgin_weights is not None:
+            undrifted += float(virgin_weights @ self._filter.mean[self._virgin])
         predicted = float(drift.correct(undrifted))
         measured_length_m = float(measured_length_m)
         if (self._learning or self._drifting) and math.isfinite(measured_length_m):
             self._learn(measured_length_m - predicted, creep=creep, undrifted=undrifted,
                         shape_difference=play - madelung, confidence=confidence,
-                        gain=drift.gain, dt=dt)
+                        gain=drift.gain, dt=dt, virgin_weights=virgin_weights)
         return Prediction(predicted, branch, static, drift.offset_m, drift.gain, confidence)
+
+    def _advance_travel(self, pressure_pa: float) -> np.ndarray | None:
+        """Advance the pressure travelled since start; the virgin term's interpolation
+        weights there, or None once it has ended."""
+        if self._virgin is None:
+            return None
+        half_width = 0.5 * self.deadband_pa
+        if math.isnan(self._play_pa):
+            self._play_pa = pressure_pa
+        moved = min(max(self._play_pa, pressure_pa - half_width), pressure_pa + half_width)
+        self._travel_pa += abs(moved - self._play_pa)
+        self._play_pa = moved
+        if self._travel_pa >= VIRGIN_END_PA:
+            self._end_virgin_term()
+            return None
+        return virgin_weights(self._travel_pa)
 
     def _advance_lags(self, static: float, t_s: float | None) -> float:
         """Move the creep lags to this sample's time; returns the step [s] (0 if unknown)."""
@@ -626,7 +678,8 @@ class OnlineModel:
         return dt
 
     def _learn(self, residual: float, *, creep: np.ndarray, undrifted: float,
-               shape_difference: float, confidence: float, gain: float, dt: float) -> None:
+               shape_difference: float, confidence: float, gain: float, dt: float,
+               virgin_weights: np.ndarray | None) -> None:
         state = self._filter
         if abs(residual) > self.adaptation.outlier_m:
             state.rejected += 1
@@ -645,6 +698,7 @@ class OnlineModel:
             gain * (increasing + decreasing),
             (0.5 * gain) * (increasing - decreasing),
             gain * creep,
+            () if virgin_weights is None else gain * virgin_weights,
             [1.0, undrifted - self.reference_length_m]])
         walk = state.walk_per_s * dt
         if self._drifting:
@@ -671,6 +725,10 @@ class OnlineModel:
         creep_gains = mean[self._creep_gains]
         np.minimum(np.maximum(creep_gains, -MAX_CREEP_GAIN, out=creep_gains), MAX_CREEP_GAIN,
                    out=creep_gains)
+        if self._virgin is not None:
+            virgin = mean[self._virgin]
+            np.minimum(np.maximum(virgin, -MAX_CORRECTION_M, out=virgin), MAX_CORRECTION_M,
+                       out=virgin)
         limits = self.adaptation
         mean[-2] = min(max(mean[-2], -limits.max_shift_m), limits.max_shift_m)
         mean[-1] = min(max(mean[-1], limits.min_gain - 1.0), limits.max_gain - 1.0)
@@ -789,6 +847,23 @@ class OnlineModel:
             self._shapes.resume_from(other._shapes if other._shapes is not None
                                      else other.model)
         self._lags, self._time, self._static = other._lags, other._time, other._static
+        # How far the muscle has travelled is its history too (what the old model learned of
+        # a virgin term is not carried over: it lasts one loading).
+        self._travel_pa, self._play_pa = other._travel_pa, other._play_pa
+        if self._virgin is not None and self._travel_pa >= VIRGIN_END_PA:
+            self._end_virgin_term()
+
+
+def virgin_weights(travel_pa: float) -> np.ndarray:
+    """Hat-function weights of the virgin term's knots at a travel (all 0 from
+    VIRGIN_END_PA on, where the term has ended)."""
+    knots = VIRGIN_TRAVEL_KNOTS_PA + (VIRGIN_END_PA,)
+    weights = np.zeros(len(knots))
+    k = int(np.searchsorted(knots, travel_pa, side='right')) - 1
+    if 0 <= k < len(knots) - 1:
+        share = (travel_pa - knots[k]) / (knots[k + 1] - knots[k])
+        weights[k], weights[k + 1] = 1.0 - share, share
+    return weights[:-1]
 
 
 def elapsed_s(previous_s: float | None, t_s: float | None) -> float:

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pma_model import identification
 from pma_model.identification import (
     CORRECTION_KNOTS_PA,
     CorrectedBranch,
@@ -272,9 +273,11 @@ def test_it_learns_where_the_two_branches_miss_differently():
     assert np.corrcoef(learned.branch_difference_m, wanted)[0, 1] > 0.9
     mean, difference = (np.array(v) for v in (learned.branch_correction_m,
                                              learned.branch_difference_m))
-    # The increasing branch is learned at every knot (measured: within 0.11 mm; 0.29 mm with
-    # the regressor used before 2026-11-26, and a 2.6x larger prediction error).
-    assert np.abs(mean + 0.5 * difference - truth_offsets[0]).max() < 2.5e-4
+    # The increasing branch is learned at every knot (measured: within 0.32 mm, at 100 kPa;
+    # 0.11 mm before the virgin term, which takes a share of the first loading, and this
+    # path sees that branch at 50-100 kPa mostly then; 0.29 mm with the regressor used
+    # before 2026-11-26, and a 2.6x larger prediction error).
+    assert np.abs(mean + 0.5 * difference - truth_offsets[0]).max() < 4e-4
     # The decreasing one up to what no sample shows: every falling curve of this path is
     # that branch rescaled between two turning points (the last one heading for 0 Pa), which
     # an error affine in the branch's own length does not change. Modulo that, it is learned
@@ -285,6 +288,58 @@ def test_it_learns_where_the_two_branches_miss_differently():
     unseen = affine @ np.linalg.lstsq(affine, error, rcond=None)[0]
     assert np.abs(error - unseen).max() < 5e-4
     assert np.abs(error - unseen)[:-1].max() < 2e-4
+
+
+def virgin_start(time_s, pressure, offset_m=0.003, scale_pa=200e3):
+    """A truth (corrections() on the default branches) whose first loading is offset_m
+    longer, fading with the pressure travelled like exp(-(travel / scale_pa)^2): no shape
+    the virgin term's knots contain. Noisy (0.5 mm), as learn_branches."""
+    travel = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(pressure)))])
+    truth = truth_with(correction=corrections()).predict(pressure) + \
+        offset_m * np.exp(-(travel / scale_pa) ** 2)
+    return truth, truth + np.random.default_rng(4).normal(0.0, 5e-4, truth.size)
+
+
+def test_a_rested_muscles_first_loading_is_not_learned_as_its_branches(monkeypatch):
+    # The Bouc-Wen muscle starts 5 mm longer than its loop (tests/support/muscle_families);
+    # learned as the rising branch, that first loading misleads every later pass at those
+    # pressures. The same model without the virgin term (its end moved to 0) is the
+    # comparison.
+    time_s, pressure = random_path(3)
+    truth, measured = virgin_start(time_s, pressure)
+    wanted = np.array(corrections()[0])
+    errors, learned = {}, {}
+    for term in (True, False):
+        if not term:
+            monkeypatch.setattr(identification, 'VIRGIN_END_PA', 0.0)
+        model = online(length_noise_m=5e-4).build_online()
+        predicted = run_online(model, pressure, measured, time_s)
+        errors[term] = predicted - truth
+        learned[term] = np.array(model.learned().branch_correction_m)
+        assert model.virgin_term_m == 0.0       # gone after 500 kPa of travel
+    low = slice(0, 3)      # 0-100 kPa: the knots the first loading is measured at
+    print(f'\nlow knots off by (mm): with the term {np.round((learned[True] - wanted)[low] * 1e3, 2)}'
+          f', without {np.round((learned[False] - wanted)[low] * 1e3, 2)}')
+    assert np.abs(learned[True] - wanted).max() < 8e-4
+    assert np.abs(learned[False] - wanted)[low].max() > 2 * np.abs(learned[True] - wanted)[low].max()
+    after_first_loading = time_s > 20.0
+    assert rms(errors[True][after_first_loading]) < 0.8 * rms(errors[False][after_first_loading])
+
+
+def test_a_model_resumed_at_run_time_keeps_the_pressure_travelled():
+    # A parameter change builds a new model that continues the old one's history: a muscle
+    # that has travelled past the first loading is not rested again.
+    time_s, pressure = random_path(3, turns=4)
+    truth, measured = virgin_start(time_s, pressure)
+    old = online(length_noise_m=5e-4).build_online()
+    run_online(old, pressure[:40], measured[:40], time_s[:40])
+    assert old.virgin_term_m > 2e-4             # learning the first loading, 120 kPa into it
+    run_online(old, pressure, measured, time_s)
+    new = online(length_noise_m=5e-4).build_online()
+    new.resume_from(old)
+    assert new.virgin_term_m == 0.0
+    new.step(float(pressure[-1]) + 50e3, float(truth[-1]), float(time_s[-1]) + 0.02)
+    assert new.virgin_term_m == 0.0
 
 
 def test_it_learns_creep_and_predicts_the_length_still_moving_in_a_hold():
@@ -414,13 +469,17 @@ def test_a_noisy_hold_neither_moves_the_prediction_nor_teaches_nonsense():
         jitter[learn] = float(np.ptp(predicted[550:]))
         assert len(branches) == 1 and len(model.model.turning_points) < 40
         after = model.learned()
-        # A hold on a scanning curve still says something about the share (the truth's is
-        # 0.5): it may move toward it, not away; the correction stays about where it was.
-        # Knots next to the held one, barely seen, wander with the noise: over this hold
-        # and seeds 0-7 of the same test the mean correction moved at most 1.06 mm at a knot
-        # (0.72 mm before the branch difference was learned too); nonsense moves several.
+        # A hold on a scanning curve still says something about the share, but one pressure
+        # cannot tell the share from the knots' error there: with seeds 0-7 of the length
+        # noise (a /tmp script, 2026-11-27) the shares moved by at most 0.30, toward the
+        # truth's 0.5 or away from it, with or without the virgin term (an earlier form of
+        # this test asked for "toward" and met it on this seed by luck: seeds 6 and 7 moved
+        # away by 0.2 and 0.3). Nonsense runs to 0 or 1. The correction stays about where
+        # it was. Knots next to the held one, barely seen, wander with the noise: over this
+        # hold and seeds 0-7 of the same test the mean correction moved at most 1.06 mm at a
+        # knot (0.72 mm before the branch difference was learned too); nonsense moves several.
         for name in ('play_share_rising', 'play_share_falling'):
-            assert abs(getattr(after, name) - 0.5) <= abs(getattr(before, name) - 0.5) + 0.05
+            assert abs(getattr(after, name) - getattr(before, name)) < 0.35
         for name in ('branch_correction_m', 'branch_difference_m'):
             assert np.max(np.abs(np.subtract(getattr(after, name),
                                              getattr(before, name)))) < 1.5e-3, name
