@@ -106,7 +106,12 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
         assert {'play_share_rising', 'play_share_falling', 'play_share_slope_rising',
                 'play_share_slope_falling', 'branch_correction_mm',
                 'branch_difference_mm', 'creep_gains', 'mix_weights', 'play_rule_correction_mm',
-                'play_rule_difference_mm', 'play_rule_creep_gains'} <= keys
+                'play_rule_difference_mm', 'play_rule_creep_gains',
+                'first_loading_term_mm'} <= keys
+        # The run travels far past one loading: its term has ended and left the filter.
+        first_loading = [kv.value for a in diagnostics for s in a.status for kv in s.values
+                         if kv.key == 'first_loading_term_mm']
+        assert first_loading[-1] == 'ended'
     finally:
         probe.node.destroy_subscription(sub_params)
         probe.node.destroy_subscription(sub_diag)

@@ -124,6 +124,13 @@ class RuleMix:
                      float(weights @ [d.shift_m for d in drifts]),
                      float(weights @ [d.gain for d in drifts]))
 
+    @property
+    def virgin_term_m(self) -> float:
+        """The rules' first-loading terms, mixed."""
+        return float(self.weights @ [expert.virgin_term_m for expert in self.experts])
+
+    first_loading_ended = _first_rule('first_loading_ended')   # the rules share the travel
+
     def learned(self) -> IdentificationSettings:
         """Every rule's learned numbers and the play rule's weight, as the 'mix' memory
         saves them (IdentificationSettings.for_rule gives each rule its part back)."""

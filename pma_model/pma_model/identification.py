@@ -1,7 +1,7 @@
 """Online identification: learn which muscle this is from the lengths the model already sees.
 
 One major loop (Table 1) fixes the branches only roughly and says nothing about minor loops,
-so the model keeps learning, sample by sample, three things about the muscle and one about
+so the model keeps learning, sample by sample, three things about the muscle and two about
 its state (docs/model.md, "Online identification"):
 
 - the minor-loop rule: the play share of the 'identify' memory for rising and for falling
@@ -32,14 +32,15 @@ its state (docs/model.md, "Online identification"):
   VIRGIN_END_PA, so that loading is not learned as the rising branch.
 - drift (adaptation.enabled): rest-length shift and stroke gain (adaptation.Drift).
 
-delta, the creep gains, the virgin term and the drift are one Kalman filter (random walks: delta and creep
-nearly static, drift moving over adaptation.time_constant_s; drift starts at 0 with no prior
-spread, so how the muscle differs from Table 1 is learned as shape and later change as drift). Its
-measurement noise is the sensor's, divided by a confidence that is 1 on the major branches
-and falls as the two memory shapes disagree: a residual the memory could explain is not
-learned as shape or drift. The learned numbers are applied to the memory model when they have
-moved enough to matter (COMMIT_M, COMMIT_SHARE), by replaying the remembered turning points:
-the state stays a function of the pressure history and the learned numbers.
+delta, the creep gains, the virgin term and the drift are one Kalman filter (random walks:
+delta and creep nearly static, drift moving over adaptation.time_constant_s; drift starts at
+0 with no prior spread, so how the muscle differs from Table 1 is learned as shape and later
+change as drift). Its measurement noise is the sensor's, divided by a confidence that is 1
+on the major branches and falls as the two memory shapes disagree: a residual the memory
+could explain is not learned as shape or drift. The learned numbers are applied to the
+memory model when they have moved enough to matter (COMMIT_M, COMMIT_SHARE), by replaying
+the remembered turning points: the state stays a function of the pressure history and the
+learned numbers.
 """
 
 from __future__ import annotations
@@ -561,6 +562,11 @@ class OnlineModel:
         return self.model.branch
 
     @property
+    def first_loading_ended(self) -> bool:
+        """True once the muscle has travelled VIRGIN_END_PA since start."""
+        return self._virgin is None
+
+    @property
     def virgin_term_m(self) -> float:
         """What the model adds for a rested muscle's first loading at the pressure travelled
         so far (0 once it has ended)."""
@@ -865,7 +871,7 @@ class OnlineModel:
 def virgin_weights(travel_pa: float) -> np.ndarray:
     """Hat-function weights of the virgin term's knots at a travel (all 0 from
     VIRGIN_END_PA on, where the term has ended)."""
-    knots = VIRGIN_TRAVEL_KNOTS_PA + (VIRGIN_END_PA,)
+    knots = (*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA)
     weights = np.zeros(len(knots))
     k = int(np.searchsorted(knots, travel_pa, side='right')) - 1
     if 0 <= k < len(knots) - 1:

@@ -411,6 +411,8 @@ class ModelNode(Node):
             learned = self._model.learned()
             learned_count = self._model.samples_learned
             mix = _mix_weights(self._model)
+            first_loading = 'ended' if self._model.first_loading_ended else \
+                f'{1e3 * self._model.virgin_term_m:.2f}'
         status = DiagnosticStatus()
         status.name = f'{self.get_fully_qualified_name()}: hysteresis model'
         status.hardware_id = 'model'
@@ -451,7 +453,10 @@ class ModelNode(Node):
                 play_share_slope_falling=f'{learned.play_share_slope_falling:.3f}',
                 branch_correction_mm=_millimetres(learned.branch_correction_m),
                 branch_difference_mm=_millimetres(learned.branch_difference_m),
-                creep_gains=' '.join(f'{v:.3f}' for v in learned.creep_gains))
+                creep_gains=' '.join(f'{v:.3f}' for v in learned.creep_gains),
+                # A rested muscle's first loading, learned apart (docs/model.md §5): its
+                # term in mm until the muscle has travelled 500 kPa, then 'ended'.
+                first_loading_term_mm=first_loading)
         if mix:
             values.update(
                 mix_weights=' '.join(f'{rule} {weight:.3f}' for rule, weight in mix.items()),
