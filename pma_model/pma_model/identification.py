@@ -572,7 +572,7 @@ class OnlineModel:
         so far (0 once it has ended)."""
         if self._virgin is None:
             return 0.0
-        return float(virgin_weights(self._travel_pa) @ self._filter.mean[self._virgin])
+        return float(virgin_knot_weights(self._travel_pa) @ self._filter.mean[self._virgin])
 
     @property
     def samples_learned(self) -> int:
@@ -670,7 +670,7 @@ class OnlineModel:
         if self._travel_pa >= VIRGIN_END_PA:
             self._end_virgin_term()
             return None
-        return virgin_weights(self._travel_pa)
+        return virgin_knot_weights(self._travel_pa)
 
     def _advance_lags(self, static: float, t_s: float | None) -> float:
         """Move the creep lags to this sample's time; returns the step [s] (0 if unknown)."""
@@ -868,7 +868,7 @@ class OnlineModel:
             self._end_virgin_term()
 
 
-def virgin_weights(travel_pa: float) -> np.ndarray:
+def virgin_knot_weights(travel_pa: float) -> np.ndarray:
     """Hat-function weights of the virgin term's knots at a travel (all 0 from
     VIRGIN_END_PA on, where the term has ended)."""
     knots = (*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA)

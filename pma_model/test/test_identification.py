@@ -24,6 +24,7 @@ from pma_model.identification import (
     knot_sensitivity,
     monotone_correction,
     run_online,
+    virgin_knot_weights,
 )
 from pma_model.memory import HysteresisModel
 from pma_model.params import ModelParams, ParamsError, default_params
@@ -325,6 +326,20 @@ def test_a_rested_muscles_first_loading_is_not_learned_as_its_branches(monkeypat
     assert np.abs(off_by[False]).max() > 2 * np.abs(off_by[True]).max()
     later = time_s > 20.0
     assert rms(errors[True][later]) < 0.8 * rms(errors[False][later])
+
+
+@given(travel=st.floats(0.0, 2e6))
+def test_the_virgin_term_fades_to_nothing_over_one_loading(travel):
+    weights = virgin_knot_weights(travel)
+    assert weights.shape == (len(identification.VIRGIN_TRAVEL_KNOTS_PA),)
+    assert np.all(weights >= 0.0)
+    last_knot, end = identification.VIRGIN_TRAVEL_KNOTS_PA[-1], identification.VIRGIN_END_PA
+    if travel <= last_knot:
+        assert weights.sum() == pytest.approx(1.0)        # a hat basis: no term lost
+    elif travel < end:
+        assert weights.sum() == pytest.approx((end - travel) / (end - last_knot))
+    else:
+        assert not weights.any()
 
 
 def test_a_model_resumed_at_run_time_keeps_the_pressure_travelled():
