@@ -732,17 +732,10 @@ class OnlineModel:
         state.mean = mean
         self._project_shape(state)
         mean = state.mean
-        # np.minimum/maximum: the same bounds as np.clip, at a third of its cost per call.
-        difference = mean[knots:2 * knots]
-        np.minimum(np.maximum(difference, -MAX_DIFFERENCE_M, out=difference), MAX_DIFFERENCE_M,
-                   out=difference)
-        creep_gains = mean[self._creep_gains]
-        np.minimum(np.maximum(creep_gains, -MAX_CREEP_GAIN, out=creep_gains), MAX_CREEP_GAIN,
-                   out=creep_gains)
-        if self._virgin is not None:
-            virgin = mean[self._virgin]
-            np.minimum(np.maximum(virgin, -MAX_CORRECTION_M, out=virgin), MAX_CORRECTION_M,
-                       out=virgin)
+        _bound_in_place(mean[knots:2 * knots], MAX_DIFFERENCE_M)
+        _bound_in_place(mean[self._creep_gains], MAX_CREEP_GAIN)
+        if self._virgin is not None:     # as large as a knot's correction may be
+            _bound_in_place(mean[self._virgin], MAX_CORRECTION_M)
         limits = self.adaptation
         mean[-2] = min(max(mean[-2], -limits.max_shift_m), limits.max_shift_m)
         mean[-1] = min(max(mean[-1], limits.min_gain - 1.0), limits.max_gain - 1.0)
@@ -866,6 +859,12 @@ class OnlineModel:
         self._travel_pa, self._play_pa = other._travel_pa, other._play_pa
         if self._virgin is not None and self._travel_pa >= VIRGIN_END_PA:
             self._end_virgin_term()
+
+
+def _bound_in_place(values: np.ndarray, limit: float) -> None:
+    """Clamp a view of the filter's state to +/-limit. np.minimum/maximum: the same bounds
+    as np.clip, at a third of its cost per call (every sample runs this)."""
+    np.minimum(np.maximum(values, -limit, out=values), limit, out=values)
 
 
 def virgin_knot_weights(travel_pa: float) -> np.ndarray:

@@ -328,6 +328,7 @@ def test_a_rested_muscles_first_loading_is_not_learned_as_its_branches(monkeypat
     assert rms(errors[True][later]) < 0.8 * rms(errors[False][later])
 
 
+@settings(deadline=None)
 @given(travel=st.floats(0.0, 2e6))
 def test_the_virgin_term_fades_to_nothing_over_one_loading(travel):
     weights = virgin_knot_weights(travel)
