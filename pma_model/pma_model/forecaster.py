@@ -166,7 +166,7 @@ class RuleMix:
             length_m=float(weights @ lengths), branch=first.branch,
             static_length_m=float(weights @ [p.static_length_m for p in predictions]),
             offset_m=float(weights @ [p.offset_m for p in predictions]),
-            gain=float(weights @ [p.gain for p in predictions]), confidence=first.confidence)
+            gain=float(weights @ [p.gain for p in predictions]))
 
     # --- inverse --------------------------------------------------------------------
 

@@ -35,12 +35,14 @@ its state (docs/model.md, "Online identification"):
 delta, the creep gains, the virgin term and the drift are one Kalman filter (random walks:
 delta and creep nearly static, drift moving over adaptation.time_constant_s; drift starts at
 0 with no prior spread, so how the muscle differs from Table 1 is learned as shape and later
-change as drift). Its measurement noise is the sensor's, divided by a confidence that is 1
-on the major branches and falls as the two memory shapes disagree: a residual the memory
-could explain is not learned as shape or drift. The learned numbers are applied to the
-memory model when they have moved enough to matter (COMMIT_M, COMMIT_SHARE), by replaying
-the remembered turning points: the state stays a function of the pressure history and the
-learned numbers.
+change as drift). Its measurement noise is the sensor's, also after a reversal: the exact
+derivative says which knots, turning points and share a residual there belongs to, and
+trusting those samples less (until 2026-11-27) only slowed learning (docs/model.md §5).
+Only where drift alone learns (identification off) is a residual the memory could explain
+trusted less, by how far the two memory shapes disagree: nothing else could take it up.
+The learned numbers are applied to the memory model when they have moved enough to matter
+(COMMIT_M, COMMIT_SHARE), by replaying the remembered turning points: the state stays a
+function of the pressure history and the learned numbers.
 """
 
 from __future__ import annotations
@@ -67,12 +69,14 @@ ROUNDING_M = 1e-12           # a bound missed by less than this is met (float ro
 # Far beyond any loss difference of the mix (errors are capped at adaptation.outlier_m, at
 # most 0.05 m, and forgotten over 100 s: 0.25 m^2 s).
 MAX_EXCESS_LOSS_M2S = 1.0
-SPREAD_SCALE_M = 0.0005      # memory shapes this far apart halve the confidence (quarter R)
+# Drift alone learning (identification off): memory shapes this far apart halve a sample's
+# weight (quarter R), down to SPREAD_FLOOR (a sample is never worth nothing).
+SPREAD_SCALE_M = 0.0005
+SPREAD_FLOOR = 1e-3
 COMMIT_M = 2e-5              # apply learned branch changes once they move 0.02 mm somewhere
 COMMIT_SHARE = 0.01          # or a share or its slope by this much
 MAX_STEP_S = 1.0             # a longer gap between samples counts as this (a pause)
 GAIN_WALK_LENGTH_M = 0.03    # the gain may move as fast as the shift does at this |L - L_ref|
-SPREAD_FLOOR = 1e-3          # the least confidence (a sample is never worth nothing)
 
 # Kalman filter priors (standard deviations) and random-walk rates (per second).
 # The branch difference's prior. Measured on seeds 3-4 of every family (sigmoid): 0.5, 1 and
@@ -203,8 +207,8 @@ class IdentificationSettings:
 
     def for_rule(self, rule: str) -> IdentificationSettings:
         """What the mix's OnlineModel for `rule` starts from: the play rule its own
-        correction, difference and creep (and the default shares, which only measure its
-        confidence); every other rule these settings as they are."""
+        correction, difference and creep (and the default shares: it has none of its own);
+        every other rule these settings as they are."""
         if rule != 'play':
             return self
         default = IdentificationSettings()
@@ -406,7 +410,6 @@ class Prediction:
     static_length_m: float   # the memory model alone (no creep, no drift)
     offset_m: float          # drift correction: length = offset + gain * (static + creep)
     gain: float
-    confidence: float        # 1 on a major branch, toward 0 where the memory shapes disagree
 
 
 @dataclass
@@ -468,12 +471,14 @@ class OnlineModel:
                                      deadband_pa=self.deadband_pa,
                                      max_gauge_pressure_pa=self.max_gauge_pressure_pa,
                                      play_shares=shares, share_slopes=slopes)
-        # What measures the memory's doubt for every rule: the 'identify' shapes.
-        self._shapes = self.model if self.memory == 'identify' else (
+        # Drift alone learning: nothing but drift could take up the memory's error after a
+        # reversal, so the 'identify' shapes measure the memory's doubt there. With
+        # identification on, the exact derivative places such a residual itself.
+        self._doubt = None if self._learning or not self._drifting else (
+            self.model if self.memory == 'identify' else
             HysteresisModel(*branches, memory='identify', deadband_pa=self.deadband_pa,
                             max_gauge_pressure_pa=self.max_gauge_pressure_pa,
-                            play_shares=shares, share_slopes=slopes)
-            if self._learning or self._drifting else None)
+                            play_shares=shares, share_slopes=slopes))
         self._lags = None
         self._time = None
         self._static = math.nan
@@ -632,16 +637,16 @@ class OnlineModel:
         pressure_pa = float(pressure_pa)
         drift = self.drift
         if not math.isfinite(pressure_pa):
-            return Prediction(math.nan, self.model.branch, math.nan, drift.offset_m, drift.gain,
-                              math.nan)
+            return Prediction(math.nan, self.model.branch, math.nan, drift.offset_m, drift.gain)
         static, branch = self.model.update(pressure_pa)
         virgin_weights = self._advance_travel(pressure_pa)
-        if self._shapes is not None and self._shapes is not self.model:
-            self._shapes.update(pressure_pa)
-        play, madelung = (self._shapes.expert_lengths() if self._shapes is not None
-                          else (static, static))
-        spread = abs(play - madelung)
-        confidence = 1.0 / (1.0 + (spread / SPREAD_SCALE_M) ** 2)
+        play, madelung = self.model.expert_lengths()   # equal but for 'identify'
+        confidence = 1.0
+        if self._doubt is not None:
+            if self._doubt is not self.model:
+                self._doubt.update(pressure_pa)
+            held, rescaled = self._doubt.expert_lengths()
+            confidence = 1.0 / (1.0 + ((held - rescaled) / SPREAD_SCALE_M) ** 2)
         dt = self._advance_lags(static, t_s)
         creep_gains = self._filter.mean[self._creep_gains]
         creep = self._lags - static
@@ -654,7 +659,7 @@ class OnlineModel:
             self._learn(measured_length_m - predicted, creep=creep, undrifted=undrifted,
                         shape_difference=play - madelung, confidence=confidence,
                         gain=drift.gain, dt=dt, virgin_weights=virgin_weights)
-        return Prediction(predicted, branch, static, drift.offset_m, drift.gain, confidence)
+        return Prediction(predicted, branch, static, drift.offset_m, drift.gain)
 
     def _advance_travel(self, pressure_pa: float) -> np.ndarray | None:
         """Advance the pressure travelled since start; the virgin term's interpolation
@@ -808,8 +813,8 @@ class OnlineModel:
         new_shares, new_slopes = self._mid_shares_and_slopes()
         branches = self._corrected(offsets)
         self.model.relearn(*branches, new_shares, new_slopes)
-        if self._shapes is not None and self._shapes is not self.model:
-            self._shapes.relearn(*branches, new_shares, new_slopes)
+        if self._doubt is not None and self._doubt is not self.model:
+            self._doubt.relearn(*branches, new_shares, new_slopes)
         self._committed = (offsets, self._shares.copy())
 
     # --- inverse --------------------------------------------------------------------
@@ -850,9 +855,8 @@ class OnlineModel:
         if not isinstance(other, OnlineModel):
             other = other.experts[0]
         self.model.resume_from(other.model)
-        if self._shapes is not None and self._shapes is not self.model:
-            self._shapes.resume_from(other._shapes if other._shapes is not None
-                                     else other.model)
+        if self._doubt is not None and self._doubt is not self.model:
+            self._doubt.resume_from(other._doubt if other._doubt is not None else other.model)
         self._lags, self._time, self._static = other._lags, other._time, other._static
         # How far the muscle has travelled is its history too (what the old model learned of
         # a virgin term is not carried over: it lasts one loading).

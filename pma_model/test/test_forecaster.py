@@ -193,7 +193,9 @@ def test_the_default_memory_is_the_mix_and_a_saved_file_resumes_it_exactly():
     learned = mix.learned()
     # A play truth: identify's shares go to the play end, and both rules follow it so closely
     # that their weights are near even (measured: excess 4e-8 m^2 s, 0.02 of the temperature).
-    assert min(learned.play_share_rising, learned.play_share_falling) > 0.9
+    # The shares (seeds 1-4 of this truth): 0.90-0.99, and 0.93-0.99 while the samples just
+    # after a reversal counted less (until 2026-11-27), which left the shares more to explain.
+    assert min(learned.play_share_rising, learned.play_share_falling) > 0.85
     assert learned.play_rule_excess_loss_m2s != 0.0 and mix.weights[1] != 0.5
     assert any(learned.play_rule_correction_m) and any(learned.branch_correction_m)
     assert learned.play_rule_correction_m != learned.branch_correction_m   # each its own

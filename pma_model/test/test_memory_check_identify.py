@@ -55,7 +55,9 @@ def test_memory_check_identifies_the_shares_and_params_out_writes_them(procs, tm
     path = recorded_minor_loops(tmp_path, 'identify', play_shares=SHARES)
     check, output = check_memory(procs, tmp_path, path)
     assert check['best_memory']['sigmoid_fixed_c'] == 'identify'
-    assert check['mix_weights']['sigmoid_fixed_c']['identify'] > 0.99
+    # 0.965 (0.999 while the samples just after a reversal counted less, until 2026-11-27:
+    # the play rule's own correction now learns from them too, and errs less on this path).
+    assert check['mix_weights']['sigmoid_fixed_c']['identify'] > 0.9
     learned = check['identified']['sigmoid_fixed_c']
     assert abs(learned['play_share_rising'] - SHARES[0]) < 0.15
     assert abs(learned['play_share_falling'] - SHARES[1]) < 0.15
