@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 import random
 import signal
+import subprocess
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -83,7 +84,11 @@ def send(proc: Proc, plan: list[tuple[float, int, bool]]) -> None:
 
 def finish(proc: Proc, timeout: float = 20.0) -> str:
     """Wait for the exit; it must be 0 and the output free of alarms."""
-    code = proc.popen.wait(timeout)
+    try:
+        code = proc.popen.wait(timeout)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f'{proc.name} still running {timeout} s after the signals; its stacks:\n'
+                    f'{proc.abort_with_stacks()[-6000:]}')
     proc._reader.join(5)
     output = proc.output
     assert code == 0, f'{proc.name} exited {code}:\n{output[-3000:]}'

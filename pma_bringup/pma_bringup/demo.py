@@ -326,11 +326,9 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('ROS_DOMAIN_ID', str(50 + os.getpid() % 50))
-    interrupted = threading.Event()
 
-    def on_signal(signum, _frame):
-        interrupted.set()
-        raise KeyboardInterrupt
+    def on_signal(_signum, _frame):
+        raise KeyboardInterrupt       # SIGTERM (docker stop, launch) ends the demo as Ctrl-C does
 
     signal.signal(signal.SIGTERM, on_signal)
     import rclpy

@@ -4,8 +4,14 @@ rclpy's handlers (and Python's default) turn SIGINT into KeyboardInterrupt where
 thread happens to be. A Ctrl-C under `ros2 launch` delivers two SIGINTs (the terminal's to the
 whole process group, then launch's own to each child), and the second one used to land in
 `finally:` and cut the driver's vent or the recorder's bag close short. Here SIGINT, SIGTERM
-and SIGHUP only set an event: the main loop sees it and runs its whole shutdown, and signals
+and SIGHUP only set a flag: the main loop sees it and runs its whole shutdown, and signals
 that arrive while it does so are noted and otherwise ignored.
+
+The handler takes no lock. Python runs a handler between two bytecodes of the main thread,
+even inside another handler: when the handler set a threading.Event, a second signal could
+interrupt the first handler while it held the Event's lock, and the second handler then waited
+for that lock forever (a recorder hung so under a burst of signals in CI). A flag and a byte
+written to a pipe need no lock.
 
 No ROS here: fake_arduino uses it as is, nodes through pma_common.node.
 """
@@ -13,8 +19,9 @@ No ROS here: fake_arduino uses it as is, nodes through pma_common.node.
 from __future__ import annotations
 
 import importlib
+import os
+import select
 import signal
-import threading
 from collections.abc import Callable
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -24,9 +31,12 @@ class StopRequest:
     """Set once by the first stop signal (or by the program itself); later ones are counted."""
 
     def __init__(self) -> None:
-        self._event = threading.Event()
+        self._requested = False
         self.reason = ''
         self.extra_signals = 0
+        # Written once, never read: readable from the request on, for wait()'s select.
+        self._readable_once_set, self._wake = os.pipe()
+        os.set_blocking(self._wake, False)
 
     def install(self) -> StopRequest:
         """Route the stop signals here (main thread only; idempotent)."""
@@ -35,16 +45,21 @@ class StopRequest:
         return self
 
     def _on_signal(self, signum: int, _frame) -> None:
-        if self._event.is_set():
+        if self._requested:
             self.extra_signals += 1
             return
         self.request(signal.Signals(signum).name)
 
     def request(self, reason: str) -> None:
         """Ask the main loop to stop (the first reason is kept)."""
-        if not self._event.is_set():
-            self.reason = reason
-            self._event.set()
+        if self._requested:
+            return
+        self._requested = True    # first: a signal arriving from here on only counts
+        self.reason = reason
+        try:
+            os.write(self._wake, b'!')
+        except BlockingIOError:   # a full pipe is readable already
+            pass
 
     def ignore_further(self) -> None:
         """Ignore stop signals from now on: the shutdown is done and the interpreter exits.
@@ -56,10 +71,13 @@ class StopRequest:
             signal.signal(sig, signal.SIG_IGN)
 
     def is_set(self) -> bool:
-        return self._event.is_set()
+        return self._requested
 
     def wait(self, timeout: float | None = None) -> bool:
-        return self._event.wait(timeout)
+        """True once requested, False if `timeout` seconds pass first."""
+        if not self._requested:
+            select.select([self._readable_once_set], [], [], timeout)
+        return self._requested
 
 
 # Signals belong to the process, so there is one request per process.

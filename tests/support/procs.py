@@ -83,6 +83,17 @@ class Proc:
         if self.alive():
             os.killpg(self.popen.pid, sig)
 
+    def abort_with_stacks(self) -> str:
+        """End a hung process with SIGABRT, which makes Python print every thread's stack."""
+        if self.alive():
+            self.popen.send_signal(signal.SIGABRT)
+            try:
+                self.popen.wait(5)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+        self._reader.join(5)
+        return self.output
+
     def stop(self, timeout: float = 5.0) -> int:
         """SIGINT, then SIGTERM, then SIGKILL to the process group; return the exit code."""
         escalation = ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, 5))
@@ -120,6 +131,7 @@ class ProcessGroup:
         name = name or Path(argv[0]).name
         full_env = dict(os.environ)
         full_env['PYTHONUNBUFFERED'] = '1'
+        full_env['PYTHONFAULTHANDLER'] = '1'    # SIGABRT prints every thread's stack (hangs)
         if env:
             full_env.update(env)
         popen = subprocess.Popen(
