@@ -640,7 +640,6 @@ class OnlineModel:
             return Prediction(math.nan, self.model.branch, math.nan, drift.offset_m, drift.gain)
         static, branch = self.model.update(pressure_pa)
         virgin_weights = self._advance_travel(pressure_pa)
-        play, madelung = self.model.expert_lengths()   # equal but for 'identify'
         confidence = 1.0
         if self._doubt is not None:
             if self._doubt is not self.model:
@@ -656,8 +655,12 @@ class OnlineModel:
         predicted = float(drift.correct(undrifted))
         measured_length_m = float(measured_length_m)
         if (self._learning or self._drifting) and math.isfinite(measured_length_m):
+            shape_difference = 0.0          # what the share learns from: only 'identify' has one
+            if self._learning and self.memory == 'identify':
+                play, madelung = self.model.expert_lengths()
+                shape_difference = play - madelung
             self._learn(measured_length_m - predicted, creep=creep, undrifted=undrifted,
-                        shape_difference=play - madelung, confidence=confidence,
+                        shape_difference=shape_difference, confidence=confidence,
                         gain=drift.gain, dt=dt, virgin_weights=virgin_weights)
         return Prediction(predicted, branch, static, drift.offset_m, drift.gain)
 
