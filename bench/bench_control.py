@@ -1,6 +1,7 @@
 """Length control: the controller modes on every simulated muscle, and the loop latency.
 
     . tools/env.sh && python bench/bench_control.py [--seconds 20] [--families NAME ...]
+                                                    [--device-seeds N ...]
 
 * tracking (ROS-free, simulated time, the simulated device's own sensors and regulator;
   the true length is known only to the evaluation), on every simulated muscle family and
@@ -14,7 +15,10 @@
   steady error within the HC-SR04's 3 mm resolution. The 0.1 Hz sine again with every
   setpoint reaching the device 50 ms late (DDS, serial line and firmware; gains must not be
   tuned to a zero-delay simulation): ff_fb still <= 2 %; and 150 ms late (a loaded host),
-  reported.
+  reported. Every run is repeated on several device seeds (sensor noise, valve timing;
+  --device-seeds, six by default, two processes): one seed's 0.1 Hz RMSE moved by up to
+  10 % with the seed. The table gives the mean over seeds and the worst one; the targets
+  hold on the worst.
 * loop latency over DDS at 50 Hz: a publisher process sends pma/state; length_controller
   (holding a target) answers each with pma/pressure_setpoint; this process receives both and
   takes setpoint arrival - state arrival. Baseline: a bare relay node (state in, Float64 out)
@@ -25,10 +29,12 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -61,14 +67,16 @@ RESOLUTION_M = 0.003
 
 # --- tracking on the simulated muscles -----------------------------------------------------
 
-def muscles() -> dict[str, object]:
-    """name -> a factory of the simulated rig: every muscle family the simulation offers,
+DEVICE_SEEDS = tuple(range(11, 17))
+
+
+def rig_factory(family: str):
+    """A factory of the simulated rig with this muscle: every family the simulation offers,
     and the held-out Bouc-Wen muscle of tests/support/muscle_families.py."""
-    return {name: (lambda config, name=name: Rig(config, muscle_for(name)))
-            for name in SCORED_FAMILIES}
+    return lambda config: Rig(config, muscle_for(family))
 
 
-def run(mode: str, make_rig, profile, duration_s: float, *, rate_hz: int = 20,
+def run(mode: str, family: str, profile, duration_s: float, *, seed: int, rate_hz: int = 20,
         command_delay_s: float = 0.0):
     control = LengthController(default_params().build_online(), ControllerSettings(mode=mode))
 
@@ -76,8 +84,8 @@ def run(mode: str, make_rig, profile, duration_s: float, *, rate_hz: int = 20,
         control.set_target(profile(t_s))
         return control.update(t_s, pressure_pa, length_m).command_pa
 
-    config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=11)
-    trace = run_closed_loop(step, duration_s, config=config, rig=make_rig(config),
+    config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=seed)
+    trace = run_closed_loop(step, duration_s, config=config, rig=rig_factory(family)(config),
                             command_delay_s=command_delay_s).arrays()
     return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
 
@@ -119,47 +127,76 @@ def sine_metrics(t, true, reference, frequency_hz: float) -> dict[str, float]:
             'max_pct': 100 * float(np.max(np.abs(error))) / STROKE_M}
 
 
-def tracking_table(families: dict[str, object]) -> tuple[list[tuple[str, str, str]], bool]:
+def tracking_runs(family: str, seed: int) -> dict[str, object]:
+    """Every run of one muscle on one device seed (a process of the pool runs it)."""
+    runs: dict[str, object] = {}
+    for mode in MODES:
+        runs[mode] = {'steps': step_metrics(*run(mode, family, step_profile, STEP_END_S,
+                                                 seed=seed))}
+        for frequency in SINE_HZ:
+            duration = 1.0 / frequency * 3 + 2.0
+            runs[mode][frequency] = sine_metrics(*run(mode, family, sine_profile(frequency),
+                                                      duration, seed=seed), frequency)
+    for delay_s in COMMAND_DELAYS_S:
+        runs[delay_s] = sine_metrics(*run('ff_fb', family, sine_profile(0.1), 32.0, seed=seed,
+                                          command_delay_s=delay_s), 0.1)['rmse_pct']
+    return runs
+
+
+def spread(values) -> str:
+    """'mean (worst)' of a figure over the device seeds."""
+    values = np.asarray(values, dtype=float)
+    if np.isinf(values).any():       # a step that never settled
+        return f'never on {np.isinf(values).sum()}/{values.size}'
+    return f'{values.mean():.2f} ({values.max():.2f})'
+
+
+def tracking_table(families: list[str], seeds: tuple[int, ...]
+                   ) -> tuple[list[tuple[str, str, str]], bool]:
+    with ProcessPoolExecutor(min(2, os.cpu_count() or 1)) as pool:
+        jobs = {(family, seed): pool.submit(tracking_runs, family, seed)
+                for family in families for seed in seeds}
+        by_seed = {key: job.result() for key, job in jobs.items()}
+    print(f'device seeds {", ".join(map(str, seeds))}; mean over them, the worst in brackets',
+          flush=True)
+    print(f'{"muscle":<12}{"mode":<7}{"step settle [s]":>17}{"overshoot [mm]":>16}'
+          f'{"steady [mm]":>14}' + ''.join(f'{f"{f:g} Hz RMSE %":>16}{"max %":>15}'
+                                             for f in SINE_HZ), flush=True)
     rows, ok = [], True
-    print(f'{"muscle":<12}{"mode":<7}{"step settle":>12}{"overshoot":>11}{"steady":>9}'
-          + ''.join(f'{f"{f:g} Hz RMSE/max %":>20}' for f in SINE_HZ), flush=True)
-    for family, make_rig in families.items():
-        rmse_01 = {}
+    for family in families:
+        runs = [by_seed[family, seed] for seed in seeds]
         for mode in MODES:
-            steps = step_metrics(*run(mode, make_rig, step_profile, STEP_END_S))
-            sines = []
-            for frequency in SINE_HZ:
-                duration = 1.0 / frequency * 3 + 2.0
-                sines.append(sine_metrics(*run(mode, make_rig, sine_profile(frequency),
-                                               duration), frequency))
-            rmse_01[mode] = sines[SINE_HZ.index(0.1)]['rmse_pct']
-            print(f'{family:<12}{mode:<7}{steps["settle_s"]:>10.2f} s'
-                  f'{steps["overshoot_mm"]:>8.1f} mm{steps["steady_mm"]:>6.1f} mm'
-                  + ''.join(f'{s["rmse_pct"]:>13.2f} /{s["max_pct"]:>5.2f}' for s in sines),
-                  flush=True)
-            if mode == 'ff_fb':
-                steady_ok = steps['steady_mm'] <= RESOLUTION_M * 1000
-                ok &= steady_ok
-                rows.append((f'{family}: ff_fb steady error [mm]', f'{steps["steady_mm"]:.2f}',
-                             check(steady_ok, '<= 3 mm (sensor resolution)')))
+            steps = {key: [r[mode]['steps'][key] for r in runs] for key in runs[0][mode]['steps']}
+            print(f'{family:<12}{mode:<7}{spread(steps["settle_s"]):>17}'
+                  f'{spread(steps["overshoot_mm"]):>16}{spread(steps["steady_mm"]):>14}'
+                  + ''.join(f'{spread([r[mode][f]["rmse_pct"] for r in runs]):>16}'
+                            f'{spread([r[mode][f]["max_pct"] for r in runs]):>15}'
+                            for f in SINE_HZ), flush=True)
+        steady = max(r['ff_fb']['steps']['steady_mm'] for r in runs)
+        steady_ok = steady <= RESOLUTION_M * 1000
+        ok &= steady_ok
+        rows.append((f'{family}: ff_fb steady error, worst seed [mm]', f'{steady:.2f}',
+                     check(steady_ok, '<= 3 mm (sensor resolution)')))
         for delay_s in COMMAND_DELAYS_S:
-            delayed = sine_metrics(*run('ff_fb', make_rig, sine_profile(0.1), 32.0,
-                                        command_delay_s=delay_s), 0.1)['rmse_pct']
+            delayed = [r[delay_s] for r in runs]
             print(f'{family:<12}ff_fb with {1000 * delay_s:.0f} ms command delay: 0.1 Hz '
-                  f'RMSE {delayed:.2f} %', flush=True)
-            label = f'{family}: ff_fb RMSE at 0.1 Hz, {1000 * delay_s:.0f} ms delay [% stroke]'
+                  f'RMSE {spread(delayed)} %', flush=True)
+            label = (f'{family}: ff_fb RMSE at 0.1 Hz, {1000 * delay_s:.0f} ms delay, '
+                     'worst seed [% stroke]')
             if delay_s <= DELAY_TARGET_S:
-                ok &= delayed <= 2.0
-                rows.append((label, f'{delayed:.2f}', check(delayed <= 2.0, '<= 2 %')))
+                ok &= max(delayed) <= 2.0
+                rows.append((label, f'{max(delayed):.2f}', check(max(delayed) <= 2.0, '<= 2 %')))
             else:
-                rows.append((label, f'{delayed:.2f}', 'reported (a loaded host)'))
-        within = rmse_01['ff_fb'] <= 2.0
-        ratio = rmse_01['fb'] / rmse_01['ff_fb']
-        ok &= within and ratio >= 2.0
-        rows.append((f'{family}: ff_fb RMSE at 0.1 Hz [% stroke]', f'{rmse_01["ff_fb"]:.2f}',
-                     check(within, '<= 2 %')))
-        rows.append((f'{family}: fb / ff_fb RMSE at 0.1 Hz', f'{ratio:.2f}',
-                     check(ratio >= 2.0, '>= 2')))
+                rows.append((label, f'{max(delayed):.2f}', 'reported (a loaded host)'))
+        combined = [r['ff_fb'][0.1]['rmse_pct'] for r in runs]
+        ratios = [r['fb'][0.1]['rmse_pct'] / r['ff_fb'][0.1]['rmse_pct'] for r in runs]
+        within, ratio_ok = max(combined) <= 2.0, min(ratios) >= 2.0
+        ok &= within and ratio_ok
+        rows.append((f'{family}: ff_fb RMSE at 0.1 Hz, worst seed [% stroke]',
+                     f'{max(combined):.2f}',
+                     check(within, '<= 2 %') + f'; mean {np.mean(combined):.2f}'))
+        rows.append((f'{family}: fb / ff_fb RMSE at 0.1 Hz, worst seed', f'{min(ratios):.2f}',
+                     check(ratio_ok, '>= 2') + f'; mean {np.mean(ratios):.2f}'))
     return rows, ok
 
 
@@ -286,6 +323,8 @@ def main() -> int:
     parser.add_argument('--seconds', type=float, default=20.0, help='latency window')
     parser.add_argument('--families', nargs='+', choices=SCORED_FAMILIES,
                         help='only these simulated muscles')
+    parser.add_argument('--device-seeds', nargs='+', type=int, default=DEVICE_SEEDS,
+                        metavar='N', help='simulated device seeds (sensor noise, valve timing)')
     parser.add_argument('--publish', type=float, help=argparse.SUPPRESS)
     parser.add_argument('--relay', action='store_true', help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -296,10 +335,7 @@ def main() -> int:
         relay_main()
         return 0
     isolate_ros_graph()
-    families = muscles()
-    if args.families:
-        families = {name: families[name] for name in args.families}
-    rows, ok = tracking_table(families)
+    rows, ok = tracking_table(list(args.families or SCORED_FAMILIES), tuple(args.device_seeds))
     latency, latency_ok = latency_rows(args.seconds)
     print()
     print_table([*rows, *latency, load_row()])
