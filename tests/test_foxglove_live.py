@@ -15,6 +15,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
 import re
 import signal
 import threading
@@ -30,7 +31,7 @@ from pma_bag.record import message_class
 from pma_interfaces.msg import PmaState
 from support.domains import another_domain
 from support.foxglove_ws import FoxgloveClient, Received
-from support.procs import ROOT
+from support.procs import ROOT, children_of, running
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -262,12 +263,16 @@ def test_a_second_bridge_on_a_taken_port_says_so(rig, procs):
     assert 'Address already in use' in second.output and 'port:=' in second.output
 
 
-def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path):
+@pytest.mark.parametrize('stop_signal', [signal.SIGINT, signal.SIGHUP],
+                         ids=['ctrl-c', 'terminal-closed'])
+def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path, stop_signal):
     """`make demo` runs this executable: while it runs, its URL serves the rig's topics.
 
     The demo runs its own rig, so it gets a domain of its own: in this module's domain the
     `rig` fixture's driver would answer the demo's Sweep goals too (seen: a major loop failed
     with the other driver's empty result), and its states would reach the demo's viewer.
+    Stopped by a Ctrl-C or a closed terminal (SIGHUP, which used to end the demo at once and
+    leave its six children running), it stops every child first.
     """
     demo = procs.ros2_run('pma_bringup', 'demo', '--runs-dir', str(tmp_path), '--live-port',
                           '0', '--hold-s', '0.3', name='demo',
@@ -287,8 +292,14 @@ def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path):
         if client is not None:
             client.close()
         # The demo's children run in their own sessions: only the demo itself stops them, so
-        # it gets a Ctrl-C and the time to do so (the fixture's escalation is shorter).
-        demo.signal(signal.SIGINT)
+        # it gets the signal and the time to do so (the fixture's escalation is shorter).
+        children = children_of(demo.popen.pid)
+        demo.signal(stop_signal)
         code = demo.popen.wait(60)
     assert code == 130, demo.output[-2000:]
     assert 'interrupted: stopping every process' in demo.output
+    assert len(children) >= 6, children       # the rig, the model, recorder, controller, view
+    left_running = [pid for pid in children if running(pid)]
+    for pid in left_running:                 # not to burden the tests that follow
+        os.kill(pid, signal.SIGKILL)
+    assert not left_running, demo.output[-2000:]

@@ -23,6 +23,8 @@ import threading
 import time
 from pathlib import Path
 
+from pma_common.stop import STOP_SIGNALS, ignore_stop_signals
+
 
 def executable(package: str, exe: str) -> Path:
     """Where `ros2 run package exe` finds it."""
@@ -328,9 +330,14 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault('ROS_DOMAIN_ID', str(50 + os.getpid() % 50))
 
     def on_signal(_signum, _frame):
-        raise KeyboardInterrupt       # SIGTERM (docker stop, launch) ends the demo as Ctrl-C does
+        # The first Ctrl-C, SIGTERM (docker stop, launch) or SIGHUP (a closed terminal) ends
+        # the demo; later ones are ignored, so the cleanup that stops the children (in sessions
+        # of their own, out of the terminal's reach) runs whole.
+        ignore_stop_signals()
+        raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, on_signal)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, on_signal)
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -459,9 +466,7 @@ def main(argv: list[str] | None = None) -> int:
         say(f'logs: {logs}')
         return 1
     finally:
-        # The cleanup runs whole: a second Ctrl-C (launch and terminal both send one) waits.
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            signal.signal(sig, signal.SIG_IGN)
+        ignore_stop_signals()    # the cleanup runs whole, however it was reached
         if executor is not None:
             executor.shutdown(timeout_sec=2)
         if node is not None:

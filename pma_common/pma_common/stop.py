@@ -67,8 +67,7 @@ class StopRequest:
         Python resets its own handlers to the default at exit, and a late SIGINT or SIGHUP
         would then kill a process that already finished cleanly; ignored ones stay ignored.
         """
-        for sig in STOP_SIGNALS:
-            signal.signal(sig, signal.SIG_IGN)
+        ignore_stop_signals()
 
     def is_set(self) -> bool:
         return self._requested
@@ -78,6 +77,12 @@ class StopRequest:
         if not self._requested:
             select.select([self._readable_once_set], [], [], timeout)
         return self._requested
+
+
+def ignore_stop_signals() -> None:
+    """SIGINT, SIGTERM and SIGHUP do nothing from now on (main thread only)."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
 
 
 # Signals belong to the process, so there is one request per process.

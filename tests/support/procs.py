@@ -117,6 +117,31 @@ class Proc:
         return self.popen.returncode
 
 
+def children_of(pid: int) -> list[int]:
+    """Pids of the processes whose parent is `pid` now, from /proc."""
+    found = []
+    for entry in Path('/proc').iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / 'stat').read_text()
+        except OSError:              # it ended meanwhile
+            continue
+        # pid (comm) state ppid ...: comm may hold spaces and brackets, so after the last ')'.
+        if int(stat.rsplit(')', 1)[1].split()[1]) == pid:
+            found.append(int(entry.name))
+    return found
+
+
+def running(pid: int) -> bool:
+    """True while `pid` exists and is not a zombie."""
+    try:
+        stat = Path(f'/proc/{pid}/stat').read_text()
+    except OSError:
+        return False
+    return stat.rsplit(')', 1)[1].split()[0] != 'Z'
+
+
 class ProcessGroup:
     """Owns every process a test starts; `stop_all` ends them in reverse order."""
 
