@@ -70,12 +70,6 @@ RESOLUTION_M = 0.003
 DEVICE_SEEDS = tuple(range(11, 17))
 
 
-def rig_factory(family: str):
-    """A factory of the simulated rig with this muscle: every family the simulation offers,
-    and the held-out Bouc-Wen muscle of tests/support/muscle_families.py."""
-    return lambda config: Rig(config, muscle_for(family))
-
-
 def run(mode: str, family: str, profile, duration_s: float, *, seed: int, rate_hz: int = 20,
         command_delay_s: float = 0.0):
     control = LengthController(default_params().build_online(), ControllerSettings(mode=mode))
@@ -84,8 +78,10 @@ def run(mode: str, family: str, profile, duration_s: float, *, seed: int, rate_h
         control.set_target(profile(t_s))
         return control.update(t_s, pressure_pa, length_m).command_pa
 
+    # `family`: a muscle the simulation offers, or the held-out Bouc-Wen muscle of
+    # tests/support/muscle_families.py.
     config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=seed)
-    trace = run_closed_loop(step, duration_s, config=config, rig=rig_factory(family)(config),
+    trace = run_closed_loop(step, duration_s, config=config, rig=Rig(config, muscle_for(family)),
                             command_delay_s=command_delay_s).arrays()
     return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
 
