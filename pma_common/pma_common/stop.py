@@ -10,8 +10,8 @@ that arrive while it does so are noted and otherwise ignored.
 The handler takes no lock. Python runs a handler between two bytecodes of the main thread,
 even inside another handler: when the handler set a threading.Event, a second signal could
 interrupt the first handler while it held the Event's lock, and the second handler then waited
-for that lock forever (a recorder hung so under a burst of signals in CI). A flag and a byte
-written to a pipe need no lock.
+for that lock forever (the likely cause of a recorder that hung under a burst of signals in
+CI). A flag and a byte written to a pipe need no lock.
 
 No ROS here: fake_arduino uses it as is, nodes through pma_common.node.
 """
