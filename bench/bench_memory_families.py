@@ -50,8 +50,9 @@ from support.muscle_families import (
     STROKE_M,
     Config,
     Scenario,
-    duhem_variant_fit_errors_m,
     duhem_variant_scales_pa,
+    generalized_play_bulge,
+    held_out_fit_errors_m,
     oracle_score,
     perfectly_corrected,
     score,
@@ -156,14 +157,15 @@ def drift(form: str, seed: int, families, *,
 
 
 def family_name(text: str) -> str:
-    """argparse type: a scored family or a held-out Duhem variant."""
+    """argparse type: a scored family, a held-out Duhem variant or generalized play muscle."""
     try:
-        if text in SCORED_FAMILIES or duhem_variant_scales_pa(text) is not None:
+        if text in SCORED_FAMILIES or duhem_variant_scales_pa(text) is not None or \
+                generalized_play_bulge(text) is not None:
             return text
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
-    raise argparse.ArgumentTypeError(f'{text!r}: choose from {", ".join(SCORED_FAMILIES)} '
-                                     'or duhem:RISING:FALLING')
+    raise argparse.ArgumentTypeError(f'{text!r}: choose from {", ".join(SCORED_FAMILIES)}, '
+                                     'duhem:RISING:FALLING or gpi[:BULGE]')
 
 
 def main() -> int:
@@ -178,15 +180,17 @@ def main() -> int:
                         type=family_name,
                         help='default: every simulated family and the held-out bouc-wen; '
                              'duhem:RISING:FALLING (kPa) adds a Duhem muscle with other '
-                             'approach scales, fitted to Table 1 (asymmetric is duhem:15:100)')
+                             'approach scales, fitted to Table 1 (asymmetric is duhem:15:100); '
+                             'gpi[:BULGE] a generalized Prandtl-Ishlinskii muscle, asymmetric '
+                             'with return-point memory (tests/support/generalized_play.py)')
     args = parser.parse_args()
     start = time.monotonic()
     print(f'# Minor loops on every muscle family (paths of {args.duration:.0f} s at '
           f'{args.rate_hz:g} Hz, '
           f'stroke {STROKE_M * 100:.2f} cm)')
     for family in args.families:
-        if duhem_variant_scales_pa(family) is not None:
-            errors = duhem_variant_fit_errors_m(family)
+        errors = held_out_fit_errors_m(family)
+        if errors is not None:
             print(f'{family}: Table 1 fit RMSE {100 * np.sqrt(np.mean(errors ** 2)):.3f} cm, '
                   f'max {100 * np.max(np.abs(errors)):.3f} cm over {errors.size} points')
     verdicts = []

@@ -24,8 +24,10 @@ from pma_driver.sweep import plan_sweep
 from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
 from pma_model.params import default_params
+from support.generalized_play import DEFAULT_BULGE
 from support.muscle_families import (
     BOUC_WEN,
+    GENERALIZED_PLAY,
     LEARNED_RULES,
     MIXED,
     PAPER,
@@ -35,6 +37,8 @@ from support.muscle_families import (
     Scenario,
     bouc_wen_fit,
     duhem_variant_scales_pa,
+    generalized_play_bulge,
+    held_out_fit_errors_m,
     oracle_score,
     return_point_oracle,
     score,
@@ -100,7 +104,7 @@ def test_on_the_duhem_muscle_the_max_error_stays_near_the_criterion_where_it_mis
     assert ours.max_m <= bound * paper.max_m
 
 
-@pytest.mark.parametrize('family', ['narrow', 'wide'])
+@pytest.mark.parametrize('family', ['narrow', 'wide', GENERALIZED_PLAY])
 def test_the_return_point_oracle_is_the_muscle_itself_where_loops_close(family):
     # A yardstick for the muscles without the property only if exact on those with it.
     for kind in PATH_KINDS:
@@ -154,6 +158,30 @@ def test_the_default_memory_is_never_much_worse_than_the_best_fixed_rule(family)
 def test_the_moonshot_minor_loop_rmse_within_1_5_percent_of_stroke(family):
     for kind, result in scores(family, MIXED).items():
         assert result.rmse_pct <= 1.5, kind
+
+
+def test_a_held_out_generalized_play_muscle_is_named_by_its_bulge():
+    assert generalized_play_bulge(GENERALIZED_PLAY) == DEFAULT_BULGE
+    assert generalized_play_bulge('gpi:2') == 2.0
+    assert generalized_play_bulge('wide') is None
+    for bad in ('gpi:x', 'gpi:-1', 'gpi:11'):
+        with pytest.raises(ValueError, match='gpi'):
+            generalized_play_bulge(bad)
+
+
+def test_on_a_held_out_asymmetric_muscle_with_return_point_memory_the_default_meets_the_criteria():
+    # The generalized Prandtl-Ishlinskii muscle (support.generalized_play): rising and falling
+    # curves follow different envelopes, as on the Duhem muscle, but its loops close (the
+    # oracle test above). Every criterion on seeds 1-2 and the switch criteria on all 48
+    # runs of seeds 1-8 at 50 Hz with three asymmetry strengths (docs/model.md §3.1): the
+    # Duhem muscle's misses come from its open loops, not from its asymmetry.
+    errors = held_out_fit_errors_m(GENERALIZED_PLAY)
+    assert np.sqrt(np.mean(errors ** 2)) < 0.0012   # Table 1 within the HC-SR04's accuracy
+    ours, paper = scores(GENERALIZED_PLAY, MIXED), scores(GENERALIZED_PLAY, PAPER)
+    for kind in PATH_KINDS:
+        assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind
+        assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
+        assert ours[kind].rmse_pct <= 1.5, kind
 
 
 def test_on_a_held_out_bouc_wen_muscle_the_default_meets_the_switch_criteria():

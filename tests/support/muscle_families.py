@@ -37,6 +37,7 @@ from pma_model.boucwen import BoucWenModel, fit_bouc_wen
 from pma_model.forecaster import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel, run_online
 from pma_model.params import ModelParams, default_params, paper_table1
+from support import generalized_play
 
 STROKE_M = 0.0586            # Table 1: 30.06 - 24.20 cm
 SCORED_FROM_REVERSAL = 3     # "after the first three reversals"
@@ -175,12 +176,44 @@ def _duhem_variant_fit(rising_scale_pa: float, falling_scale_pa: float) -> famil
                                        falling_scale_pa=falling_scale_pa)
 
 
-def duhem_variant_fit_errors_m(family: str) -> np.ndarray:
-    """A Duhem variant's steady major loop minus Table 1 (22 values): how well it matches."""
-    return fit_families.duhem_loop_errors_m(_duhem_variant_fit(*duhem_variant_scales_pa(family)))
+def held_out_fit_errors_m(family: str) -> np.ndarray | None:
+    """A held-out Duhem variant's or generalized play muscle's major loop minus Table 1 (22
+    values): how well it matches. None for the other families (their fits are documented in
+    docs/simulated-rig.md and bouc_wen_fit)."""
+    scales = duhem_variant_scales_pa(family)
+    if scales is not None:
+        return fit_families.duhem_loop_errors_m(_duhem_variant_fit(*scales))
+    bulge = generalized_play_bulge(family)
+    if bulge is not None:
+        return generalized_play.loop_errors_m(generalized_play.fit(bulge))
+    return None
+
+
+GENERALIZED_PLAY = 'gpi'   # 'gpi' or 'gpi:BULGE': support.generalized_play, held out
+
+
+def generalized_play_bulge(family: str) -> float | None:
+    """'gpi' -> the default bulge, 'gpi:2' -> 2.0; None for any other family name."""
+    name, _, bulge = family.partition(':')
+    if name != GENERALIZED_PLAY:
+        return None
+    if not bulge:
+        return generalized_play.DEFAULT_BULGE
+    try:
+        value = float(bulge)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value <= 10.0:
+        raise ValueError(f'{family!r}: a generalized play muscle is gpi or gpi:BULGE, '
+                         'BULGE within 0..10')
+    return value
 
 
 def muscle_for(family: str, drift: families.DriftSpec | None = None) -> families.Muscle:
+    bulge = generalized_play_bulge(family)
+    if bulge is not None:
+        muscle = generalized_play.GeneralizedPlayMuscle(generalized_play.fit(bulge))
+        return muscle if drift is None else families.DriftingMuscle(muscle, drift)
     if family == BOUC_WEN:
         if drift is not None:
             raise ValueError('the held-out bouc-wen muscle has no drift option')
