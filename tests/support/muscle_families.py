@@ -18,7 +18,9 @@ that fit would be a muscle without hysteresis.) It lives here, not in pma_driver
 simulator does not depend on the model package.
 
 More held-out muscles on demand: `duhem:RISING:FALLING` is a Duhem muscle like `asymmetric`
-with other approach scales (kPa), fitted to Table 1 the same way.
+with other approach scales (kPa), fitted to Table 1 the same way; `gpi[:BULGE]` a generalized
+Prandtl-Ishlinskii muscle (support.generalized_play), as asymmetric but with return-point
+memory.
 
 `return_point_oracle` is the yardstick for muscles without return-point memory: the muscle
 itself, made to keep that property, which the model must.
