@@ -46,7 +46,7 @@ from pma_driver.sim.device import DeviceConfig, Rig
 from pma_model.params import default_params
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
-from support.muscle_families import SCORED_FAMILIES, muscle_for
+from support.muscle_families import SCORED_FAMILIES, family_argument, muscle_for
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTROLLER = ROOT / 'ros2_ws' / 'install' / 'pma_control' / 'lib' / 'pma_control' / \
@@ -317,8 +317,9 @@ def latency_rows(seconds: float) -> tuple[list[tuple[str, str, str]], bool]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--seconds', type=float, default=20.0, help='latency window')
-    parser.add_argument('--families', nargs='+', choices=SCORED_FAMILIES,
-                        help='only these simulated muscles')
+    parser.add_argument('--families', nargs='+', type=family_argument,
+                        help='only these simulated muscles (default: the scored ones; '
+                             'held-out ones too: duhem:RISING:FALLING, gpi[:BULGE])')
     parser.add_argument('--device-seeds', nargs='+', type=int, default=DEVICE_SEEDS,
                         metavar='N', help='simulated device seeds (sensor noise, valve timing)')
     parser.add_argument('--publish', type=float, help=argparse.SUPPRESS)

@@ -50,8 +50,7 @@ from support.muscle_families import (
     STROKE_M,
     Config,
     Scenario,
-    duhem_variant_scales_pa,
-    generalized_play_bulge,
+    family_argument,
     held_out_fit_errors_m,
     oracle_score,
     perfectly_corrected,
@@ -156,18 +155,6 @@ def drift(form: str, seed: int, families, *,
     return lines, passed
 
 
-def family_name(text: str) -> str:
-    """argparse type: a scored family, a held-out Duhem variant or generalized play muscle."""
-    try:
-        if text in SCORED_FAMILIES or duhem_variant_scales_pa(text) is not None or \
-                generalized_play_bulge(text) is not None:
-            return text
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
-    raise argparse.ArgumentTypeError(f'{text!r}: choose from {", ".join(SCORED_FAMILIES)}, '
-                                     'duhem:RISING:FALLING or gpi[:BULGE]')
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seeds', type=int, nargs='+', default=[1, 2])
@@ -177,7 +164,7 @@ def main() -> int:
                         help=f'samples per second (default {DEFAULT_RATE_HZ:g}, the '
                              'firmware\'s maximum; driver_node asks for 20 by default)')
     parser.add_argument('--families', nargs='+', default=list(SCORED_FAMILIES),
-                        type=family_name,
+                        type=family_argument,
                         help='default: every simulated family and the held-out bouc-wen; '
                              'duhem:RISING:FALLING (kPa) adds a Duhem muscle with other '
                              'approach scales, fitted to Table 1 (asymmetric is duhem:15:100); '

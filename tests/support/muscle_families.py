@@ -28,6 +28,7 @@ itself, made to keep that property, which the model must.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import functools
 from dataclasses import dataclass, replace
@@ -225,6 +226,18 @@ def muscle_for(family: str, drift: families.DriftSpec | None = None) -> families
         muscle = families.DuhemMuscle(_duhem_variant_fit(*scales))
         return muscle if drift is None else families.DriftingMuscle(muscle, drift)
     return families.muscle_family(family, drift)
+
+
+def family_argument(text: str) -> str:
+    """argparse type of the benches' --families: a scored family or a held-out one."""
+    try:
+        if text in SCORED_FAMILIES or duhem_variant_scales_pa(text) is not None or \
+                generalized_play_bulge(text) is not None:
+            return text
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    raise argparse.ArgumentTypeError(f'{text!r}: choose from {", ".join(SCORED_FAMILIES)}, '
+                                     'duhem:RISING:FALLING or gpi[:BULGE]')
 
 
 @functools.lru_cache(maxsize=64)
