@@ -196,7 +196,7 @@ def test_on_a_held_out_bouc_wen_muscle_the_default_meets_the_switch_criteria():
         assert ours[kind].rmse_pct <= 1.5, kind
 
 
-@pytest.mark.parametrize('family', [*FAMILY_NAMES, BOUC_WEN])
+@pytest.mark.parametrize('family', [*FAMILY_NAMES, BOUC_WEN, GENERALIZED_PLAY])
 def test_at_the_drivers_default_20_hz_the_default_meets_the_switch_criteria(family):
     # driver_node asks for 20 Hz unless told otherwise (the firmware allows 50): 2.5x fewer
     # lengths to learn from. With a 4 mm prior on the branch correction (2 mm now) the
