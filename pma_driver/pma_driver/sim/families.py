@@ -80,6 +80,14 @@ class PlayParams:
         q = np.clip(np.asarray(pressure_pa, dtype=float) - self.dead_zone_pa, 0.0, None)
         return h(q) / h(SPAN_PA - self.dead_zone_pa)
 
+    def envelopes(self, v) -> tuple[np.ndarray, np.ndarray]:
+        """(rising, falling) edge of every play's band at warped input v before its half-width,
+        shaped v.shape + (plays,): v for both here; a generalized play's differ
+        (tests/support/generalized_play.py)."""
+        v = np.asarray(v, dtype=float)[..., None]
+        edges = np.broadcast_to(v, (*v.shape[:-1], len(self.radii)))
+        return edges, edges
+
 
 class PlayMuscle:
     """The `wide` family: rate-independent, return-point memory, wiping-out (PI operators)."""
@@ -99,21 +107,27 @@ class PlayMuscle:
         self.length_m = self.params.rest_length_m
 
     def update(self, pressure_pa: float, t_s: float = 0.0) -> float:
-        v = float(self.params.warp(float(pressure_pa)))
-        np.clip(self._outputs, v - self._radii, v + self._radii, out=self._outputs)
+        low, high = self._band(float(self.params.warp(float(pressure_pa))))
+        np.clip(self._outputs, low, high, out=self._outputs)
         self.length_m = self.params.rest_length_m - float(
             self._weights @ (self._outputs - self._radii))
         return self.length_m
 
+    def _band(self, v: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every play's band at warped input v: params.envelopes widened by the half-widths,
+        written out for the classic play (this runs every millisecond of the simulated rig,
+        and the general form costs as much as the rest of the update)."""
+        return v - self._radii, v + self._radii
+
 
 def play_major_loop_m(params: PlayParams, pressures_pa) -> tuple[np.ndarray, np.ndarray]:
     """(increasing, decreasing) branch lengths of the 0 -> max(pressures) -> 0 loop."""
-    v = params.warp(pressures_pa)
+    rising, falling = params.envelopes(params.warp(pressures_pa))
     radii = np.array(params.radii)
     weights = np.array(params.weights_m)
-    top = np.maximum(radii, float(v.max()) - radii)
-    up = np.maximum(radii[None, :], v[:, None] - radii[None, :])
-    down = np.minimum(top[None, :], v[:, None] + radii[None, :])
+    top = np.maximum(radii, rising.max(axis=0) - radii)
+    up = np.maximum(radii[None, :], rising - radii[None, :])
+    down = np.minimum(top[None, :], falling + radii[None, :])
     return (params.rest_length_m - (up - radii) @ weights,
             params.rest_length_m - (down - radii) @ weights)
 

@@ -44,17 +44,30 @@ TARGET = np.concatenate([TABLE1_LENGTH_INCREASING_M, TABLE1_LENGTH_DECREASING_M]
 OUTPUT = Path(__file__).with_name('family_fits.py')
 
 
-def _play_design(warp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def classic_plays(rest_length_m: float, warp, radii, weights_m) -> families.PlayParams:
+    """The `wide` family's parameters from fit_plays' pieces."""
+    return families.PlayParams(rest_length_m, float(warp[0]), float(warp[1]), float(warp[2]),
+                               tuple(float(r) for r in radii),
+                               tuple(float(w) for w in weights_m))
+
+
+def _play_design(params_for, warp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     radii = np.linspace(0.0, MAX_RADIUS, PLAYS)
     columns = []
     for j in range(PLAYS):
-        unit = families.PlayParams(0.0, *warp, tuple(radii), tuple(np.eye(PLAYS)[j]))
+        unit = params_for(0.0, warp, radii, np.eye(PLAYS)[j])
         up, down = families.play_major_loop_m(unit, TABLE1_PRESSURE_PA)
         columns.append(-np.concatenate([up, down]))   # length lost per unit weight
     return np.array(columns).T, radii
 
 
 def fit_wide(starts: int = 8, seed: int = 0) -> families.PlayParams:
+    return fit_plays(classic_plays, starts, seed)
+
+
+def fit_plays(params_for, starts: int, seed: int):
+    """Warp and play weights fitted to Table 1 by variable projection; `params_for(rest, warp,
+    radii, weights)` makes the parameters (PlayParams or a generalized play's)."""
     from scipy.optimize import least_squares, nnls
 
     rest = float(TABLE1_LENGTH_INCREASING_M[0])
@@ -62,7 +75,7 @@ def fit_wide(starts: int = 8, seed: int = 0) -> families.PlayParams:
     scale = np.array([1e5, 1e5, 1.0])
 
     def weights_for(warp):
-        design, _ = _play_design(warp)
+        design, _ = _play_design(params_for, warp)
         weights, _ = nnls(np.vstack([design, penalty]),
                           np.concatenate([rest - TARGET, np.zeros(PLAYS - 2)]))
         return weights, rest - design @ weights - TARGET
@@ -78,10 +91,8 @@ def fit_wide(starts: int = 8, seed: int = 0) -> families.PlayParams:
             best = result
     warp = best.x * scale
     weights, _ = weights_for(warp)
-    _, radii = _play_design(warp)
-    return families.PlayParams(rest, float(warp[0]), float(warp[1]), float(warp[2]),
-                               tuple(float(r) for r in radii),
-                               tuple(float(w) for w in weights))
+    _, radii = _play_design(params_for, warp)
+    return params_for(rest, warp, radii, weights)
 
 
 _ENVELOPE_LOWER = [0.03, 0.0, 0.0, 30e3, 0.0, 30e3]   # no step sharper than 30 kPa
