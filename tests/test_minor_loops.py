@@ -39,10 +39,12 @@ from support.muscle_families import (
     duhem_variant_scales_pa,
     generalized_play_bulge,
     held_out_fit_errors_m,
+    oracle_error_near_m,
     oracle_score,
     return_point_oracle,
     score,
     simulate,
+    worst_moment_s,
 )
 
 # The module fixture runs every scenario once (about 90 s of one core, more when the
@@ -139,10 +141,14 @@ def test_a_held_out_duhem_variant_is_named_by_its_approach_scales():
 
 def test_on_the_duhem_muscle_even_the_exact_muscle_with_return_point_memory_misses_the_max():
     # Why the mark above is expected to stay: on random/seed 3 the Duhem muscle, knowing its
-    # own state at every turning point, errs 0.92x the switch's max (4.1 mm at t = 166 s),
-    # only by keeping return-point memory. The mix: 0.89x.
+    # own state at every turning point, errs 0.92x the switch's max (4.0 mm at t = 165.7 s),
+    # only by keeping return-point memory, and the mix errs most (0.87x) at that moment.
+    # Over seeds 1-8 three of the five runs that miss do so where the oracle misses too
+    # (bench_memory_families.py --against-switch).
     scenario = Scenario('asymmetric', 'random', seed=3)
-    assert oracle_score(scenario).max_m > 0.7 * score(scenario, PAPER).max_m
+    paper = score(scenario, PAPER)
+    assert oracle_score(scenario).max_m > 0.7 * paper.max_m
+    assert oracle_error_near_m(scenario, worst_moment_s(scenario, MIXED)) > 0.7 * paper.max_m
 
 
 @pytest.mark.parametrize('family', FAMILY_NAMES)

@@ -327,14 +327,38 @@ def oracle_score(scenario: Scenario) -> Score:
     return _score(return_point_oracle(scenario) - run.length_m, run, None)
 
 
+def _scored(run: paths.Run) -> np.ndarray:
+    """The samples the criteria count: from the third reversal on."""
+    return run.time_s >= run.reversal_times_s[SCORED_FROM_REVERSAL - 1]
+
+
 def _score(error: np.ndarray, run: paths.Run, window_s: tuple[float, float] | None) -> Score:
     if window_s is None:
-        start = run.reversal_times_s[SCORED_FROM_REVERSAL - 1]
-        keep = run.time_s >= start
+        keep = _scored(run)
     else:
         keep = (run.time_s >= window_s[0]) & (run.time_s < window_s[1])
     error = error[keep]
     return Score(float(np.sqrt(np.mean(error ** 2))), float(np.max(np.abs(error))))
+
+
+def worst_moment_s(scenario: Scenario, config: Config, form: str = 'sigmoid') -> float:
+    """When, from the third reversal on, the model errs most (its `score`'s max_m)."""
+    run = simulate(scenario)
+    error = np.abs(predict(scenario, config, form) - run.length_m)
+    return float(run.time_s[np.argmax(np.where(_scored(run), error, -1.0))])
+
+
+def oracle_error_near_m(scenario: Scenario, time_s: float) -> float:
+    """`return_point_oracle`'s largest error within a sample of `time_s`.
+
+    Whether a model's largest error is the price of return-point memory: when the muscle
+    itself, made to keep that property, errs as much at that moment, no model with it can
+    do better there. A sample either side, because the oracle closes its loops on the true
+    pressure and the model on the measured one.
+    """
+    run = simulate(scenario)
+    near = np.abs(run.time_s - time_s) <= 1.5 / scenario.rate_hz
+    return float(np.max(np.abs(return_point_oracle(scenario) - run.length_m)[near]))
 
 
 def perfectly_corrected(scenario: Scenario, config: Config, form: str = 'sigmoid',
