@@ -50,7 +50,6 @@ from support.muscle_families import (
     MIXED,
     PAPER,
     PATH_KINDS,
-    RATE_DEPENDENT_FAMILIES,
     SCORED_FAMILIES,
     STATIC_RULES,
     STROKE_M,
@@ -61,6 +60,7 @@ from support.muscle_families import (
     oracle_error_near_m,
     oracle_score,
     perfectly_corrected,
+    rate_dependent,
     score,
     worst_moment_s,
 )
@@ -118,7 +118,7 @@ def criteria(form: str, seeds: list[int], duration_s: float, families, *,
                       ours.rmse_pct <= 1.5)
                 passed &= all(ok[:4])
                 marks = ['' if good else ' **x**' for good in ok]
-                oracle = '-' if family in RATE_DEPENDENT_FAMILIES else \
+                oracle = '-' if rate_dependent(family) else \
                     f'{oracle_score(scenario).max_m / paper.max_m:.2f}'
                 lines.append(
                     f'| {scenario.label} | {ratios[0]:.2f}{marks[0]} | {ratios[1]:.2f}{marks[1]}'
@@ -130,7 +130,7 @@ def criteria(form: str, seeds: list[int], duration_s: float, families, *,
 def _against_switch_run(form: str, scenario: Scenario) -> tuple[float, float, float, float | None]:
     ours, paper = score(scenario, MIXED, form), score(scenario, PAPER, form)
     at_s = worst_moment_s(scenario, MIXED, form)
-    oracle = (None if scenario.family in RATE_DEPENDENT_FAMILIES
+    oracle = (None if rate_dependent(scenario.family)
               else oracle_error_near_m(scenario, at_s) / paper.max_m)
     return ours.rmse_m / paper.rmse_m, ours.max_m / paper.max_m, at_s, oracle
 
@@ -212,7 +212,10 @@ def main() -> int:
                              'duhem:RISING:FALLING (kPa) adds a Duhem muscle with other '
                              'approach scales, fitted to Table 1 (asymmetric is duhem:15:100); '
                              'gpi[:BULGE] a generalized Prandtl-Ishlinskii muscle, asymmetric '
-                             'with return-point memory (tests/support/generalized_play.py)')
+                             'with return-point memory (tests/support/generalized_play.py); '
+                             'creep:INNER:SHARE:TAU narrow, wide or asymmetric with a share of '
+                             'every length change lagged by TAU seconds (creep is '
+                             'creep:narrow:0.25:0.6)')
     parser.add_argument('--against-switch', action='store_true',
                         help='only the two criteria against the switch, with the oracle at '
                              'the moment of the largest error (fast: for many seeds)')
