@@ -241,25 +241,31 @@ def creep_variant(family: str) -> tuple[str, families.CreepParams] | None:
     return inner, families.CreepParams(share=share, time_constant_s=time_constant_s)
 
 
-def muscle_for(family: str, drift: families.DriftSpec | None = None) -> families.Muscle:
+def _held_out_muscle(family: str) -> families.Muscle | None:
+    """A fresh held-out variant named by `family` (creep, generalized play, Duhem); None for
+    the simulator's families and Bouc-Wen."""
     creeping = creep_variant(family)
     if creeping is not None:
         inner, params = creeping
-        muscle = families.CreepMuscle(families.muscle_family(inner), params)
-        return muscle if drift is None else families.DriftingMuscle(muscle, drift)
+        return families.CreepMuscle(families.muscle_family(inner), params)
     bulge = generalized_play_bulge(family)
     if bulge is not None:
-        muscle = generalized_play.GeneralizedPlayMuscle(generalized_play.fit(bulge))
-        return muscle if drift is None else families.DriftingMuscle(muscle, drift)
+        return generalized_play.GeneralizedPlayMuscle(generalized_play.fit(bulge))
+    scales = duhem_variant_scales_pa(family)
+    if scales is not None:
+        return families.DuhemMuscle(_duhem_variant_fit(*scales))
+    return None
+
+
+def muscle_for(family: str, drift: families.DriftSpec | None = None) -> families.Muscle:
     if family == BOUC_WEN:
         if drift is not None:
             raise ValueError('the held-out bouc-wen muscle has no drift option')
         return BoucWenMuscle(bouc_wen_fit())
-    scales = duhem_variant_scales_pa(family)
-    if scales is not None:
-        muscle = families.DuhemMuscle(_duhem_variant_fit(*scales))
-        return muscle if drift is None else families.DriftingMuscle(muscle, drift)
-    return families.muscle_family(family, drift)
+    muscle = _held_out_muscle(family)
+    if muscle is None:
+        return families.muscle_family(family, drift)
+    return muscle if drift is None else families.DriftingMuscle(muscle, drift)
 
 
 def family_argument(text: str) -> str:
