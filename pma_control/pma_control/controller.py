@@ -4,9 +4,14 @@ The plant from pressure to length is nonlinear (flat near 0 and 500 kPa) and hys
 (the length depends on the path). The model is model_node's own (pma_model's OnlineModel:
 the memory rule, and what it learns online about this muscle). The feedforward inverts it
 *from the muscle's current state* (pressure_for_length with BRANCH_AUTO: memory included),
-which turns the plant into roughly "length in, length out". The feedback is a PI
+which turns the plant into roughly "length in, length out". Where the model has learned
+creep (a share of each change arriving over seconds), the feedforward aims ahead of the
+setpoint by the share still lagging (OnlineModel.settled_aim_m), so the length arrives now
+instead of a second or two late. The feedback is a PI
 on the remaining length error, in metres, passed through the same inverse, so its gains are
-dimensionless and need no retuning where the muscle is stiff or soft.
+dimensionless and need no retuning where the muscle is stiff or soft. It does not integrate
+while the setpoint is still ramping to a new target: the error then is the valves' lag behind
+a command the feedforward already gave, and integrating it overshoots the step.
 
 The length sensor (HC-SR04) is noisy (~1.5 mm) and quantised (3 mm), so the error is taken
 from an estimate, not from the raw reading: the model's length for the measured pressure
@@ -31,6 +36,7 @@ from pma_model.detector import BRANCH_AUTO
 from pma_model.identification import OnlineModel
 
 MODES = ('ff_fb', 'ff', 'fb')
+MAX_CREEP_LEAD_SHARE = 0.9
 
 
 @dataclass(frozen=True)
@@ -51,6 +57,8 @@ class ControllerSettings:
     error_deadband_m: float = 0.0005
     max_pressure_rate_pa_s: float = 600_000.0
     max_setpoint_rate_m_s: float = 0.05
+    # The feedforward leads for at most this creep share (0: no lead; docs/control.md).
+    creep_lead_max_share: float = 0.5
     # Bias observer: how fast the model's error may wander [m/sqrt(s)], and the sensor noise.
     bias_process_noise_m: float = 0.001
     length_noise_m: float = 0.0018
@@ -67,6 +75,10 @@ class ControllerSettings:
                      'length_noise_m'):
             if not getattr(self, name) > 0:
                 raise ValueError(f'{name} must be > 0, got {getattr(self, name)!r}')
+        if not self.creep_lead_max_share <= MAX_CREEP_LEAD_SHARE:
+            raise ValueError(f'creep_lead_max_share must be <= {MAX_CREEP_LEAD_SHARE} (the lead '
+                             f'is 1 / (1 - share) times the change), got '
+                             f'{self.creep_lead_max_share!r}')
 
 
 @dataclass(frozen=True)
@@ -99,6 +111,7 @@ class LengthController:
         """Forget target, integral and bias (a new muscle, or after a fault)."""
         self.target_m: float | None = None
         self._setpoint_m: float | None = None
+        self._ramping = False
         self._integral = 0.0
         self._bias_m = 0.0
         self._bias_var = (10.0 * self.settings.length_noise_m) ** 2     # unknown at first
@@ -146,6 +159,7 @@ class LengthController:
         """Stop steering; later updates repeat the last command (the muscle stays put)."""
         self.target_m = None
         self._setpoint_m = None
+        self._ramping = False
         self._integral = 0.0
 
     # -- the loop ----------------------------------------------------------------------
@@ -201,20 +215,26 @@ class LengthController:
         if self._setpoint_m is None:
             self._setpoint_m = estimate if math.isfinite(estimate) else self.target_m
         step = self.settings.max_setpoint_rate_m_s * dt
-        self._setpoint_m += max(-step, min(step, self.target_m - self._setpoint_m))
+        remaining = self.target_m - self._setpoint_m
+        self._ramping = abs(remaining) > step
+        self._setpoint_m = self._setpoint_m + math.copysign(step, remaining) \
+            if self._ramping else self.target_m
         return self._setpoint_m
 
     def _with_feedforward(self, setpoint: float, estimate: float, model_m: float, error: float,
                           dt: float) -> ControlOutput:
         s = self.settings
         bias = self._bias_m if s.mode == 'ff_fb' else 0.0
-        feedforward, _, _ = self._inverse(setpoint - bias)   # the model must make this much
+        # The model must make this much now: through creep, aimed ahead of the setpoint.
+        aim = self.model.settled_aim_m(setpoint - bias, s.creep_lead_max_share)
+        feedforward, _, _ = self._inverse(aim)
         if s.mode == 'ff':
             return self._limited(feedforward, feedforward, setpoint=setpoint,
                                  estimate=estimate, model_m=model_m, low=False, high=False)
-        step = s.ki_per_s * error * dt if abs(error) > s.error_deadband_m else 0.0
+        integrate = abs(error) > s.error_deadband_m and not self._ramping
+        step = s.ki_per_s * error * dt if integrate else 0.0
         self._integral += step
-        wanted, low, high = self._inverse(setpoint - bias + s.kp * error + self._integral)
+        wanted, low, high = self._inverse(aim + s.kp * error + self._integral)
         if (low and error > 0) or (high and error < 0):
             self._integral -= step            # anti-windup: the inverse is at an end already
         return self._limited(wanted, feedforward, setpoint=setpoint, estimate=estimate,

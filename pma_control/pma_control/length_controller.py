@@ -34,7 +34,13 @@ from std_msgs.msg import Float64
 
 from pma_common.diagnostics import publish_status
 from pma_common.node import run_single_threaded
-from pma_control.controller import MODES, ControllerSettings, ControlOutput, LengthController
+from pma_control.controller import (
+    MAX_CREEP_LEAD_SHARE,
+    MODES,
+    ControllerSettings,
+    ControlOutput,
+    LengthController,
+)
 from pma_interfaces.action import MoveToLength
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
@@ -57,6 +63,8 @@ SETTING_DESCRIPTIONS = {
     'error_deadband_m': ('errors below this are not integrated [m]', 0.0, 0.01),
     'max_pressure_rate_pa_s': ('pressure-rate limit of the command [Pa/s]', 1e3, 1e7),
     'max_setpoint_rate_m_s': ('length-rate limit of the setpoint [m/s]', 1e-4, 1.0),
+    'creep_lead_max_share': ('the feedforward leads for learned creep up to this share of '
+                             'a change (0: no lead) [1]', 0.0, MAX_CREEP_LEAD_SHARE),
     'bias_process_noise_m': ('how fast the model error may wander [m/sqrt(s)]', 0.0, 0.1),
     'length_noise_m': ('length sensor noise, one sigma [m]', 1e-5, 0.05),
 }

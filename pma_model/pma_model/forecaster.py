@@ -176,6 +176,12 @@ class RuleMix:
         return float(self.weights @ [float(e.drift.correct(e.model.length_m))
                                      for e in self.experts])
 
+    def settled_aim_m(self, length_m: float, max_creep_share: float) -> float:
+        """The rules' aims (OnlineModel.settled_aim_m), mixed: exact where they learned the
+        same creep, close where they did not (their creep and lengths differ by millimetres)."""
+        return float(self.weights @ [e.settled_aim_m(length_m, max_creep_share)
+                                     for e in self.experts])
+
     def pressure_for_length(self, length_m: float, branch: int = BRANCH_AUTO) -> InverseResult:
         """The pressure at which the mixture settles at length_m (see OnlineModel's).
 

@@ -26,7 +26,8 @@ its state (docs/model.md, "Online identification"):
   docs/model.md §5).
 - creep: length = static + sum_j k_j (lag_j(static) - static), the model's static length
   through first-order lags of CREEP_TIME_CONSTANTS_S: a share of each change arriving late,
-  which vanishes in a hold (so the inverse, a steady-state answer, ignores it).
+  which vanishes in a hold (so the inverse, a steady-state answer, ignores it; a controller
+  that must be at a length now aims its inverse through settled_aim_m instead).
 - a rested muscle's first loading (its virgin curve), which may lie off the loop it settles
   into: a term of the pressure travelled since start, gone once the muscle has travelled
   VIRGIN_END_PA, so that loading is not learned as the rising branch.
@@ -839,6 +840,26 @@ class OnlineModel:
                             f'[{low:.6g}, {high:.6g}] m)')
             result = replace(result, message=message, min_length_m=low, max_length_m=high)
         return result
+
+    def settled_aim_m(self, length_m: float, max_creep_share: float) -> float:
+        """The settled length to give `pressure_for_length` so that the muscle is `length_m`
+        long now, not once creep has settled: with creep's lags where they are, the share
+        still lagging is asked for ahead (a lead that fades as the lags catch up).
+
+        Creep makes the length (1 - G) static + sum_j k_j lag_j, G = sum_j k_j; solved for the
+        static length. G is taken as at most `max_creep_share` (a lead of 1 / (1 - G) times
+        the remaining change; a learned share near 1 is more likely a mistake than a muscle)
+        and a negative G as none. Drift applied as in the inverse.
+        """
+        gains = self._filter.mean[self._creep_gains]
+        share = float(gains.sum())
+        if self._lags is None or not share > 0.0 or not math.isfinite(length_m):
+            return length_m
+        if share > max_creep_share:
+            gains, share = gains * (max_creep_share / share), max_creep_share
+        drift = self.drift
+        static = (float(drift.uncorrect(length_m)) - float(gains @ self._lags)) / (1.0 - share)
+        return float(drift.correct(static))
 
     def settled_map(self, rising: bool, path: bool = True) -> Callable[[float], float]:
         """length(p_pa) once creep has settled, drift applied: along the path pressure would

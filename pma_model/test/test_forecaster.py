@@ -4,6 +4,7 @@ Truths are memory models of known rules on the default (Table 1) branches, so th
 weight is known; tests/test_minor_loops.py runs the mixture on the simulated muscle families.
 """
 
+import copy
 import itertools
 import math
 from dataclasses import replace
@@ -118,6 +119,23 @@ def test_pressure_for_length_is_where_the_mixture_settles(target_m):
     time_s = mix.experts[0]._time + 1.0
     assert settle(mix, here, answer.gauge_pressure_pa, time_s) == pytest.approx(target_m,
                                                                                 abs=1e-6)
+
+
+def test_aimed_through_creep_the_mixed_inverse_makes_the_length_now():
+    """OnlineModel.settled_aim_m's property for the mix, exact where the rules share creep."""
+    params = default_params()
+    creep = replace(params.identification, creep_gains=(0.2, 0.1),
+                    play_rule_creep_gains=(0.2, 0.1))
+    mix = RuleMix.of_rules(lambda rule: replace(params, memory=rule, identification=creep)
+                           .build_online())
+    mix.losses_m2s = np.array([0.0, mix.temperature_m2s * math.log(3.0)])   # weights 3:1
+    for k, p_pa in enumerate(ramps((0.0, 450e3, 120e3, 300e3))[:-60]):  # on the last ramp
+        mix.step(float(p_pa), math.nan, 0.02 * k)
+    for target_m in (0.255, 0.27, 0.285):
+        answer = mix.pressure_for_length(mix.settled_aim_m(target_m, max_creep_share=0.9))
+        assert answer.success, answer.message
+        now = copy.deepcopy(mix).step(answer.gauge_pressure_pa, math.nan, mix.experts[0]._time)
+        assert now.length_m == pytest.approx(target_m, abs=1e-8)
 
 
 def test_on_the_major_branches_it_inverts_the_mixed_branches():

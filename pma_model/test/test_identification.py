@@ -5,6 +5,7 @@ known creep), so the test can say what the right answer is; the simulated muscle
 (tests/test_minor_loops.py) test the same machinery against muscles it does not contain.
 """
 
+import copy
 import itertools
 import math
 from dataclasses import replace
@@ -373,6 +374,45 @@ def test_it_learns_creep_and_predicts_the_length_still_moving_in_a_hold():
     late = slice(truth.size // 2, None)
     assert rms(after[late]) < 0.2 * rms(before[late])
     assert sum(learning.learned().creep_gains) == pytest.approx(0.3, abs=0.1)
+
+
+def creeping_model(gains, end_pa=150e3):
+    """A model with known creep, stopped at the end of a ramp down: the lags still behind."""
+    model = online(enabled=False, creep_gains=gains).build_online()
+    time_s, pressure = path_through([0.0, 400e3, end_pa], 5_000.0)
+    for t_s, p_pa in zip(time_s[:-round(RATE_HZ)], pressure[:-round(RATE_HZ)], strict=True):
+        model.step(float(p_pa), math.nan, float(t_s))
+    return model
+
+
+def length_at_once(model, pressure_pa):
+    """The length the model predicts if the pressure were there now (the lags not moved)."""
+    return copy.deepcopy(model).step(pressure_pa, math.nan, model._time).length_m
+
+
+@pytest.mark.parametrize('target_m', [0.250, 0.265, 0.285])
+def test_aimed_through_creep_the_inverse_makes_the_length_now(target_m):
+    """The plain inverse is where the length settles, seconds later; aimed through
+    settled_aim_m it is the length now (what a controller wants), exactly."""
+    model = creeping_model((0.2, 0.1))
+    aim = model.settled_aim_m(target_m, max_creep_share=0.9)
+    answer = model.pressure_for_length(aim)
+    assert answer.success, answer.message
+    assert length_at_once(model, answer.gauge_pressure_pa) == pytest.approx(target_m, abs=1e-9)
+    plain = model.pressure_for_length(target_m).gauge_pressure_pa
+    assert abs(length_at_once(model, plain) - target_m) > 2e-4      # creep is in the way
+
+
+def test_the_aim_leads_for_no_more_creep_than_allowed_and_none_without_creep():
+    # Gains (0.2, 0.1) held to a share of 0.15 lead as gains (0.1, 0.05) do: the lags are
+    # the same (they follow the static length, not the gains).
+    capped = creeping_model((0.2, 0.1)).settled_aim_m(0.26, max_creep_share=0.15)
+    assert capped == pytest.approx(creeping_model((0.1, 0.05)).settled_aim_m(0.26, 0.9),
+                                   abs=1e-12)
+    assert abs(capped - 0.26) > 1e-4
+    assert creeping_model((0.0, 0.0)).settled_aim_m(0.26, 0.9) == 0.26
+    assert creeping_model((-0.1, 0.0)).settled_aim_m(0.26, 0.9) == 0.26
+    assert math.isnan(creeping_model((0.2, 0.1)).settled_aim_m(math.nan, 0.9))
 
 
 def test_a_restart_resumes_what_was_learned():
