@@ -7,6 +7,7 @@ environment must come from `tools/env.sh` (the Makefile does this).
 
 import os
 import random
+import signal
 import sys
 from pathlib import Path
 
@@ -20,6 +21,13 @@ from support.procs import ProcessGroup  # noqa: E402
 
 
 def pytest_configure(config):
+    # A run started as a background job without job control (`make test &` in a script)
+    # ignores SIGINT, and an ignored signal stays ignored through exec: every child would
+    # shrug off Ctrl-C, and the signal tests would pass or fail by how the run was started.
+    # `ros2 launch` handles SIGINT, so the nodes it starts get the default; handled here too,
+    # ours do as well.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     if 'PMA_TEST_DOMAIN_ID' in os.environ:
         domain = int(os.environ['PMA_TEST_DOMAIN_ID'])
     else:
