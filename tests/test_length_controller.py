@@ -14,6 +14,8 @@ import time
 
 import numpy as np
 import pytest
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.action import ActionClient
 
 from pma_driver.fake_arduino import TruthLog
@@ -111,6 +113,30 @@ def test_an_unreachable_target_is_refused_with_the_reachable_range(rig):
 
 
 @pytest.mark.serial
+def test_a_parameter_it_cannot_work_with_is_refused_and_a_good_one_applies(rig):
+    """As `ros2 param set /length_controller creep_lead_max_share ...` would."""
+    spinning = rig['probe'].spinning
+
+    def set_parameter(name: str, value: float):
+        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+        request = SetParameters.Request(parameters=[Parameter(name=name, value=value)])
+        return spinning.call(SetParameters, 'length_controller/set_parameters',
+                             request).results[0]
+
+    def get_parameter(name: str) -> float:
+        response = spinning.call(GetParameters, 'length_controller/get_parameters',
+                                 GetParameters.Request(names=[name]), idempotent=True)
+        return response.values[0].double_value
+
+    for name, bad in (('creep_lead_max_share', 0.95), ('ki_per_s', -1.0)):
+        refused = set_parameter(name, bad)
+        assert not refused.successful and name in refused.reason, refused.reason
+    assert get_parameter('creep_lead_max_share') == 0.5
+    assert set_parameter('creep_lead_max_share', 0.0).successful
+    assert get_parameter('creep_lead_max_share') == 0.0
+    assert set_parameter('creep_lead_max_share', 0.5).successful
+
+
 def test_a_streamed_sine_is_tracked_end_to_end(rig):
     """A 0.1 Hz sine over DDS: RMSE against the true length within the issue's 2 % of stroke.
 
