@@ -112,7 +112,6 @@ def test_an_unreachable_target_is_refused_with_the_reachable_range(rig):
     assert 'reachable [' in result.message and '0.20' in result.message
 
 
-@pytest.mark.serial
 def test_a_parameter_it_cannot_work_with_is_refused_and_a_good_one_applies(rig):
     """As `ros2 param set /length_controller creep_lead_max_share ...` would."""
     spinning = rig['probe'].spinning
@@ -137,6 +136,7 @@ def test_a_parameter_it_cannot_work_with_is_refused_and_a_good_one_applies(rig):
     assert set_parameter('creep_lead_max_share', 0.5).successful
 
 
+@pytest.mark.serial
 def test_a_streamed_sine_is_tracked_end_to_end(rig):
     """A 0.1 Hz sine over DDS: RMSE against the true length within the issue's 2 % of stroke.
 
