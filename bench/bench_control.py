@@ -40,13 +40,9 @@ from pathlib import Path
 import numpy as np
 from benchlib import check, isolate_ros_graph, load_row, print_table, read_line, serve, stop
 
-from pma_control.controller import ControllerSettings, LengthController
-from pma_driver.sim.closed_loop import run_closed_loop
-from pma_driver.sim.device import DeviceConfig, Rig
-from pma_model.params import default_params
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
-from support.muscle_families import SCORED_FAMILIES, family_argument, muscle_for
+from support.closed_loop_runs import track as run
+from support.muscle_families import SCORED_FAMILIES, family_argument
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTROLLER = ROOT / 'ros2_ws' / 'install' / 'pma_control' / 'lib' / 'pma_control' / \
@@ -68,22 +64,6 @@ RESOLUTION_M = 0.003
 # --- tracking on the simulated muscles -----------------------------------------------------
 
 DEVICE_SEEDS = tuple(range(11, 17))
-
-
-def run(mode: str, family: str, profile, duration_s: float, *, seed: int, rate_hz: int = 20,
-        command_delay_s: float = 0.0):
-    control = LengthController(default_params().build_online(), ControllerSettings(mode=mode))
-
-    def step(t_s, pressure_pa, length_m):
-        control.set_target(profile(t_s))
-        return control.update(t_s, pressure_pa, length_m).command_pa
-
-    # `family`: a muscle the simulation offers, or the held-out Bouc-Wen muscle of
-    # tests/support/muscle_families.py.
-    config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=seed)
-    trace = run_closed_loop(step, duration_s, config=config, rig=Rig(config, muscle_for(family)),
-                            command_delay_s=command_delay_s).arrays()
-    return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
 
 
 def step_profile(t_s: float) -> float:

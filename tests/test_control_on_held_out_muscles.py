@@ -15,32 +15,19 @@ import math
 import numpy as np
 import pytest
 
-from pma_control.controller import ControllerSettings, LengthController
-from pma_driver.sim.closed_loop import run_closed_loop
-from pma_driver.sim.device import DeviceConfig, Rig
-from pma_model.params import default_params
-from support.muscle_families import BOUC_WEN, STROKE_M, muscle_for
+from support.closed_loop_runs import track
+from support.muscle_families import BOUC_WEN, STROKE_M
 
 SINE_HZ = 0.1
 
 
 def sine_rmse_m(family: str, seed: int) -> float:
     """ff_fb on a 0.1 Hz sine 25 <-> 29.5 cm, against the true length, after one period."""
-    control = LengthController(default_params().build_online(), ControllerSettings())
-
-    def reference(t_s: float) -> float:
-        return 0.2725 - 0.0225 * math.cos(2 * math.pi * SINE_HZ * t_s)
-
-    def step(t_s, pressure_pa, length_m):
-        control.set_target(reference(t_s))
-        return control.update(t_s, pressure_pa, length_m).command_pa
-
-    config = DeviceConfig(rate_hz=20, heartbeat_check=False, seed=seed)
-    trace = run_closed_loop(step, 32.0, config=config,
-                            rig=Rig(config, muscle_for(family))).arrays()
-    after = trace['t_s'] > 1.0 / SINE_HZ
-    error = trace['true_length_m'][after] - [reference(t) for t in trace['t_s'][after]]
-    return float(np.sqrt(np.mean(error ** 2)))
+    t_s, true_m, target_m = track(
+        'ff_fb', family, lambda t: 0.2725 - 0.0225 * math.cos(2 * math.pi * SINE_HZ * t), 32.0,
+        seed=seed)
+    after = t_s > 1.0 / SINE_HZ
+    return float(np.sqrt(np.mean((true_m[after] - target_m[after]) ** 2)))
 
 
 @pytest.mark.parametrize(('family', 'seed'), [

@@ -1,0 +1,32 @@
+"""The length controller on a simulated muscle family, in simulated time (ROS-free).
+
+Shared by tests/test_control_on_held_out_muscles.py and bench/bench_control.py, so that
+the held-out muscles of support.muscle_families reach the controller the same way in both.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pma_control.controller import ControllerSettings, LengthController
+from pma_driver.sim.closed_loop import run_closed_loop
+from pma_driver.sim.device import DeviceConfig, Rig
+from pma_model.params import default_params
+from support.muscle_families import muscle_for
+
+
+def track(mode: str, family: str, profile, duration_s: float, *, seed: int, rate_hz: int = 20,
+          command_delay_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(time, true length, target) of the shipped controller in `mode` following
+    `profile(t_s)` on `family`'s muscle (a simulator family or a held-out one), starting from
+    the shipped model with nothing learned."""
+    control = LengthController(default_params().build_online(), ControllerSettings(mode=mode))
+
+    def step(t_s, pressure_pa, length_m):
+        control.set_target(profile(t_s))
+        return control.update(t_s, pressure_pa, length_m).command_pa
+
+    config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=seed)
+    trace = run_closed_loop(step, duration_s, config=config, rig=Rig(config, muscle_for(family)),
+                            command_delay_s=command_delay_s).arrays()
+    return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
