@@ -632,6 +632,22 @@ def test_device_that_never_answers_the_handshake(procs, probe):
         os.close(slave)
 
 
+@pytest.mark.parametrize('override, words', [
+    ('max_gauge_pressure_pa:=400000', 'max_gauge_pressure_pa is a float parameter: write '
+                                      '400000.0, not 400000'),
+    ('max_gauge_pressure_pa:=2e6', 'Parameter max_gauge_pressure_pa out of range'),
+])
+def test_a_bad_start_up_parameter_stops_the_driver_with_one_line(procs, override, words):
+    """The driver does not run its valve on a guess (the ceiling is one of its parameters):
+    `ros2 run pma_driver driver_node --ros-args -p max_gauge_pressure_pa:=400000` ends at once
+    with exit code 2 and the reason, where it used to print an rclpy traceback."""
+    driver = procs.ros2_run('pma_driver', 'driver_node', ros_args=['-p', override])
+    line = driver.wait_for_line('driver_node: bad parameter, not started', 20)
+    assert words in line
+    assert driver.popen.wait(10) == 2
+    assert 'Traceback' not in driver.output
+
+
 PARAMS_FILE = INSTALL / 'pma_driver' / 'share' / 'pma_driver' / 'config' / 'driver_node.yaml'
 
 

@@ -263,6 +263,14 @@ def test_a_second_bridge_on_a_taken_port_says_so(rig, procs):
     assert 'Address already in use' in second.output and 'port:=' in second.output
 
 
+def test_a_port_that_is_not_a_number_is_refused_in_one_line(procs):
+    bridge = procs.ros2_run('pma_bringup', 'foxglove_live', name='bad_port',
+                            ros_args=['-r', '__node:=foxglove_live_3', '-p', 'port:=abc'])
+    assert bridge.popen.wait(30) == 2
+    assert "bad parameter, not started: port must be of type INTEGER, got 'abc' (STRING)" \
+        in bridge.output and 'Traceback' not in bridge.output
+
+
 @pytest.mark.parametrize('stop_signal', [signal.SIGINT, signal.SIGHUP],
                          ids=['ctrl-c', 'terminal-closed'])
 def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path, stop_signal):

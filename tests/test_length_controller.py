@@ -136,6 +136,52 @@ def test_a_parameter_it_cannot_work_with_is_refused_and_a_good_one_applies(rig):
     assert set_parameter('creep_lead_max_share', 0.5).successful
 
 
+def test_bad_start_up_parameters_keep_the_defaults_and_say_so(rig):
+    """`ros2 run pma_control length_controller --ros-args -p kp:=1 ...`: an integer for a
+    float, a value out of range and an unknown mode used to end the node with a traceback.
+    It runs on the defaults instead, says why once in the log and on /diagnostics until a
+    valid change is applied. A second controller, namespaced away from the rig's."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    spinning = rig['probe'].spinning
+    arrays, diagnostics = spinning.collect(DiagnosticArray, '/diagnostics', 50)
+
+    def spare_status() -> DiagnosticStatus | None:
+        mine = [s for array in list(arrays) for s in array.status
+                if s.name.startswith('/spare/')]
+        return mine[-1] if mine else None
+
+    spare = rig['procs'].ros2_run('pma_control', 'length_controller', ros_args=[
+        '-r', '__ns:=/spare', '-p', 'kp:=1', '-p', 'creep_lead_max_share:=0.95',
+        '-p', 'mode:=foo', '-p', 'ki_per_s:=2.0'])
+    try:
+        line = spare.wait_for_line('invalid parameters refused, kept the defaults', 30)
+        assert 'kp is a float parameter: write 1.0, not 1' in line
+        assert 'creep_lead_max_share out of range' in line and "got 'foo'" in line
+        spare.wait_for_line('length_controller ready: mode ff_fb', 30)
+        response = spinning.call(GetParameters, '/spare/length_controller/get_parameters',
+                                 GetParameters.Request(names=['kp', 'creep_lead_max_share',
+                                                              'mode', 'ki_per_s']),
+                                 idempotent=True)
+        kp, share, mode, ki = response.values
+        assert (kp.double_value, share.double_value, mode.string_value) == (0.3, 0.5, 'ff_fb')
+        assert ki.double_value == 2.0                 # a good override is still taken
+        wait_until(spare_status, 20, "the spare controller's diagnostics")
+        assert spare_status().level == DiagnosticStatus.WARN
+        assert 'start-up parameters refused' in spare_status().message
+        value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.0)
+        result = spinning.call(SetParameters, '/spare/length_controller/set_parameters',
+                               SetParameters.Request(parameters=[
+                                   Parameter(name='kp', value=value)])).results[0]
+        assert result.successful, result.reason
+        wait_until(lambda: spare_status().level == DiagnosticStatus.OK, 10,
+                   'the warning cleared by a valid change')
+        assert spare.alive()
+    finally:
+        spinning.node.destroy_subscription(diagnostics)
+        spare.stop()
+
+
 @pytest.mark.serial
 def test_a_streamed_sine_is_tracked_end_to_end(rig):
     """A 0.1 Hz sine over DDS: RMSE against the true length within the issue's 2 % of stroke.

@@ -273,7 +273,7 @@ def test_a_bad_params_file_at_start_leaves_the_node_running_on_the_defaults(proc
         probe.node.destroy_subscription(diag_sub)
 
 
-def test_an_out_of_range_override_at_start_keeps_the_default_and_says_so(procs, probe):
+def test_a_bad_override_at_start_keeps_the_default_and_says_so(procs, probe):
     from diagnostic_msgs.msg import DiagnosticStatus
     from rclpy.qos import DurabilityPolicy, QoSProfile
 
@@ -282,13 +282,16 @@ def test_an_out_of_range_override_at_start_keeps_the_default_and_says_so(procs, 
     latest, diag_sub = _model_diagnostics(probe)
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
-    # kPa for Pa, and a weight state far outside what the mix can reach: rclpy refuses both
-    # at declaration (the descriptors' ranges), which used to end the node with a traceback.
+    # kPa for Pa, a weight state far outside what the mix can reach, and an integer for a
+    # float: rclpy refuses all three at declaration (the descriptors' ranges and types),
+    # which used to end the node with a traceback.
     node = procs.ros2_run('pma_model', 'model_node', ros_args=[
-        '-p', 'deadband_pa:=900000.0', '-p', 'identification.play_rule_excess_loss_m2s:=5.0'])
+        '-p', 'deadband_pa:=900000.0', '-p', 'identification.play_rule_excess_loss_m2s:=5.0',
+        '-p', 'params_file_check_period_s:=2'])
     try:
-        line = node.wait_for_line('out of range, kept the defaults')
+        line = node.wait_for_line('refused, kept the defaults')
         assert 'deadband_pa' in line and 'play_rule_excess_loss_m2s' in line
+        assert 'params_file_check_period_s is a float parameter: write 2.0' in line
         node.wait_for_line('model_node ready')
         wait_until(lambda: published, 20, 'latched model parameters')
         assert published[-1].deadband_pa == 30_000.0 and published[-1].memory == 'mix'

@@ -34,6 +34,7 @@ from pathlib import Path
 import foxglove
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -45,6 +46,7 @@ from pma_bag.record import message_class, subscription_qos
 from pma_bag.schemas import message_schema
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped
+from pma_common.parameters import refusal_reason
 
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
@@ -306,13 +308,12 @@ def layout_path() -> Path | None:
 
 
 def main(args: list[str] | None = None) -> int:
-    from rclpy.exceptions import InvalidParameterValueException, ParameterException
-
     with ros_context(args) as stop:
         try:
             node = FoxgloveLive()
-        except (InvalidParameterValueException, ParameterException) as exc:
-            print(f'foxglove_live: {exc}', file=sys.stderr, flush=True)
+        except ParameterException as exc:
+            print(f'foxglove_live: bad parameter, not started: {refusal_reason(exc)}',
+                  file=sys.stderr, flush=True)
             return 2
         except RuntimeError as exc:   # the server could not listen (port in use, bad address)
             print(f'foxglove_live: cannot start the WebSocket server: {exc}. Is another '

@@ -10,24 +10,14 @@ from __future__ import annotations
 import threading
 import time
 
-import pytest
 import rclpy
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException
 from std_msgs.msg import Int32
 from std_srvs.srv import Trigger
 
 from pma_common.node import WorkerPoolExecutor
 from pma_common.service import poll
-
-
-@pytest.fixture
-def context():
-    context = Context()
-    rclpy.init(context=context)
-    yield context
-    context.try_shutdown()
 
 
 class Spinner:

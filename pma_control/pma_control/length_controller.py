@@ -34,6 +34,7 @@ from std_msgs.msg import Float64
 
 from pma_common.diagnostics import publish_status
 from pma_common.node import run_single_threaded
+from pma_common.parameters import declare_or_keep_default
 from pma_control.controller import (
     MAX_CREEP_LEAD_SHARE,
     MODES,
@@ -78,17 +79,30 @@ class LengthControllerNode(Node):
     def __init__(self, **kwargs):
         super().__init__('length_controller', **kwargs)
         defaults = ControllerSettings()
-        self.declare_parameter('mode', defaults.mode, ParameterDescriptor(
-            description=f"'ff_fb' (model feedforward + feedback), 'ff' or 'fb' ({MODES})"))
+        refused = []     # start-up overrides of the wrong type or out of range (defaults kept)
+        refused.append(declare_or_keep_default(self, 'mode', defaults.mode, ParameterDescriptor(
+            description=f"'ff_fb' (model feedforward + feedback), 'ff' or 'fb' ({MODES})")))
         for name, (description, low, high) in SETTING_DESCRIPTIONS.items():
-            self.declare_parameter(name, float(getattr(defaults, name)), ParameterDescriptor(
-                description=description, floating_point_range=_range(low, high)))
-        self.declare_parameter('stale_timeout_s', 0.5, ParameterDescriptor(
+            refused.append(declare_or_keep_default(
+                self, name, float(getattr(defaults, name)), ParameterDescriptor(
+                    description=description, floating_point_range=_range(low, high))))
+        refused.append(declare_or_keep_default(self, 'stale_timeout_s', 0.5, ParameterDescriptor(
             description='no usable pma/state sample for this long is a fault [s]',
-            floating_point_range=_range(0.05, 10.0)))
+            floating_point_range=_range(0.05, 10.0))))
         self.declare_parameter('follow_model_node', True, ParameterDescriptor(
             description="use model_node's model (its latched pma/model_params)",
             read_only=True))
+        refused = [reason for reason in refused if reason is not None]
+        mode = self.get_parameter('mode').value
+        if mode not in MODES:      # the one setting its descriptor cannot check
+            refused.append(f'mode must be one of {MODES}, got {mode!r}')
+            self.set_parameters([Parameter('mode', value=defaults.mode)])
+        # Why start-up overrides were refused (on /diagnostics until a valid change is
+        # applied); empty: every one was taken.
+        self._startup_problem = '; '.join(refused)
+        if refused:
+            self.get_logger().error(f'invalid parameters refused, kept the defaults: '
+                                    f'{self._startup_problem}')
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -143,6 +157,7 @@ class LengthControllerNode(Node):
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         settings = self._settings()
+        self._startup_problem = ''     # a valid change replaces what start-up refused
         if settings.mode != self._controller.settings.mode:
             target = self._controller.target_m
             self._controller = LengthController(self._controller.model, settings)
@@ -346,6 +361,10 @@ class LengthControllerNode(Node):
             status.level, status.message = DiagnosticStatus.OK, 'idle (no target)'
         else:
             status.level, status.message = DiagnosticStatus.OK, f'holding {target:.4f} m'
+        if self._startup_problem and not fault:
+            status.level = DiagnosticStatus.WARN
+            status.message = f'start-up parameters refused, kept the defaults: ' \
+                             f'{self._startup_problem}; {status.message}'
         values = {'mode': settings.mode, 'target [m]': '-' if target is None else f'{target:.5f}',
                   **{key: str(value) for key, value in stats.items()}}
         if output is not None:

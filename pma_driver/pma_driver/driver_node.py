@@ -15,8 +15,6 @@ import sys
 import time
 from dataclasses import fields, replace
 
-import rclpy
-import rclpy.exceptions
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse
@@ -29,6 +27,7 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
+from pma_common.parameters import BAD_OVERRIDE_ERRORS, refusal_reason
 from pma_driver import protocol
 from pma_driver.clock_sync import ClockSync
 from pma_driver.control import DeviceControl
@@ -392,8 +391,10 @@ def main(args=None) -> int:
     with ros_context(args) as stop:
         try:
             node = PmaDriver()
-        except rclpy.exceptions.InvalidParameterValueException as error:
-            print(f'driver_node: bad parameter: {error}', file=sys.stderr)
+        except BAD_OVERRIDE_ERRORS as error:
+            # No guessing for the hardware (its parameters include the pressure ceiling).
+            print(f'driver_node: bad parameter, not started: {refusal_reason(error)}',
+                  file=sys.stderr)
             return 2
         executor = WorkerPoolExecutor(num_threads=4)
         try:

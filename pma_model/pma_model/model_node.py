@@ -14,7 +14,6 @@ import threading
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
@@ -27,6 +26,7 @@ from rclpy.qos import (
 
 from pma_common.diagnostics import publish_status
 from pma_common.node import run_single_threaded
+from pma_common.parameters import declare_or_keep_default
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
@@ -99,29 +99,30 @@ class ModelNode(Node):
         defaults = default_params()
         # The model's own parameter names (others, e.g. use_sim_time, are not the model's).
         self._model_parameter_names = tuple(defaults.to_ros_parameters())
-        out_of_range = []
+        refused = []     # start-up overrides of the wrong type or out of range (defaults kept)
         for name, value in defaults.to_ros_parameters().items():
             descriptor = ParameterDescriptor(description=_describe(name))
             if name in _RANGES:
                 low, high = _RANGES[name]
                 descriptor.floating_point_range = [
                     FloatingPointRange(from_value=low, to_value=high, step=0.0)]
-            out_of_range += self._declare_or_keep_default(name, value, descriptor)
+            refused.append(declare_or_keep_default(self, name, value, descriptor))
         self.declare_parameter('params_file', '', ParameterDescriptor(
             description='params file (refit output) loaded at start and reloaded when it '
                         'changes; empty = none'))
-        out_of_range += self._declare_or_keep_default(
-            'params_file_check_period_s', 1.0, ParameterDescriptor(
+        refused.append(declare_or_keep_default(
+            self, 'params_file_check_period_s', 1.0, ParameterDescriptor(
                 description='how often the params file is checked for changes [s]',
                 floating_point_range=[FloatingPointRange(from_value=0.1, to_value=60.0,
-                                                         step=0.0)]))
+                                                         step=0.0)])))
+        refused = [reason for reason in refused if reason is not None]
 
         # Why the start-up overrides were not all taken (shown in /diagnostics until a
         # valid change is applied); None: they were.
         self._startup_problem: str | None = None
         self._ready = False
-        if out_of_range:
-            self._startup_problem = f'out of range, kept the defaults: {"; ".join(out_of_range)}'
+        if refused:
+            self._startup_problem = f'refused, kept the defaults: {"; ".join(refused)}'
             self.get_logger().error(f'invalid parameters {self._startup_problem}')
         try:
             self._params = ModelParams.from_ros_parameters(self._model_parameter_values())
@@ -179,17 +180,6 @@ class ModelNode(Node):
             f'memory, adaptation {"on" if self._params.adaptation.enabled else "off"}')
 
     # --- parameters -----------------------------------------------------------------
-
-    def _declare_or_keep_default(self, name: str, value, descriptor) -> list[str]:
-        """Declare a parameter; an override outside its descriptor's range (--ros-args -p,
-        a params file) is refused with the reason and the default kept, as one that fails
-        the model's own validation is (rclpy would raise and end the node). The refusals."""
-        try:
-            self.declare_parameter(name, value, descriptor)
-            return []
-        except InvalidParameterValueException as error:
-            self.declare_parameter(name, value, descriptor, ignore_override=True)
-            return [str(error).rsplit('Reason: ', 1)[-1]]
 
     def _model_parameter_values(self, changes: dict | None = None) -> dict:
         values = {name: self.get_parameter(name).value for name in self._model_parameter_names}
