@@ -349,6 +349,17 @@ def test_an_existing_directory_with_other_files_is_refused(procs, tmp_path):
     assert sorted(p.name for p in target.iterdir()) == ['notes.txt']
 
 
+def test_a_topics_parameter_that_is_not_a_list_stops_it_with_one_line(procs, tmp_path):
+    """`-p topics:=pma/state` (a string; a list is `topics:=[pma/state]`) used to end the
+    recorder with an rclpy traceback; it records nothing it was not asked for."""
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', tmp_path / 'bag',
+                              ros_args=['-p', 'topics:=pma/state'])
+    assert recorder.popen.wait(20) == 2
+    recorder.wait_for_line("recorder: bad parameter, not started: topics must be of type "
+                           "STRING_ARRAY, got 'pma/state' (STRING)")
+    assert 'Traceback' not in recorder.output and not (tmp_path / 'bag').exists()
+
+
 if __name__ == '__main__':
     sys.exit(pytest.main([__file__, '-q']))
 

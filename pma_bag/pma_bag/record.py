@@ -38,6 +38,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
+from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -49,6 +50,7 @@ from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped
+from pma_common.parameters import refusal_reason
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 
@@ -730,7 +732,12 @@ def main(argv: list[str] | None = None) -> int:
                             max_bag_duration_s=args.max_bag_duration, custom_data=custom,
                             start_paused=args.start_paused)
     with ros_context(argv) as stop:
-        node = Recorder(options, args.topics)
+        try:
+            node = Recorder(options, args.topics)
+        except ParameterException as exc:    # -p topics:=x (a string, not a list)
+            print(f'recorder: bad parameter, not started: {refusal_reason(exc)}',
+                  file=sys.stderr, flush=True)
+            return 2
         executor = SingleThreadedExecutor()
         try:
             if args.idle:
