@@ -34,7 +34,6 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
@@ -49,7 +48,7 @@ from std_srvs.srv import Trigger
 from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
 from pma_common.diagnostics import publish_status
-from pma_common.node import ros_context, spin_until_stopped
+from pma_common.node import ros_context, spin_until_stopped, without_ros_args
 from pma_common.parameters import refusal_reason
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
@@ -716,7 +715,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
-    user_args = rclpy.utilities.remove_ros_args(argv)[1:]
+    user_args = without_ros_args(argv)[1:]
     if user_args[:1] == ['recover']:
         return recover_main(user_args[1:])
     args = parse_args(user_args)

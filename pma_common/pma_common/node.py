@@ -17,9 +17,12 @@ and the device commands of the cleanup still work, and rclpy is shut down exactl
 from __future__ import annotations
 
 import concurrent.futures
+import re
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import rclpy
 from rclpy.executors import (
@@ -30,8 +33,10 @@ from rclpy.executors import (
     SingleThreadedExecutor,
     TimeoutException,
 )
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
 
 from pma_common.stop import StopRequest, stop_request
 
@@ -41,14 +46,45 @@ HANDOVER_CHECK_S = 0.1   # how often a pool-executor waiting for a free worker c
 
 @contextmanager
 def ros_context(args: list[str] | None = None) -> Iterator[StopRequest]:
-    """rclpy initialised without its signal handlers; shut down on the way out."""
+    """rclpy initialised without its signal handlers; shut down on the way out.
+
+    Arguments rcl cannot start with (a params file that is missing or not YAML, a malformed
+    --ros-args rule) end the process with exit code 2 and rcl's reason on one line, as a bad
+    parameter does, not with a traceback from rclpy.init.
+    """
     stop = stop_request()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except rclpy_implementation.RCLError as error:
+        stop.ignore_further()
+        _cannot_start(error)
     try:
         yield stop
     finally:
         rclpy.try_shutdown()
         stop.ignore_further()
+
+
+def without_ros_args(argv: list[str]) -> list[str]:
+    """`argv` (program name first) without its --ros-args part, for a program's own parser;
+    ROS arguments rcl cannot parse end the process as in ros_context."""
+    try:
+        return remove_ros_args(argv)
+    except rclpy_implementation.RCLError as error:
+        _cannot_start(error)
+
+
+def _cannot_start(error: Exception):
+    print(f'{Path(sys.argv[0]).name}: cannot start: {rcl_reason(error)}', file=sys.stderr,
+          flush=True)
+    raise SystemExit(2) from None
+
+
+def rcl_reason(error: Exception) -> str:
+    """rcl's message without its prefix and the C source locations it appends."""
+    text = str(error).removeprefix('failed to initialize rcl: ').removeprefix(
+        'Failed to parse ROS arguments: ')
+    return re.sub(r'(, at [^,]+:\d+)+$', '', text.strip())
 
 
 def spin_until_stopped(executor: Executor, node: Node | None, stop: StopRequest,
