@@ -23,6 +23,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import NoReturn
 
 import rclpy
 from rclpy.executors import (
@@ -74,7 +75,7 @@ def without_ros_args(argv: list[str]) -> list[str]:
         _cannot_start(error)
 
 
-def _cannot_start(error: Exception):
+def _cannot_start(error: Exception) -> NoReturn:
     print(f'{Path(sys.argv[0]).name}: cannot start: {rcl_reason(error)}', file=sys.stderr,
           flush=True)
     raise SystemExit(2) from None
