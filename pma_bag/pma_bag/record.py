@@ -37,7 +37,6 @@ from pathlib import Path
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
-from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -49,7 +48,7 @@ from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped, without_ros_args
-from pma_common.parameters import refusal_reason
+from pma_common.parameters import node_or_exit
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 
@@ -731,12 +730,8 @@ def main(argv: list[str] | None = None) -> int:
                             max_bag_duration_s=args.max_bag_duration, custom_data=custom,
                             start_paused=args.start_paused)
     with ros_context(argv) as stop:
-        try:
-            node = Recorder(options, args.topics)
-        except ParameterException as exc:    # -p topics:=x (a string, not a list)
-            print(f'recorder: bad parameter, not started: {refusal_reason(exc)}',
-                  file=sys.stderr, flush=True)
-            return 2
+        # -p topics:=x (a string, not a list) records nothing it was not asked for.
+        node = node_or_exit(lambda: Recorder(options, args.topics), 'recorder')
         executor = SingleThreadedExecutor()
         try:
             if args.idle:

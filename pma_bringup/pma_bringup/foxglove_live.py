@@ -34,7 +34,6 @@ from pathlib import Path
 import foxglove
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -46,7 +45,7 @@ from pma_bag.record import message_class, subscription_qos
 from pma_bag.schemas import message_schema
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped
-from pma_common.parameters import refusal_reason
+from pma_common.parameters import node_or_exit
 
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
@@ -310,11 +309,7 @@ def layout_path() -> Path | None:
 def main(args: list[str] | None = None) -> int:
     with ros_context(args) as stop:
         try:
-            node = FoxgloveLive()
-        except ParameterException as exc:
-            print(f'foxglove_live: bad parameter, not started: {refusal_reason(exc)}',
-                  file=sys.stderr, flush=True)
-            return 2
+            node = node_or_exit(FoxgloveLive, 'foxglove_live')
         except RuntimeError as exc:   # the server could not listen (port in use, bad address)
             print(f'foxglove_live: cannot start the WebSocket server: {exc}. Is another '
                   'foxglove_live or foxglove_bridge on that port? Choose another with '

@@ -76,8 +76,12 @@ def without_ros_args(argv: list[str]) -> list[str]:
 
 
 def _cannot_start(error: Exception) -> NoReturn:
-    print(f'{Path(sys.argv[0]).name}: cannot start: {rcl_reason(error)}', file=sys.stderr,
-          flush=True)
+    exit_before_start(Path(sys.argv[0]).name, f'cannot start: {rcl_reason(error)}')
+
+
+def exit_before_start(program: str, reason: str) -> NoReturn:
+    """End a process that could not start: `program: reason` on stderr, exit code 2."""
+    print(f'{program}: {reason}', file=sys.stderr, flush=True)
     raise SystemExit(2) from None
 
 

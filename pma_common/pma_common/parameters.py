@@ -4,17 +4,28 @@ rclpy checks an override given at start (`--ros-args -p`, a params file) against
 declared type and range and raises, so a node would die with a traceback on `-p kp:=1` (an
 integer where a float is declared) or a value outside the range. Nodes that can run on
 their shipped defaults keep the default instead and report the refusal, as a refused
-`ros2 param set` keeps the old value. The hardware driver, whose parameters include the
-pressure ceiling, does not run on a guess: it exits with the same one-line reason.
+`ros2 param set` keeps the old value. Nodes that must not run on a guess (the hardware
+driver, whose parameters include the pressure ceiling) are built through node_or_exit: the
+same one-line reason, and no start.
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
+from typing import TypeVar
 
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterException,
+)
 from rclpy.node import Node
+
+from pma_common.node import exit_before_start
+
+NodeT = TypeVar('NodeT', bound=Node)
 
 BAD_OVERRIDE_ERRORS = (InvalidParameterTypeException, InvalidParameterValueException)
 # rclpy's words for a wrong type (rclpy.exceptions.InvalidParameterTypeException)
@@ -48,3 +59,12 @@ def declare_or_keep_default(node: Node, name: str, default,
     except BAD_OVERRIDE_ERRORS as error:
         node.declare_parameter(name, default, descriptor, ignore_override=True)
         return refusal_reason(error)
+
+
+def node_or_exit(make_node: Callable[[], NodeT], program: str) -> NodeT:
+    """`make_node()`; a parameter it refuses ends the process instead (exit code 2 and
+    `program: bad parameter, not started: <reason>`), before anything runs."""
+    try:
+        return make_node()
+    except ParameterException as error:
+        exit_before_start(program, f'bad parameter, not started: {refusal_reason(error)}')

@@ -27,7 +27,7 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
-from pma_common.parameters import BAD_OVERRIDE_ERRORS, refusal_reason
+from pma_common.parameters import node_or_exit
 from pma_driver import protocol
 from pma_driver.clock_sync import ClockSync
 from pma_driver.control import DeviceControl
@@ -389,13 +389,7 @@ class PmaDriver(Node):
 
 def main(args=None) -> int:
     with ros_context(args) as stop:
-        try:
-            node = PmaDriver()
-        except BAD_OVERRIDE_ERRORS as error:
-            # No guessing for the hardware (its parameters include the pressure ceiling).
-            print(f'driver_node: bad parameter, not started: {refusal_reason(error)}',
-                  file=sys.stderr)
-            return 2
+        node = node_or_exit(PmaDriver, 'driver_node')   # no guessing for the hardware
         executor = WorkerPoolExecutor(num_threads=4)
         try:
             spin_until_stopped(executor, node, stop)
