@@ -41,17 +41,16 @@ import numpy as np
 from benchlib import check, isolate_ros_graph, load_row, print_table, read_line, serve, stop
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
+from support.closed_loop_runs import sine_error_m, sine_profile
 from support.closed_loop_runs import track as run
-from support.muscle_families import SCORED_FAMILIES, family_argument
+from support.muscle_families import SCORED_FAMILIES, STROKE_M, family_argument
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTROLLER = ROOT / 'ros2_ws' / 'install' / 'pma_control' / 'lib' / 'pma_control' / \
     'length_controller'
-STROKE_M = 0.0586
 MODES = ('ff', 'fb', 'ff_fb')
 STEPS = ((0.0, 0.255), (10.0, 0.285), (20.0, 0.265))
 STEP_END_S = 30.0
-SINE_LOW_M, SINE_HIGH_M = 0.25, 0.295
 SINE_HZ = (0.05, 0.1, 0.2)
 TOLERANCE_M = 0.002
 # Setpoint to device: ~10-50 ms on a quiet host (DDS, serial line, the firmware's next loop),
@@ -91,14 +90,8 @@ def step_metrics(t, true, _reference) -> dict[str, float]:
             'steady_mm': 1000 * max(steady)}
 
 
-def sine_profile(frequency_hz: float):
-    middle, amplitude = (SINE_LOW_M + SINE_HIGH_M) / 2, (SINE_HIGH_M - SINE_LOW_M) / 2
-    return lambda t: middle - amplitude * math.cos(2 * math.pi * frequency_hz * t)
-
-
 def sine_metrics(t, true, reference, frequency_hz: float) -> dict[str, float]:
-    after = t > 1.0 / frequency_hz
-    error = true[after] - reference[after]
+    error = sine_error_m(t, true, reference, frequency_hz)
     return {'rmse_pct': 100 * float(np.sqrt(np.mean(error ** 2))) / STROKE_M,
             'max_pct': 100 * float(np.max(np.abs(error))) / STROKE_M}
 

@@ -10,12 +10,10 @@ device seeds.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
-from support.closed_loop_runs import track
+from support.closed_loop_runs import sine_error_m, sine_profile, track
 from support.muscle_families import BOUC_WEN, STROKE_M
 
 SINE_HZ = 0.1
@@ -23,11 +21,9 @@ SINE_HZ = 0.1
 
 def sine_rmse_m(family: str, seed: int) -> float:
     """ff_fb on a 0.1 Hz sine 25 <-> 29.5 cm, against the true length, after one period."""
-    t_s, true_m, target_m = track(
-        'ff_fb', family, lambda t: 0.2725 - 0.0225 * math.cos(2 * math.pi * SINE_HZ * t), 32.0,
-        seed=seed)
-    after = t_s > 1.0 / SINE_HZ
-    return float(np.sqrt(np.mean((true_m[after] - target_m[after]) ** 2)))
+    error = sine_error_m(*track('ff_fb', family, sine_profile(SINE_HZ), 32.0, seed=seed),
+                         SINE_HZ)
+    return float(np.sqrt(np.mean(error ** 2)))
 
 
 @pytest.mark.parametrize(('family', 'seed'), [

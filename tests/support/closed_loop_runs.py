@@ -6,6 +6,8 @@ the held-out muscles of support.muscle_families reach the controller the same wa
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from pma_control.controller import ControllerSettings, LengthController
@@ -13,6 +15,8 @@ from pma_driver.sim.closed_loop import run_closed_loop
 from pma_driver.sim.device import DeviceConfig, Rig
 from pma_model.params import default_params
 from support.muscle_families import muscle_for
+
+SINE_LOW_M, SINE_HIGH_M = 0.25, 0.295    # the tracked sine: 25 <-> 29.5 cm, from the low end
 
 
 def track(mode: str, family: str, profile, duration_s: float, *, seed: int, rate_hz: int = 20,
@@ -30,3 +34,15 @@ def track(mode: str, family: str, profile, duration_s: float, *, seed: int, rate
     trace = run_closed_loop(step, duration_s, config=config, rig=Rig(config, muscle_for(family)),
                             command_delay_s=command_delay_s).arrays()
     return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
+
+
+def sine_profile(frequency_hz: float):
+    """The target of the tracking runs: a sine between SINE_LOW_M and SINE_HIGH_M."""
+    middle, amplitude = (SINE_LOW_M + SINE_HIGH_M) / 2, (SINE_HIGH_M - SINE_LOW_M) / 2
+    return lambda t: middle - amplitude * math.cos(2 * math.pi * frequency_hz * t)
+
+
+def sine_error_m(t_s, true_m, target_m, frequency_hz: float) -> np.ndarray:
+    """True minus target length after the first period (the start is a step, not tracking)."""
+    after = t_s > 1.0 / frequency_hz
+    return true_m[after] - target_m[after]
