@@ -19,7 +19,6 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -110,12 +109,9 @@ def progress_bar(fraction: float, width: int = 30) -> str:
     return '#' * filled + '-' * (width - filled)
 
 
-def run_sweep(node, label: str, goal, timeout: float):
-    from rclpy.action import ActionClient
-
-    from pma_interfaces.action import Sweep
-
-    client = ActionClient(node, Sweep, 'pma/sweep')
+def run_sweep(spin, client, label: str, goal, timeout: float):
+    """One Sweep goal through `client` (the demo's one pma/sweep action client); its
+    requests are made on `spin`'s thread (pma_common.background)."""
     if not client.wait_for_server(timeout_sec=20):
         raise RuntimeError('the pma/sweep action server (driver_node) is not available')
     last_print = [0.0, -1]
@@ -138,12 +134,12 @@ def run_sweep(node, label: str, goal, timeout: float):
                   f'{feedback.gauge_setpoint_pa / 1e3:5.0f} kPa  {feedback.sample_count} samples',
                   end='' if interactive else '\n', flush=True)
 
-    sent = client.send_goal_async(goal, feedback_callback=on_feedback)
+    sent = spin.call(client.send_goal_async, goal, feedback_callback=on_feedback)
     _wait(sent, 20, 'the sweep goal to be accepted')
     handle = sent.result()
     if not handle.accepted:
         raise RuntimeError(f'{label}: the driver rejected the sweep goal (see driver_node.log)')
-    result_future = handle.get_result_async()
+    result_future = spin.call(handle.get_result_async)
     _wait(result_future, timeout, f'{label} to finish')
     if interactive:
         print(flush=True)
@@ -155,7 +151,6 @@ def run_sweep(node, label: str, goal, timeout: float):
         raise RuntimeError(f'{label} failed (goal status {response.status}): '
                            f'{result.message or "no message; see driver_node.log"}')
     say(f'{label}: done, {result.sample_count} samples ({result.message})')
-    client.destroy()
     return result
 
 
@@ -230,14 +225,14 @@ def record_bag(node, path: Path | None, custom_data: dict[str, str] | None = Non
         node.destroy_client(client)
 
 
-def move_to(node, client, length_m: float) -> str:
+def move_to(spin, client, length_m: float) -> str:
     """One MoveToLength goal, as `ros2 action send_goal` would send it; a one-line summary."""
     from pma_interfaces.action import MoveToLength
 
-    sent = client.send_goal_async(MoveToLength.Goal(length_m=length_m, tolerance_m=0.002,
-                                                    settle_s=1.0, timeout_s=20.0))
+    sent = spin.call(client.send_goal_async, MoveToLength.Goal(
+        length_m=length_m, tolerance_m=0.002, settle_s=1.0, timeout_s=20.0))
     _wait(sent, 10, 'move_to_length accepted')
-    done = sent.result().get_result_async()
+    done = spin.call(sent.result().get_result_async)
     _wait(done, 40, 'move_to_length result')
     result = done.result().result
     if not result.success:
@@ -246,19 +241,20 @@ def move_to(node, client, length_m: float) -> str:
             f'at {result.final_length_m * 100:.2f} cm')
 
 
-def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tuple[str, Path]]:
-    """Steps and a streamed sine through length_controller, recorded, plotted against the
-    simulated truth (the run and the bag's metadata in the footer); the outputs."""
+def run_control(spin, client, run_dir: Path, truth_csv: Path,
+                rate_hz: float) -> list[tuple[str, Path]]:
+    """Steps (through `client`, the pma/move_to_length action client) and a streamed sine
+    through length_controller, recorded, plotted against the simulated truth (the run and the
+    bag's metadata in the footer); the outputs."""
     import numpy as np
-    from rclpy.action import ActionClient
     from rclpy.qos import qos_profile_sensor_data
 
     from pma_control.plots import plot_control_run
     from pma_driver.fake_arduino import TruthLog
-    from pma_interfaces.action import MoveToLength
     from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
     from pma_model.provenance import input_run
 
+    node = spin.node
     stroke_m = 0.0586
     steps: list = []
     seqs: dict[int, int] = {}
@@ -267,7 +263,6 @@ def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tu
         PmaState, 'pma/state',
         lambda s: seqs.__setitem__(s.header.stamp.sec * 10**9 + s.header.stamp.nanosec, s.seq),
         qos_profile_sensor_data)
-    client = ActionClient(node, MoveToLength, 'pma/move_to_length')
     if not client.wait_for_server(timeout_sec=20):
         raise RuntimeError('no pma/move_to_length (see logs/length_controller.log)')
     bag = run_dir / 'control'
@@ -275,7 +270,7 @@ def run_control(node, run_dir: Path, truth_csv: Path, rate_hz: float) -> list[tu
                            'note': 'demo: MoveToLength steps, then a streamed 0.1 Hz sine'})
     begin = len(steps)
     for length_m in (0.255, 0.285, 0.265):
-        say(f'   move_to_length {move_to(node, client, length_m)}')
+        say(f'   move_to_length {move_to(spin, client, length_m)}')
     say('   following a streamed sine, 25.0 <-> 29.5 cm at 0.1 Hz, for 25 s '
         '(pma/length_setpoint at 50 Hz)')
     setpoints = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
@@ -339,13 +334,17 @@ def main(argv: list[str] | None = None) -> int:
     for sig in STOP_SIGNALS:
         signal.signal(sig, on_signal)
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.action import ActionClient
     from rclpy.node import Node
+
+    from pma_common.background import BackgroundSpin
+    from pma_common.node import init_without_signal_handlers
+    from pma_interfaces.action import MoveToLength, Sweep
 
     major_bag = run_dir / 'major_loop'            # the Sweep action's own bags, one per run
     minor_bag = run_dir / 'minor_loops'
     params_out = run_dir / 'refit_params.yaml'
-    node = executor = spinner = None
+    node = spin = None
     try:
         say(f'run directory: {run_dir}')
         start_live_view(procs, args.live_port)
@@ -364,16 +363,18 @@ def main(argv: list[str] | None = None) -> int:
         procs.start('recorder', 'pma_bag', 'record', '--idle', '--compression', 'zstd')
         procs.start('length_controller', 'pma_control', 'length_controller')
 
-        rclpy.init()
+        init_without_signal_handlers()    # on_signal above stops the demo
         node = Node('pma_demo')
-        executor = SingleThreadedExecutor()   # its callbacks only collect
-        executor.add_node(node)
-        spinner = threading.Thread(target=executor.spin, daemon=True)
-        spinner.start()
+        # The action clients are made before the node spins in its thread, and live as long
+        # as it does: rclpy (Jazzy) can break the wait when one is created or destroyed under
+        # it (ros2/rclpy#1589, #1385; seen under load: "action client pointer is invalid"
+        # after the first sweep, which was the last; pma_common.background).
+        sweeps = ActionClient(node, Sweep, 'pma/sweep')
+        moves = ActionClient(node, MoveToLength, 'pma/move_to_length')
+        spin = BackgroundSpin(node)   # its callbacks only collect
 
         from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 
-        from pma_interfaces.action import Sweep
         from pma_interfaces.msg import ModelParams, PmaState
         from pma_model.detector import BRANCH_NAMES
 
@@ -394,12 +395,12 @@ def main(argv: list[str] | None = None) -> int:
         procs.wait_for_log('recorder', 'idle', 20)
 
         say("3/8 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
-        run_sweep(node, 'major loop', Sweep.Goal(
+        run_sweep(spin, sweeps, 'major loop', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1,
             record=True, bag_path=str(major_bag), note=f'demo {run_dir.name}: major loop'),
             300)
         say('4/8 minor loops on both branches: 0 -> 300 -> 150 -> 500 -> 200 -> 350 -> 0 kPa')
-        run_sweep(node, 'minor loops', Sweep.Goal(
+        run_sweep(spin, sweeps, 'minor loops', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=100e3, hold_s=args.hold_s, cycles=1,
             reversal_pressures_pa=[300e3, 150e3, 500e3, 200e3, 350e3],
             record=True, bag_path=str(minor_bag), note=f'demo {run_dir.name}: minor loops'),
@@ -446,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
             say('   model_node did not report new parameters (see logs/model_node.log)')
 
         say('8/8 length control: steps 25.5 -> 28.5 -> 26.5 cm (MoveToLength), then a sine')
-        control_outputs = run_control(node, run_dir, truth_csv, args.rate_hz)
+        control_outputs = run_control(spin, moves, run_dir, truth_csv, args.rate_hz)
 
         elapsed = time.monotonic() - started
         say(f'done in {elapsed:.0f} s. Outputs:')
@@ -467,8 +468,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         ignore_stop_signals()    # the cleanup runs whole, however it was reached
-        if executor is not None:
-            executor.shutdown(timeout_sec=2)
+        if spin is not None:
+            spin.close()     # the node is not destroyed under its wait
         if node is not None:
             node.destroy_node()
         if rclpy.ok():

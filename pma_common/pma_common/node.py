@@ -55,7 +55,7 @@ def ros_context(args: list[str] | None = None) -> Iterator[StopRequest]:
     """
     stop = stop_request()
     try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        init_without_signal_handlers(args)
     except rclpy_implementation.RCLError as error:
         stop.ignore_further()
         _cannot_start(error)
@@ -64,6 +64,16 @@ def ros_context(args: list[str] | None = None) -> Iterator[StopRequest]:
     finally:
         rclpy.try_shutdown()
         stop.ignore_further()
+
+
+def init_without_signal_handlers(args: list[str] | None = None) -> None:
+    """rclpy.init for a process that handles its own stop signals.
+
+    With its handlers, rclpy shuts the context down from a thread of its own the moment a
+    SIGINT or SIGTERM arrives, under a cleanup that still uses it: the demo, stopped by a
+    Ctrl-C while its executor spun in another thread, ended in a segfault now and then.
+    """
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
 
 
 def without_ros_args(argv: list[str]) -> list[str]:

@@ -11,10 +11,9 @@ import time
 from collections.abc import Callable
 
 import rclpy
-from rclpy._rclpy_pybind11 import InvalidHandle, RCLError
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
+from pma_common.background import BackgroundSpin
 from pma_common.service import ask, poll
 
 # Fast DDS's server waits only 100 ms for a new client's reply reader to match before it
@@ -28,33 +27,12 @@ class SpinningNode:
         if not rclpy.ok():
             rclpy.init()
         self.node = Node(name)
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(self.node)
+        # Spinning on through entities a test destroys under the wait, and action requests
+        # made from the executor's thread (in_executor): pma_common.background.
+        self._spin = BackgroundSpin(self.node)
+        self.executor = self._spin.executor
+        self.in_executor = self._spin.call
         self._clients: dict[str, object] = {}
-        self._stopping = threading.Event()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        """Spin until closed, surviving entities destroyed under the executor.
-
-        A test that destroys a subscription or client while the executor is waiting on it
-        makes rclpy raise InvalidHandle in this thread (an action client: RCLError "action
-        client pointer is invalid"); plain `executor.spin()` would die of it and every later
-        test in the module would time out waiting for messages. The destroyed entity is out
-        of the next wait set, so spinning on is safe.
-        """
-        while not self._stopping.is_set() and rclpy.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.1)
-            except InvalidHandle:
-                continue
-            except RCLError as error:
-                if 'pointer is invalid' not in str(error):
-                    raise
-                continue
-            except ExternalShutdownException:
-                return
 
     def collect(self, msg_type, topic: str, qos=10):
         """(list that every message on `topic` is appended to, the subscription)."""
@@ -93,38 +71,9 @@ class SpinningNode:
         wait_until(future.done, timeout, f'{name} answer')
         return future.result()
 
-    def in_executor(self, function, *args, timeout: float = 10.0, **kwargs):
-        """`function(*args, **kwargs)` run on the spinning thread; what it returns.
-
-        For rclpy's ActionClient requests (send_goal_async, cancel_goal_async,
-        get_result_async): they register the request only after sending it, with no lock
-        against the executor, so an answer the spinning thread takes in between is dropped
-        ('Ignoring unexpected goal response') and the future never completes (seen in CI:
-        test_pipeline's sweep, goal never accepted). From the executor's own thread there is
-        no in between.
-        """
-        done, outcome = threading.Event(), {}
-
-        def run():
-            try:
-                outcome['value'] = function(*args, **kwargs)
-            except BaseException as error:   # re-raised in the caller's thread
-                outcome['error'] = error
-            finally:
-                done.set()
-
-        self.executor.create_task(run)
-        if not done.wait(timeout):
-            raise TimeoutError(f'the executor did not run {function} within {timeout} s')
-        if 'error' in outcome:
-            raise outcome['error']
-        return outcome['value']
-
     def close(self) -> None:
         self._clients.clear()   # destroy_node destroys them
-        self._stopping.set()
-        self._thread.join(2)
-        self.executor.shutdown(timeout_sec=2)
+        self._spin.close()
         self.node.destroy_node()
 
 
