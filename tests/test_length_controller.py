@@ -21,11 +21,12 @@ from rclpy.action import ActionClient
 from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.action import MoveToLength
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+from pma_model.params import paper_table1
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
-STROKE_M = 0.0586
+STROKE_M = paper_table1().stroke_m
 
 
 class Probe:

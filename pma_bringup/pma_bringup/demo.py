@@ -252,10 +252,11 @@ def run_control(spin, client, run_dir: Path, truth_csv: Path,
     from pma_control.plots import plot_control_run
     from pma_driver.fake_arduino import TruthLog
     from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+    from pma_model.params import paper_table1
     from pma_model.provenance import input_run
 
     node = spin.node
-    stroke_m = 0.0586
+    stroke_m = paper_table1().stroke_m
     steps: list = []
     seqs: dict[int, int] = {}
     node.create_subscription(ControlState, 'pma/control_state', steps.append, 1000)

@@ -14,9 +14,9 @@ from pma_control.controller import MODES, ControllerSettings, LengthController
 from pma_driver.sim.closed_loop import run_closed_loop
 from pma_driver.sim.device import DeviceConfig, Rig
 from pma_driver.sim.families import FAMILY_NAMES, muscle_family
-from pma_model.params import default_params
+from pma_model.params import default_params, paper_table1
 
-STROKE_M = 0.0586      # Table 1: 30.06 -> 24.20 cm
+STROKE_M = paper_table1().stroke_m   # 30.06 -> 24.20 cm
 
 
 def controller(mode: str = 'ff_fb', **changes) -> LengthController:

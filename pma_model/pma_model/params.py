@@ -388,6 +388,13 @@ class PaperTable:
     increasing_length_m: np.ndarray
     decreasing_length_m: np.ndarray
 
+    @property
+    def stroke_m(self) -> float:
+        """The rest length (at 0 Pa) minus the shortest: 5.86 cm, the stroke that errors are
+        given as a share of."""
+        rest = self.increasing_length_m[np.argmin(self.pressure_pa)]
+        return float(rest - min(self.increasing_length_m.min(), self.decreasing_length_m.min()))
+
 
 def paper_table1() -> PaperTable:
     """Table 1 from the package data (kPa/cm in the file, SI here)."""

@@ -204,3 +204,9 @@ def test_build_model_and_online_model_use_the_selected_form(defaults):
         defaults.increasing.sigmoid
     with pytest.raises(ParamsError, match='same form'):
         defaults.with_branches(HillBranch(0.3, 0.06, 2e5, 2.0), defaults.decreasing.sigmoid)
+
+
+def test_table_1_stroke_is_rest_to_the_shortest_length():
+    """30.06 cm at rest, 24.20 cm at 500 kPa (the rising branch's 30.063 cm at 50 kPa is
+    above rest, not part of the stroke)."""
+    assert units.m_to_cm(paper_table1().stroke_m) == pytest.approx(5.86, abs=1e-9)

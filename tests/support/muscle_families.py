@@ -43,7 +43,7 @@ from pma_model.identification import OnlineModel, run_online
 from pma_model.params import ModelParams, default_params, paper_table1
 from support import generalized_play
 
-STROKE_M = 0.0586            # Table 1: 30.06 - 24.20 cm
+STROKE_M = paper_table1().stroke_m   # Table 1: 30.06 - 24.20 cm
 SCORED_FROM_REVERSAL = 3     # "after the first three reversals"
 # Samples per second of the scenarios: the firmware's maximum; driver_node asks for 20 Hz by
 # default.
