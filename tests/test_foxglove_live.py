@@ -304,10 +304,10 @@ def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path, stop_sign
         children = children_of(demo.popen.pid)
         demo.signal(stop_signal)
         code = demo.popen.wait(60)
+        left_running = [pid for pid in children if running(pid)]
+        for pid in left_running:             # not to burden the tests that follow
+            os.kill(pid, signal.SIGKILL)
     assert code == 130, demo.output[-2000:]
     assert 'interrupted: stopping every process' in demo.output
     assert len(children) >= 6, children       # the rig, the model, recorder, controller, view
-    left_running = [pid for pid in children if running(pid)]
-    for pid in left_running:                 # not to burden the tests that follow
-        os.kill(pid, signal.SIGKILL)
     assert not left_running, demo.output[-2000:]

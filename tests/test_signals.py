@@ -35,7 +35,8 @@ from pma_common.stop import STOP_SIGNALS
 from pma_driver import protocol
 from pma_interfaces.msg import PmaState
 from support import firmware
-from support.procs import Proc, ProcessGroup
+from support.domains import another_domain
+from support.procs import Proc, ProcessGroup, children_of, running
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -181,6 +182,30 @@ def test_ctrl_c_under_launch_vents_the_muscle(procs, tmp_path):
     finally:
         probe.close()
         shutdown()
+
+
+def test_a_killed_demo_takes_its_children_with_it_and_the_rig_vents(procs, tmp_path):
+    """The demo's six children run in sessions of their own (a terminal's Ctrl-C reaches only
+    the demo, which stops them in order). A demo that crashed (a segfault, 2026-11-28) or was
+    SIGKILLed left them all running, the simulated rig too, for an hour, until found slowing
+    the tests that followed. Each now gets SIGTERM when the demo ends, however it ends."""
+    demo = procs.ros2_run('pma_bringup', 'demo', '--runs-dir', str(tmp_path), '--live-port',
+                          '0', name='demo', env={'ROS_DOMAIN_ID': str(another_domain())})
+    children = []
+    try:
+        demo.wait_for_line('3/8', 90)        # every child started, the rig streaming
+        children = children_of(demo.popen.pid)
+        assert len(children) >= 6, children
+        os.kill(demo.popen.pid, signal.SIGKILL)
+        demo.popen.wait(10)
+        wait_until(lambda: not any(running(pid) for pid in children), 30,
+                   'the children to end with the demo')
+    finally:
+        for pid in children:                 # not to burden the tests that follow
+            if running(pid):
+                os.kill(pid, signal.SIGKILL)
+    (driver_log,) = tmp_path.glob('*/logs/driver_node.log')
+    assert '(vented)' in driver_log.read_text(), driver_log.read_text()[-2000:]
 
 
 @pytest.mark.parametrize('seed', [3])
