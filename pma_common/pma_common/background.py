@@ -9,8 +9,9 @@ services and polls their futures while a background thread runs the callbacks. r
   after. The destroyed entity is out of the next wait set, so spinning on is safe.
 - An ActionClient registers a goal, result or cancel request only after sending it, with no
   lock against the executor, so an answer the spinning thread takes in between is dropped
-  ('Ignoring unexpected goal response') and the future never completes. Made from the
-  executor's own thread (`call`), the request has no in between.
+  ('Ignoring unexpected goal response') and the future never completes (ros2/rclpy#1123;
+  fixed in later rclpy releases, seen in CI with this one). Made from the executor's own
+  thread (`call`), the request has no in between.
 """
 
 from __future__ import annotations
