@@ -38,7 +38,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,11 +55,12 @@ from benchlib import (
     stop,
 )
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
+from pma_common.background import BackgroundSpin
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
@@ -153,8 +153,7 @@ class Bench:
         self.work = work
         self.procs: list[subprocess.Popen] = []
         self.logs = []
-        self.executor: SingleThreadedExecutor | None = None
-        self.spinner: threading.Thread | None = None
+        self.listener: BackgroundSpin | None = None
         self.predictions: list[tuple[int, int]] = []     # (header stamp ns, receive mono ns)
         self.diagnostics: list[tuple[int, int]] = []     # (receive mono ns, samples)
         self.node_values: dict[str, dict[str, str]] = {}  # node name -> last diagnostics
@@ -175,10 +174,8 @@ class Bench:
     def close(self) -> None:
         for proc in reversed(self.procs):
             stop(proc)
-        if self.executor is not None:
-            self.executor.shutdown(timeout_sec=2)
-        if self.spinner is not None:
-            self.spinner.join(5)
+        if self.listener is not None:
+            self.listener.close()
         for log in self.logs:
             log.close()
 
@@ -401,16 +398,7 @@ class Bench:
         node.create_subscription(PmaPrediction, 'pma/prediction', on_prediction,
                                  QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(node)
-        self.spinner = threading.Thread(target=self._spin, daemon=True)
-        self.spinner.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass
+        self.listener = BackgroundSpin(node)
 
     def samples_settled(self, after_ns: int, timeout: float) -> int:
         """model_node's 'samples' once two reports received after after_ns agree."""

@@ -2,7 +2,8 @@
 
 The demo and the tests' probe work this way: the main thread sends goals and calls
 services and polls their futures while a background thread runs the callbacks. rclpy
-(Jazzy) is not safe for that pattern in two places, and both ended demo runs under load:
+(Jazzy) is not safe for that pattern in two places (the first lost the demo a sweep under
+load, the second lost the tests a goal in CI):
 - An entity destroyed by one thread while the other waits on it makes rclpy raise in the
   spinning thread (InvalidHandle; an action client: RCLError "action client pointer is
   invalid", ros2/rclpy#1385), and a plain `executor.spin()` dies of it: nothing is received
