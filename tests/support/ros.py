@@ -30,7 +30,6 @@ class SpinningNode:
         # Spinning on through entities a test destroys under the wait, and action requests
         # made from the executor's thread (in_executor): pma_common.background.
         self._spin = BackgroundSpin(self.node)
-        self.executor = self._spin.executor
         self.in_executor = self._spin.call
         self._clients: dict[str, object] = {}
 
