@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -47,15 +48,26 @@ def _rate(kind: str):
     return _argument(lambda text: q.parse_rate(text, kind), f'{kind} rate')
 
 
+class _Parser(argparse.ArgumentParser):
+    """Takes `-5kPa` as a (negative) quantity: argparse alone takes only a bare number such as
+    `-5` for a value, and calls `-5kPa` a missing argument. No option of pma starts with a
+    digit, so nothing that does can be one. (Sets argparse's `_negative_number_matcher`, the
+    one place its rule lives; should a Python drop it, `-5kPa` needs `--` again.)"""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r'^-\.?\d')
+
+
 def parser() -> argparse.ArgumentParser:
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     common.add_argument('-n', '--namespace', default=os.environ.get('PMA_NAMESPACE', ''),
                         help="the muscle's namespace (left, /right; default: $PMA_NAMESPACE, "
                              'else none)')
     common.add_argument('--timeout', type=_quantity('time'), default=DEFAULT_TIMEOUT_S,
                         metavar='TIME', help='how long to wait for the node to answer '
                         f'(default {DEFAULT_TIMEOUT_S:g}s)')
-    top = argparse.ArgumentParser(
+    top = _Parser(
         prog='pma', description='The PMA rig from a shell: status, setpoints, sweeps, the '
         'inverse model, parameters, calibration and CSV export. Quantities: 200kPa, 2bar, '
         '26.5cm, 5s; a plain number is SI (Pa, m, s).',
