@@ -160,6 +160,9 @@ def test_length_answers_what_the_service_answers(rig):
     assert '27.00 cm on the increasing branch' in human and ' kPa ' in human
     unreachable = pma('length', '10cm')
     assert unreachable.returncode == 1 and 'reachable' in unreachable.stderr
+    negative = pma('length', '-3cm')   # a value for the service to refuse, not an option
+    assert negative.returncode == 1 and 'length_m must be positive' in negative.stderr
+    assert 'reachable' not in negative.stderr   # the service computed no range for it
 
 
 def test_param_get_set_with_units_and_refusals_with_the_reason(rig):

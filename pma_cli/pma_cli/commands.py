@@ -288,7 +288,10 @@ def pressure_for_length(session: Session, length_m: float, branch: str, si: bool
                           session.where_hint('pma/prediction', 'model_node'), query=True)
     reach = f'{q.cm(answer.min_length_m)} .. {q.cm(answer.max_length_m)}'
     if not answer.success:
-        raise CliError(f'no pressure for {q.cm(length_m)}: {answer.message} (reachable: {reach})')
+        # A request refused before any range was computed (a negative length) has none.
+        known = math.isfinite(answer.min_length_m) and math.isfinite(answer.max_length_m)
+        raise CliError(f'no pressure for {q.cm(length_m)}: {answer.message}'
+                       + (f' (reachable: {reach})' if known else ''))
     if si:
         print(f'{answer.gauge_pressure_pa:.1f}')
         return OK
