@@ -1,7 +1,7 @@
-"""model_node service round trip and burst, stream latency, drops at 1 kHz, CPU, and a soak.
+"""model_node service round trip and burst, stream latency, drops at 1 kHz, CPU, and soaks.
 
     . tools/env.sh && python bench/bench_model_node.py [--seconds 10] [--calls 500]
-        [--burst-rounds 5] [--soak-s 120]
+        [--burst-rounds 5] [--soak-s 120] [--soak-rates-hz 1000 100]
 
 * service: sequential calls from this process to model_node's `pressure_for_length`
   (length_m=0.27, branch=1), interleaved with calls to a trivial std_srvs/Trigger server
@@ -17,8 +17,10 @@
   model_node's own /diagnostics 'samples' count into the best-effort state subscription and
   the reliable prediction topic.
 * model_node CPU (utime + stime from /proc) at 100 Hz and 1 kHz, % of one core.
-* soak (--soak-s, 0 skips it): the real chain at 1 kHz for that long, as on the rig:
-  fake_arduino --rate 1000 -> driver_node (sample_rate_hz 1000) -> a fresh model_node, with
+* soaks (--soak-s, 0 skips them): the real chain for that long at each of --soak-rates-hz:
+  1 kHz, the stress (more than the firmware's 50 Hz; on two cores the chain needs more CPU
+  than there is), and 100 Hz, twice what the rig can send, where nothing may be lost:
+  fake_arduino --rate R -> driver_node (sample_rate_hz R) -> a fresh model_node, with
   `ros2 run pma_bag record` on its default topics. Losses per component: device -> driver
   (driver's 'lost samples'), states published by driver_node that model_node never received
   (its 'samples', and by PmaState.seq its 'states_lost'), predictions model_node published
@@ -290,11 +292,13 @@ class Bench:
             previous = current
         raise TimeoutError(f'{node_name} /diagnostics {keys} did not settle in {timeout:.0f} s')
 
-    def soak(self, seconds: float) -> Soak:
-        work = self.work / 'soak'
+    def soak(self, seconds: float, rate_hz: float) -> Soak:
+        work = self.work / f'soak_{rate_hz:g}'
         work.mkdir()
         port, bag = work / 'ttyPMA', work / 'bag'
-        fake = self.start([str(FAKE_ARDUINO), '--link', str(port), '--rate', '1000'],
+        for node in ('driver_node', 'model_node'):   # a soak before this one left its values
+            self.node_values.pop(node, None)
+        fake = self.start([str(FAKE_ARDUINO), '--link', str(port), '--rate', f'{rate_hz:g}'],
                           'soak_fake_arduino')
         deadline = time.monotonic() + 30
         while not port.exists():
@@ -309,10 +313,10 @@ class Bench:
         self.wait_for(lambda: any(int(n) >= 3 for n in re.findall(
             r'recording (\d+) topics', self.log_tail('soak_recorder'))), 30, 'recorder start')
         driver = self.start([str(DRIVER_NODE), '--ros-args', '-p', f'port:={port}',
-                             '-p', 'sample_rate_hz:=1000.0', '--log-level', 'warn'],
+                             '-p', f'sample_rate_hz:={float(rate_hz)}', '--log-level', 'warn'],
                             'soak_driver_node')
         self.wait_for(lambda: int(self.latest_values('driver_node').get(
-            'samples published', 0)) > 1000, 30, 'driver_node publishing')
+            'samples published', 0)) > rate_hz, 30, 'driver_node publishing')   # a second
         procs = {'fake_arduino': fake, 'driver_node': driver, 'model_node': model,
                  'recorder': recorder}
         cpu0 = {name: cpu_seconds(proc.pid) for name, proc in procs.items()}
@@ -335,7 +339,8 @@ class Bench:
         tracker = SequenceTracker()
         for seq in states.values():
             tracker.add(seq)
-        return Soak(seconds=elapsed, published=int(driver_values['samples published']),
+        return Soak(rate_hz=rate_hz, seconds=elapsed,
+                    published=int(driver_values['samples published']),
                     device_lost=int(driver_values['lost samples']),
                     model_samples=int(model_values['samples']),
                     model_states_lost=int(model_values['states_lost']),
@@ -476,6 +481,7 @@ def read_soak_bag(bag: Path) -> tuple[dict[int, int], set[int]]:
 
 @dataclass
 class Soak:
+    rate_hz: float
     seconds: float
     published: int              # PmaState published by driver_node ('samples published')
     device_lost: int            # device -> driver_node, by the device's seq
@@ -592,7 +598,8 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
         rows.append(('model_node CPU at 1 kHz [% core]', f'{fast.cpu_percent:.1f}', ''))
         if args.soak_s > 0:
             stop(model)
-            rows += soak_rows(bench.soak(args.soak_s))
+            for rate_hz in args.soak_rates_hz:
+                rows += soak_rows(bench.soak(args.soak_s, rate_hz))
     finally:
         bench.close()
         rclpy.try_shutdown()
@@ -611,7 +618,7 @@ def soak_rows(soak: Soak) -> list[tuple[str, str, str]]:
     percent = 100.0 * soak.bag_states_without_prediction / max(soak.bag_states, 1)
     cpu = ', '.join(f'{name} {value:.0f}' for name, value in soak.cpu_percent.items())
     return [
-        (f'soak 1 kHz, {soak.seconds:.0f} s: PmaState published by driver_node',
+        (f'soak {soak.rate_hz:g} Hz, {soak.seconds:.0f} s: PmaState published by driver_node',
          f'{soak.published}', '(fake_arduino -> driver_node -> model_node, recorder)'),
         ('  device -> driver_node lost (serial)', f'{soak.device_lost}', ''),
         ('  states model_node never received (by seq)', f'{model_lost}',
@@ -638,8 +645,10 @@ def main() -> None:
                         help=f'bursts of {BURST_CLIENTS} x {BURST_PER_CLIENT} requests per '
                              'server (0 skips)')
     parser.add_argument('--soak-s', type=float, default=120.0,
-                        help='length of the 1 kHz soak through driver, model and recorder '
-                             '[s] (0 skips it)')
+                        help='length of each soak through driver, model and recorder [s] '
+                             '(0 skips them)')
+    parser.add_argument('--soak-rates-hz', type=float, nargs='+', default=[1000.0, 100.0],
+                        metavar='HZ', help='sample rate of each soak (default 1000 100)')
     parser.add_argument('--trigger-server', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--publish', nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args()
