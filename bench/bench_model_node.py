@@ -18,8 +18,9 @@
   the reliable prediction topic.
 * model_node CPU (utime + stime from /proc) at 100 Hz and 1 kHz, % of one core.
 * soaks (--soak-s, 0 skips them): the real chain for that long at each of --soak-rates-hz:
-  1 kHz, the stress (more than the firmware's 50 Hz; on two cores the chain needs more CPU
-  than there is), and 100 Hz, twice what the rig can send, where nothing may be lost:
+  1 kHz, the stress (twenty times the firmware's 50 Hz; on two cores the chain needs more
+  CPU than there is, and misses), and 100 Hz, twice what the rig can send; the target at
+  both is nothing lost:
   fake_arduino --rate R -> driver_node (sample_rate_hz R) -> a fresh model_node, with
   `ros2 run pma_bag record` on its default topics. Losses per component: device -> driver
   (driver's 'lost samples'), states published by driver_node that model_node never received
