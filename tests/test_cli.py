@@ -249,7 +249,8 @@ def test_sweep_profiles_from_flags_stream_their_setpoints_and_a_wrong_flag_is_re
 
     start = settled_at_zero()
     refused = pma('sweep', '--profile', 'ramp', '--max', '300kPa')
-    assert refused.returncode == 1 and 'ramp_rate_pa_s' in refused.stdout, refused
+    assert refused.returncode == 1 and 'ramp_rate_pa_s' in refused.stderr, refused
+    assert 'sweep aborted' not in refused.stdout, refused   # a refusal goes to stderr
     assert all(state.gauge_setpoint_pa == 0.0 for state in probe.states[start:])
 
 
@@ -275,6 +276,9 @@ def test_ctrl_c_cancels_the_sweep_and_the_driver_vents(rig):
 
 
 def test_move_then_vent_releases_the_controller(rig):
+    unreachable = pma('move', '35cm')
+    assert unreachable.returncode == 1 and 'move aborted: target 0.3500 m is not reachable' \
+        in unreachable.stderr and 'aborted' not in unreachable.stdout, unreachable
     out = ok(pma('move', '27.5cm', '--goal-timeout', '20s'))
     assert 'move succeeded' in out
     probe = rig['probe']

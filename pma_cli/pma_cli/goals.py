@@ -153,6 +153,12 @@ def describe(goal: Sweep.Goal) -> str:
     return text
 
 
+def _say_result(line: str, as_asked: bool) -> None:
+    """A goal's last line: on stdout when it did what was asked (or was cancelled by the
+    user), on stderr when it was refused or failed, as every verb's refusal is."""
+    print(line, file=sys.stdout if as_asked else sys.stderr, flush=True)
+
+
 def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     state = session.latest(PmaState, 'pma/state')
     progress = Progress()
@@ -175,8 +181,8 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     finally:
         progress.end()
     word = STATUS_WORDS.get(status, f'status {status}')
-    print(f'sweep {word} after {q.seconds(time.monotonic() - started)}: {result.message} '
-          f'({result.sample_count} samples)')
+    _say_result(f'sweep {word} after {q.seconds(time.monotonic() - started)}: '
+                f'{result.message} ({result.sample_count} samples)', result.success or cancelled)
     if result.bag_path:
         print(f'bag: {result.bag_path}')
     if cancelled:
@@ -209,7 +215,8 @@ def move(session: Session, *, length_m: float, tolerance_m: float, settle_s: flo
     word = STATUS_WORDS.get(status, f'status {status}')
     settle = (f', settled after {q.seconds(result.settle_time_s)}'
               if result.success else '')
-    print(f'move {word}: {result.message} (at {q.cm(result.final_length_m)}{settle})')
+    _say_result(f'move {word}: {result.message} (at {q.cm(result.final_length_m)}{settle})',
+                result.success or cancelled)
     if cancelled:
         return INTERRUPTED
     return OK if result.success else FAILED

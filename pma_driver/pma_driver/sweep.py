@@ -337,11 +337,21 @@ def _turning_points(top: float, reversal_pressures_pa: Sequence[float],
         rising = turning[i] > turning[i - 1]
         falling_next = turning[i + 1] < turning[i]
         if rising != falling_next or turning[i] == turning[i - 1]:
+            before, after = reversal_examples(top)
             raise SweepError(
                 'reversal pressures must alternate up and down, starting up from 0 and ending '
                 f'with a fall to 0 (turning points {[round(t) for t in turning]} Pa do not); '
-                'e.g. [300000, 150000] before the top, or [500000, 100000, 250000] after it')
+                f'e.g. {before} before the top, or {after} after it')
     return turning
+
+
+def reversal_examples(top: float) -> tuple[list[float], list[float]]:
+    """Two valid reversal lists for this top (a minor loop before it, one after it), in the
+    refusal's words: an example made for another top would be refused itself."""
+    def at(share: float) -> int:
+        return round(share * top)
+    exact_top = round(top) if top == round(top) else top   # listed as the top, so exact
+    return [at(0.6), at(0.3)], [exact_top, at(0.2), at(0.5)]
 
 
 def _check_step_count(turning: Iterable[float], step_pa: float, cycles: int,

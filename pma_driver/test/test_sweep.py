@@ -24,6 +24,7 @@ from pma_driver.sweep import (
     plan_sine,
     plan_sweep,
     read_profile_csv,
+    reversal_examples,
     staircase,
     staircase_length,
 )
@@ -99,6 +100,17 @@ def test_bad_goals_are_refused_with_the_reason(kwargs, words):
     goal.update(kwargs)
     with pytest.raises(SweepError, match=words):
         plan_sweep(**goal, ceiling_pa=CEILING)
+
+
+@pytest.mark.parametrize('top_pa', [500_000.0, 300_000.0, 120_000.0, 333_333.3])
+def test_the_refusals_examples_are_plans_for_that_top(top_pa):
+    with pytest.raises(SweepError, match='alternate') as refused:
+        plan_sweep(top_pa, 10_000.0, 0.0, 1, [0.9 * top_pa], ceiling_pa=CEILING)
+    before, after = reversal_examples(top_pa)
+    assert f'e.g. {before} before the top, or {after} after it' in str(refused.value)
+    for reversals in (before, after):
+        plan = plan_sweep(top_pa, 10_000.0, 0.0, 1, reversals, ceiling_pa=CEILING)
+        assert max(plan.setpoints_pa) == top_pa
 
 
 @given(top=st.floats(1_000.0, CEILING), step=st.floats(500.0, 200_000.0),
