@@ -636,11 +636,16 @@ def test_device_that_never_answers_the_handshake(procs, probe):
     ('max_gauge_pressure_pa:=400000', 'max_gauge_pressure_pa is a float parameter: write '
                                       '400000.0, not 400000'),
     ('max_gauge_pressure_pa:=2e6', 'Parameter max_gauge_pressure_pa out of range'),
+    ('max_gauge_pressure_pa:=600000.0', 'the sensor (calibration.full_scale_pa 500000 Pa) '
+                                        'cannot read max_gauge_pressure_pa 600000 Pa'),
+    ('qos_reliability:=foo', "qos_reliability must be 'reliable' or 'best_effort'"),
 ])
 def test_a_bad_start_up_parameter_stops_the_driver_with_one_line(procs, override, words):
     """The driver does not run its valve on a guess (the ceiling is one of its parameters):
     `ros2 run pma_driver driver_node --ros-args -p max_gauge_pressure_pa:=400000` ends at once
-    with exit code 2 and the reason, where it used to print an rclpy traceback."""
+    with exit code 2 and the reason, where it used to print an rclpy traceback. So does a
+    value its descriptor allows but the other parameters do not (the last two: the driver
+    retried its configure every second, which no retry could mend)."""
     driver = procs.ros2_run('pma_driver', 'driver_node', ros_args=['-p', override])
     line = driver.wait_for_line('driver_node: bad parameter, not started', 20)
     assert words in line
@@ -662,6 +667,8 @@ def test_parameters_are_validated_and_port_is_read_only(rig, probe):
     probe.wait_states(3)
     bad = probe.set_parameter('sample_rate_hz', -5.0)
     assert not bad.successful and bad.reason
+    fraction = probe.set_parameter('sample_rate_hz', 25.5)        # RATE takes whole Hz
+    assert not fraction.successful and 'whole number of Hz' in fraction.reason
     read_only = probe.set_parameter('port', '/dev/ttyUSB9')
     assert not read_only.successful and 'read-only' in read_only.reason.lower()
     heartbeat = probe.set_parameter('heartbeat_period_s', 0.9)   # > half of the 1000 ms timeout

@@ -19,6 +19,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.lifecycle import Node, State, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -58,6 +59,12 @@ class PmaDriver(Node):
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         values = self._values()
+        # Overrides each passed their descriptor; together they must also make sense (a
+        # ceiling the sensor cannot read, ...). Retrying configure cannot mend a parameter,
+        # so such a start ends like a refused override (node_or_exit: exit code 2).
+        reason = check_parameters(values, None)
+        if reason:
+            raise InvalidParameterValueException('parameters', '', reason)
 
         self._link: SerialLink | None = None
         self._control = DeviceControl(values['max_gauge_pressure_pa'], self._log)

@@ -145,7 +145,11 @@ def check_parameters(values: dict, hello: Hello | None) -> str:
         if reason:
             return reason
     if values['qos_reliability'] not in ('reliable', 'best_effort'):
-        return "qos_reliability must be 'reliable' or 'best_effort'"
+        return ("qos_reliability must be 'reliable' or 'best_effort', got "
+                f"{values['qos_reliability']!r}")
+    if values['sample_rate_hz'] != round(values['sample_rate_hz']):
+        return (f'sample_rate_hz must be a whole number of Hz (the device takes RATE in whole '
+                f'Hz), got {values["sample_rate_hz"]}')
     if values['heartbeat_period_s'] * 1000.0 > values['heartbeat_timeout_ms'] / 2:
         return (f'heartbeat_period_s ({values["heartbeat_period_s"]} s) must be at most half '
                 f'of heartbeat_timeout_ms ({values["heartbeat_timeout_ms"]} ms)')

@@ -57,6 +57,8 @@ def test_every_number_has_a_range_that_holds_its_default(name):
     ({'calibration__adc_reference_v': math.nan}, 'finite'),
     ({'sweep__recorder': 'no spaces allowed'}, 'sweep.recorder'),
     ({'sweep__recorder': ''}, 'sweep.recorder'),
+    ({'qos_reliability': 'foo'}, "qos_reliability must be 'reliable' or 'best_effort', got 'foo'"),
+    ({'sample_rate_hz': 25.5}, 'sample_rate_hz must be a whole number of Hz'),
 ])
 def test_nonsense_calibrations_are_refused_with_the_reason(changes, words):
     reason = check_parameters(with_(**changes), None)
