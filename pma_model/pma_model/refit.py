@@ -23,6 +23,7 @@ from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.provenance import input_run
 from pma_model.report import (
     BRANCH_MODEL_FORMS,
+    MIN_POINTS_PER_BRANCH,
     MODEL_NAMES,
     ONLINE_MEMORIES,
     build_report,
@@ -127,14 +128,16 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
 
 
 def check_data(data) -> None:
+    # With the steady-state reduction a point is a held level, not a sample: a quick ramp
+    # up and down has samples on both branches and still no held level on one of them.
+    points = 'held levels' if data.steady_state else 'points'
+    advice = ('a staircase up and back down, e.g. pma sweep --max 500kPa --step 100kPa '
+              '--hold 1s' if data.steady_state else 'a sweep up and back down')
     for direction, size in (('increasing', data.inc_pressure_pa.size),
                             ('decreasing', data.dec_pressure_pa.size)):
-        if size == 0:
-            raise SamplesError(f'{data.source}: only one branch in the data (no {direction} '
-                               'points); a refit needs a sweep up and back down')
-        if size < 5:
-            raise SamplesError(f'{data.source}: only {size} {direction} points; a refit needs '
-                               'at least 5 per branch')
+        if size < MIN_POINTS_PER_BRANCH:
+            raise SamplesError(f'{data.source}: {size} {direction} {points}; a refit needs at '
+                               f'least {MIN_POINTS_PER_BRANCH} per branch: {advice}')
 
 
 def plotted_choice(report: dict, name: str | None,

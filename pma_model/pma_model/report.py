@@ -38,6 +38,7 @@ PAPER_C = 6.214
 MODEL_NAMES = ('sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear')
 BRANCH_MODEL_FORMS = {'sigmoid_fixed_c': 'sigmoid', 'sigmoid_free_c': 'sigmoid', 'hill': 'hill'}
 DIRECTIONS = ('increasing', 'decreasing')
+MIN_POINTS_PER_BRANCH = 5     # what a branch fit needs (four parameters at most, and one more)
 # A parameter whose 95 % interval half-width exceeds this fraction of its value is flagged.
 POORLY_IDENTIFIED_FRACTION = 0.25
 MANY_LEVELS = 60
@@ -388,6 +389,13 @@ def holdout_report(data: BranchData, fitted: dict[str, FittedModel], stroke_cm: 
               'n_train': int(train.inc_pressure_pa.size + train.dec_pressure_pa.size),
               'n_test': int(test.inc_pressure_pa.size + test.dec_pressure_pa.size),
               'models': {}}
+    fewest = min(train.inc_pressure_pa.size, train.dec_pressure_pa.size)
+    if min(fewest, result['n_test']) < MIN_POINTS_PER_BRANCH:
+        # A short ramp's pressures can all fall in one or two levels: nothing to hold out.
+        result['skipped'] = (f"{result['n_train']} points to fit on ({fewest} on the smaller "
+                             f"branch), {result['n_test']} to test on: too few pressure levels "
+                             'to hold half of them out')
+        return result
     p_test, l_test, rising = test.loop()
     for name, full in fitted.items():
         try:
@@ -460,7 +468,9 @@ def format_table(report: dict) -> str:
             drift = entry['drift']
             lines.append(f"  {name}: drift {drift['drift_cm']:+.3f} cm at {drift['low_kpa']:.0f}"
                          f" kPa after {drift['cycles']} cycles to {drift['high_kpa']:.0f} kPa")
-    if 'holdout' in report:
+    if 'skipped' in report.get('holdout', {}):
+        lines += ['', f"hold-out: skipped ({report['holdout']['skipped']})"]
+    elif 'holdout' in report:
         lines += ['', f"hold-out ({report['holdout']['scheme']}): RMSE cm (% of stroke)"]
         for name, entry in report['holdout']['models'].items():
             if 'rmse_cm' in entry:

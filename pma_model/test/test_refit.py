@@ -150,7 +150,7 @@ def test_single_branch_only(procs, tmp_path):
     t = np.linspace(0, 10, 501)
     pressure = 5e4 * t
     log = write_sample_log(tmp_path / 'up.csv', t, pressure, TRUE_INCREASING.length(pressure))
-    assert_clean_error(*run_refit(procs, log), 'only one branch')
+    assert_clean_error(*run_refit(procs, log), '0 decreasing points; a refit needs at least 5')
 
 
 def test_fit_that_cannot_run(procs, tmp_path):
@@ -207,6 +207,28 @@ def test_holdout_levels_survive_the_scatter_of_measured_holds():
     assert (train.dec_pressure_pa.size, test.dec_pressure_pa.size) == (5, 5)
     assert np.all(np.abs(np.round(train.dec_pressure_pa / 100e3) * 100e3
                          - train.dec_pressure_pa) < 6e3)
+
+
+def test_a_quick_ramp_is_refused_for_its_holds_and_fitted_without_a_hold_out():
+    """A staircase of one 100 kPa step with no hold (`pma sweep --max 100kPa --step 100kPa
+    --hold 0`): its samples rise and fall, but no level is held on the way up, which the
+    refusal said as 'only one branch in the data (no increasing points)'; and raw samples
+    that all fall in one or two pressure levels left nothing to test a hold-out on, which
+    ended the refit in 'the fit did not converge: zero-size array ...'."""
+    from pma_model.refit import check_data
+    from pma_model.report import holdout_report
+    from pma_model.samples import BranchData, SamplesError
+
+    up, down = np.linspace(0.0, 95e3, 8), np.linspace(67e3, 9e3, 19)
+    held = BranchData(up[-1:], 0.29 - up[-1:] * 1e-7, down[:3], 0.29 - down[:3] * 1.1e-7,
+                      steady_state=True)
+    with pytest.raises(SamplesError, match='1 increasing held levels; a refit needs at least '
+                       '5 per branch: a staircase up and back down'):
+        check_data(held)
+    raw = BranchData(up, 0.3 - up * 1e-7, down, 0.3 - down * 1.1e-7)
+    check_data(raw)
+    result = holdout_report(raw, {}, stroke_cm=1.0)
+    assert 'too few pressure levels' in result['skipped'] and result['models'] == {}
 
 
 def test_a_bare_mcap_file_is_read_as_a_bag(procs, tmp_path):
