@@ -16,6 +16,7 @@ import argparse
 import datetime
 import json
 import sys
+import tempfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -170,12 +171,35 @@ def warn_if_truncated(what) -> None:
               f'{what.source})', file=sys.stderr)
 
 
+def unwritable_output(args: argparse.Namespace) -> str:
+    """Why an output could not be written ('' when each can), found before the fits: a
+    refit takes seconds to minutes, and a typo in a path should not cost them."""
+    folders = [path.parent for path in (args.json, args.params_out) if path is not None]
+    folders += [args.plots] if args.plots is not None else []
+    for folder in folders:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+        except OSError as error:
+            return f'cannot write to {folder}: {error.strerror or error}'
+    return ''
+
+
 def run(args: argparse.Namespace) -> int:
+    reason = unwritable_output(args)
+    if reason:
+        print(f'refit: {reason}', file=sys.stderr)
+        return EXIT_BAD_INPUT
     try:
         data, samples = load_fit_input(args.input, args.deadband_pa, args.steady_state,
                                        args.topic)
         warn_if_truncated(data)
         check_data(data)
+        path = None
+        if args.memory_check:      # read (or refused) before the fits, for the same reason
+            path = load_samples(args.memory_check, args.topic)
+            warn_if_truncated(path)
 
         def announce(name):
             print(f'fitting {name} ...', file=sys.stderr, flush=True)
@@ -187,12 +211,10 @@ def run(args: argparse.Namespace) -> int:
         report['run'] = {k: v for k, v in provenance.items() if k != 'custom_data'}
         if provenance['custom_data']:
             report['custom_data'] = provenance['custom_data']   # the bag's metadata.yaml
-        path = memory_run = None
+        memory_run = None
         predictions: dict = {}
-        if args.memory_check:
+        if path is not None:
             announce(f'the memory rules along {args.memory_check}')
-            path = load_samples(args.memory_check, args.topic)
-            warn_if_truncated(path)
             report['memory_check'] = memory_check(path, fitted, args.deadband_pa,
                                                   predictions if args.plots else None)
             memory_run = input_run(args.memory_check, provenance['run_id'], made)

@@ -140,6 +140,19 @@ def test_missing_file(procs, tmp_path):
     assert_clean_error(*run_refit(procs, tmp_path / 'absent.mcap'), 'no such file')
 
 
+def test_outputs_and_the_memory_path_are_checked_before_the_fits(procs, tmp_path):
+    # Both were found out only after every model was fitted (seconds to minutes), the
+    # first naming refit's temporary file (`.x.yaml.tmp`).
+    blocked = tmp_path / 'a_file'
+    blocked.write_text('')
+    for args, text in ((('--params-out', blocked / 'x.yaml'), f'cannot write to {blocked}'),
+                       (('--plots', blocked / 'plots'), f'cannot write to {blocked}'),
+                       (('--memory-check', tmp_path / 'absent'), 'no such file')):
+        code, output = run_refit(procs, PAPER_TABLE, *args)
+        assert_clean_error(code, output, text)
+        assert 'fitting' not in output, output
+
+
 def test_bag_without_usable_data(procs, tmp_path):
     t, pressure, setpoint, _ = staircase()
     bag = write_state_bag(tmp_path / 'nan', t, pressure, setpoint, np.full(t.size, np.nan))
