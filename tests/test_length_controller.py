@@ -17,9 +17,10 @@ import pytest
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.action import ActionClient
+from std_msgs.msg import Float64
 
 from pma_driver.fake_arduino import TruthLog
-from pma_interfaces.action import MoveToLength
+from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
 from pma_model.params import paper_table1
 from support.ros import SpinningNode, shutdown, wait_until
@@ -220,6 +221,53 @@ def test_a_streamed_sine_is_tracked_end_to_end(rig):
     with probe.lock:
         modes = {c.mode for c in probe.control[-50:]}
     assert ControlState.MODE_STREAM in modes
+
+
+def test_another_command_source_releases_the_target(rig):
+    """The controller holds what a goal reached until something else commands the pressure:
+    then it lets go, and the other command stands. Both used to fight: a setpoint from
+    `ros2 topic pub` was overwritten within a sample, and a sweep run meanwhile ended at the
+    held length's pressure instead of 0 Pa (the driver had refused the controller's
+    setpoints during the sweep, and took them again after it)."""
+    probe, node = rig['probe'], rig['probe'].spinning.node
+
+    def setpoints_since(since: float) -> set[float]:
+        with probe.lock:
+            return {s.gauge_setpoint_pa for t, s in probe.states if t >= since}
+
+    def hold(length_m: float) -> None:
+        result = probe.result(probe.send_goal(length_m, settle_s=0.5))
+        assert result.success, result.message
+        wait_until(lambda: probe.control[-1].mode != ControlState.MODE_IDLE, 5, 'holding')
+
+    # As `ros2 topic pub --once /pma/pressure_setpoint std_msgs/msg/Float64 "{data: 60000.0}"`.
+    hold(0.27)
+    publisher = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+    wait_until(lambda: publisher.get_subscription_count() >= 1, 10, 'the driver')
+    deadline = time.monotonic() + 3.0        # and the controller, which listens there too
+    while publisher.get_subscription_count() < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    publisher.publish(Float64(data=60_000.0))
+    wait_until(lambda: probe.control[-1].mode == ControlState.MODE_IDLE, 5, 'released')
+    rig['controller'].wait_for_line('released the target: another node commanded 60000 Pa', 5)
+    wait_until(lambda: setpoints_since(time.monotonic() - 0.1) == {60_000.0}, 5, '60 kPa')
+    since = time.monotonic()
+    time.sleep(1.5)
+    assert setpoints_since(since) == {60_000.0}
+
+    # A sweep (0 -> 100 -> 0 kPa) while a length is held.
+    hold(0.27)
+    sweep = ActionClient(node, Sweep, 'pma/sweep')
+    assert sweep.wait_for_server(20)
+    goal = Sweep.Goal(max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
+    handle = probe._wait(probe.spinning.in_executor(sweep.send_goal_async, goal), 10)
+    result = probe._wait(probe.spinning.in_executor(handle.get_result_async), 60).result
+    assert result.success, result.message
+    rig['controller'].wait_for_line('released the target: the device holds', 5)
+    since = time.monotonic()
+    time.sleep(1.5)
+    assert setpoints_since(since) == {0.0}
+    assert probe.control[-1].mode == ControlState.MODE_IDLE
 
 
 def test_losing_the_driver_aborts_the_goal_and_says_why(rig):

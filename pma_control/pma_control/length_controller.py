@@ -14,11 +14,15 @@ Faults (each logged, on /diagnostics and in pma/control_state):
 - a NaN pressure: the sample is skipped (a NaN length alone is not a fault: the estimate
   carries on from the model);
 - a new goal or stream setpoint preempts the running goal (it aborts, saying so);
+- another command source releases the target (a pressure setpoint from another node, or a
+  device setpoint that is not the controller's for OTHER_SOURCE_S, e.g. a sweep): the last
+  command wins, as between goals, and the two never fight over the valve;
 - cancelling a goal leaves the pressure where it is; so does stopping the node.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import sys
 import time
@@ -52,6 +56,12 @@ DEFAULT_TOLERANCE_M = 0.002
 DEFAULT_SETTLE_S = 1.0
 DEFAULT_TIMEOUT_S = 30.0
 TICK_S = 0.1          # goal bookkeeping, feedback and the stale check run this often
+# Commands of the controller's own that a setpoint on pma/pressure_setpoint, or the device's,
+# may still be (the driver coalesces; the device answers a sample or two later).
+OWN_COMMANDS_S = 2.0
+# The device's setpoint is none of those for this long: something else commands it (a sweep
+# runs, whose setpoints the driver takes instead of the controller's).
+OTHER_SOURCE_S = 1.0
 
 # ControllerSettings field -> (description, low, high)
 SETTING_DESCRIPTIONS = {
@@ -115,7 +125,10 @@ class LengthControllerNode(Node):
         self._last_state: PmaState | None = None
         self._last_output: ControlOutput | None = None
         self._fault = ''
-        self._stats = {'steps': 0, 'nan_pressure': 0, 'nan_length': 0, 'faults': 0}
+        self._stats = {'steps': 0, 'nan_pressure': 0, 'nan_length': 0, 'faults': 0,
+                       'released to another source': 0}
+        self._sent: collections.deque[tuple[float, float]] = collections.deque()  # (t, Pa)
+        self._device_differs_since: float | None = None
 
         self._command_pub = self.create_publisher(Float64, 'pma/pressure_setpoint', 10)
         self._state_pub = self.create_publisher(ControlState, 'pma/control_state', 10)
@@ -123,6 +136,8 @@ class LengthControllerNode(Node):
         # One thread runs everything: every sample is one control step, published at once.
         self.create_subscription(PmaState, 'pma/state', self._on_state, qos_profile_sensor_data)
         self.create_subscription(LengthSetpoint, 'pma/length_setpoint', self._on_setpoint, 10)
+        self.create_subscription(Float64, 'pma/pressure_setpoint', self._on_pressure_setpoint,
+                                 10)
         if self.get_parameter('follow_model_node').value:
             latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                  reliability=ReliabilityPolicy.RELIABLE)
@@ -195,12 +210,61 @@ class LengthControllerNode(Node):
             if self._fault:
                 self.get_logger().info('samples again: the fault is cleared')
                 self._fault = ''
+        self._check_device_setpoint(state.gauge_setpoint_pa)
         t_s = state.header.stamp.sec + state.header.stamp.nanosec * 1e-9
         output = self._controller.update(t_s, state.gauge_pressure_pa, state.length_m)
         self._last_state, self._last_output = state, output
         if self._controller.target_m is not None and not self._fault:
-            self._command_pub.publish(Float64(data=float(output.command_pa)))
+            self._command(float(output.command_pa))
         self._state_pub.publish(self._control_state(state, output))
+
+    # -- other command sources ---------------------------------------------------------
+
+    def _command(self, pressure_pa: float) -> None:
+        self._sent.append((time.monotonic(), pressure_pa))
+        self._command_pub.publish(Float64(data=pressure_pa))
+
+    def _sent_lately(self, pressure_pa: float, tolerance_pa: float = 0.0) -> bool:
+        """Whether the controller commanded this within OWN_COMMANDS_S."""
+        now = time.monotonic()
+        while self._sent and now - self._sent[0][0] > OWN_COMMANDS_S:
+            self._sent.popleft()
+        return any(abs(sent - pressure_pa) <= tolerance_pa for _, sent in self._sent)
+
+    def _on_pressure_setpoint(self, msg: Float64) -> None:
+        """A setpoint that is not one of ours: someone (`pma set`, `ros2 topic pub`, another
+        controller) commands the pressure. Released, and theirs is sent again: the
+        controller may have published one more command after theirs reached the driver."""
+        if self._controller.target_m is None or self._sent_lately(msg.data):
+            return
+        self._release(f'another node commanded {msg.data:.0f} Pa on pma/pressure_setpoint')
+        if math.isfinite(msg.data) and \
+                0.0 <= msg.data <= self._controller.settings.max_gauge_pressure_pa:
+            self._command(float(msg.data))
+
+    def _check_device_setpoint(self, device_setpoint_pa: float) -> None:
+        """Release when the device has held a setpoint the controller did not send for
+        OTHER_SOURCE_S (the driver rounds to whole Pa, hence the tolerance)."""
+        now = time.monotonic()
+        if (self._controller.target_m is None or self._fault
+                or self._sent_lately(device_setpoint_pa, tolerance_pa=1.0) or not self._sent):
+            self._device_differs_since = None
+            return
+        if self._device_differs_since is None:
+            self._device_differs_since = now
+        elif now - self._device_differs_since >= OTHER_SOURCE_S:
+            self._release(f'the device holds {device_setpoint_pa:.0f} Pa, which the controller '
+                          f'did not command, for {OTHER_SOURCE_S:g} s: a sweep runs, or the '
+                          'driver refuses these commands (its log says why)')
+
+    def _release(self, reason: str) -> None:
+        """Give the valve up to whoever commands it now: the target goes, a goal aborts."""
+        self._controller.clear_target()
+        self._device_differs_since = None
+        self._stats['released to another source'] += 1
+        self.get_logger().warning(f'released the target: {reason}')
+        if self._goal is not None:
+            self._end_goal(self._goal, False, f'released: {reason}', 'abort')
 
     def _control_state(self, state: PmaState, output: ControlOutput) -> ControlState:
         msg = ControlState()
