@@ -172,8 +172,11 @@ def tracking_table(families: list[str], seeds: tuple[int, ...]
 # --- loop latency over DDS -----------------------------------------------------------------
 
 def publisher_main(rate_hz: float) -> None:
-    """PmaState on pma/state at rate_hz, like driver_node (reliable, depth 10)."""
+    """PmaState on pma/state at rate_hz, like driver_node (reliable, depth 10), with the last
+    pma/pressure_setpoint as the device's setpoint, as a device reports it (the controller
+    lets go of a target when the device holds a setpoint it did not send)."""
     import rclpy
+    from std_msgs.msg import Float64
 
     from pma_interfaces.msg import PmaState
 
@@ -181,11 +184,18 @@ def publisher_main(rate_hz: float) -> None:
     node = rclpy.create_node('bench_state_publisher')
     publisher = node.create_publisher(PmaState, 'pma/state', 10)
     seq = 0
+    setpoint_pa = 0.0
+
+    def on_setpoint(msg: Float64) -> None:
+        nonlocal setpoint_pa
+        setpoint_pa = float(round(msg.data))       # the driver sends whole Pa
+
+    node.create_subscription(Float64, 'pma/pressure_setpoint', on_setpoint, 10)
 
     def tick():
         nonlocal seq
         msg = PmaState(seq=seq, gauge_pressure_pa=200_000.0 + 500.0 * math.sin(seq / 7.0),
-                       length_m=0.27)
+                       length_m=0.27, gauge_setpoint_pa=setpoint_pa)
         msg.header.stamp = node.get_clock().now().to_msg()
         publisher.publish(msg)
         seq += 1

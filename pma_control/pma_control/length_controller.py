@@ -127,7 +127,8 @@ class LengthControllerNode(Node):
         self._fault = ''
         self._stats = {'steps': 0, 'nan_pressure': 0, 'nan_length': 0, 'faults': 0,
                        'released to another source': 0}
-        self._sent: collections.deque[tuple[float, float]] = collections.deque()  # (t, Pa)
+        self._sent: collections.deque[tuple[float, int]] = collections.deque()  # (t, Pa)
+        self._sent_counts: collections.Counter[int] = collections.Counter()
         self._device_differs_since: float | None = None
 
         self._command_pub = self.create_publisher(Float64, 'pma/pressure_setpoint', 10)
@@ -221,15 +222,24 @@ class LengthControllerNode(Node):
     # -- other command sources ---------------------------------------------------------
 
     def _command(self, pressure_pa: float) -> None:
-        self._sent.append((time.monotonic(), pressure_pa))
+        whole_pa = round(pressure_pa)       # as the driver sends it
+        self._sent.append((time.monotonic(), whole_pa))
+        self._sent_counts[whole_pa] += 1
         self._command_pub.publish(Float64(data=pressure_pa))
 
-    def _sent_lately(self, pressure_pa: float, tolerance_pa: float = 0.0) -> bool:
-        """Whether the controller commanded this within OWN_COMMANDS_S."""
+    def _sent_lately(self, pressure_pa: float, tolerance_pa: int = 0) -> bool:
+        """Whether the controller commanded this (to whole Pa) within OWN_COMMANDS_S."""
         now = time.monotonic()
         while self._sent and now - self._sent[0][0] > OWN_COMMANDS_S:
-            self._sent.popleft()
-        return any(abs(sent - pressure_pa) <= tolerance_pa for _, sent in self._sent)
+            _, whole_pa = self._sent.popleft()
+            self._sent_counts[whole_pa] -= 1
+            if not self._sent_counts[whole_pa]:
+                del self._sent_counts[whole_pa]
+        if not math.isfinite(pressure_pa):
+            return False
+        whole_pa = round(pressure_pa)
+        return any(whole_pa + delta in self._sent_counts
+                   for delta in range(-tolerance_pa, tolerance_pa + 1))
 
     def _on_pressure_setpoint(self, msg: Float64) -> None:
         """A setpoint that is not one of ours: someone (`pma set`, `ros2 topic pub`, another
@@ -247,7 +257,7 @@ class LengthControllerNode(Node):
         OTHER_SOURCE_S (the driver rounds to whole Pa, hence the tolerance)."""
         now = time.monotonic()
         if (self._controller.target_m is None or self._fault
-                or self._sent_lately(device_setpoint_pa, tolerance_pa=1.0) or not self._sent):
+                or self._sent_lately(device_setpoint_pa, tolerance_pa=1) or not self._sent):
             self._device_differs_since = None
             return
         if self._device_differs_since is None:
