@@ -191,12 +191,21 @@ def test_replay_refuses_foreign_and_truncated_bags(procs, tmp_path, recorded):
                         + (3).to_bytes(4, 'little') + b'xyz' + (0).to_bytes(4, 'little'))
     truncated = tmp_path / 'truncated.mcap'
     truncated.write_bytes((recorded / 'run_0.mcap').read_bytes()[:-200])
-    for bag, reason in ((foreign, 'profile'), (truncated, 'recover'),
-                        (tmp_path / 'missing', 'does not exist')):
-        player = procs.ros2_run('pma_bag', 'play', bag)
+    for args, reason in (((foreign,), 'profile'), ((truncated,), 'recover'),
+                         ((tmp_path / 'missing',), 'does not exist'),
+                         ((recorded, '--start-offset', '1e9'), 'past the end')):
+        player = procs.ros2_run('pma_bag', 'play', *args)
         assert player.popen.wait(30) == 2
         lines = player.output.strip().splitlines()
         assert len(lines) == 1 and reason in lines[0] and 'Traceback' not in player.output
+    # Numbers it cannot play at: argparse's usage and one error line (they played nothing,
+    # with a thread traceback, and exited 0).
+    for option in ('--rate=nan', '--rate=inf', '--delay=inf', '--clock=nan'):
+        player = procs.ros2_run('pma_bag', 'play', recorded, option)
+        assert player.popen.wait(30) == 2
+        assert player.output.strip().splitlines()[-1].startswith(
+            f'play: error: {option.split("=")[0]} must be'), player.output
+        assert 'Traceback' not in player.output
 
 
 def test_recorder_with_unwritable_path_reports_and_stays_up(procs, tmp_path):

@@ -16,7 +16,9 @@ from pathlib import Path
 
 import pytest
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.highlevel import AnyReader
@@ -72,6 +74,26 @@ class Probe:
                        f'the recorder hearing {topic}')
         finally:
             self.node.destroy_subscription(sub)
+
+    def next_status(self, recorder: str = '/recorder', timeout: float = 10.0):
+        """The recorder's next DiagnosticStatus (it publishes one every second)."""
+        seen: list[DiagnosticStatus] = []
+
+        def on_diagnostics(array: DiagnosticArray) -> None:
+            seen.extend(s for s in array.status if s.name == f'{recorder}: bag recorder')
+
+        sub = self.node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
+        try:
+            wait_until(lambda: seen, timeout, f"{recorder}'s status")
+        finally:
+            self.node.destroy_subscription(sub)
+        return seen[0]
+
+    def set_topics(self, topics: list[str], recorder: str = '/recorder'):
+        value = ParameterValue(type=ParameterType.PARAMETER_STRING_ARRAY,
+                               string_array_value=topics)
+        request = SetParameters.Request(parameters=[Parameter(name='topics', value=value)])
+        return self.call(SetParameters, f'{recorder}/set_parameters', request).results[0]
 
     def close(self) -> None:
         self.spinning.close()
@@ -189,10 +211,25 @@ def test_services_drive_split_compressed_bags_with_custom_data(procs, probe, tmp
     assert shown.returncode == 0, shown.stdout + shown.stderr
     assert 'note: services test' in shown.stdout and 'zstd' in shown.stdout
     assert 'sweep1_1.mcap' in shown.stdout and 'CRC check sweep1_1.mcap: OK' in shown.stdout
+    # `topics` set at run time: a bad name is refused with the reason, a good list is what
+    # the next bag records (it was accepted and ignored).
+    refused = watch.set_topics(['pma/state', 'bad topic!'])
+    assert not refused.successful and "'bad topic!' is not a valid" in refused.reason
+    assert watch.set_topics(['pma/state', '/diagnostics']).successful
     # The same recorder starts a second bag at another path, and is idle after ~/stop.
     again = watch.call(StartRecording, '/recorder/start',
                        StartRecording.Request(bag_path=str(tmp_path / 'sweep2')))
     assert again.success, again.message
+    assert sorted(again.topics) == ['/diagnostics', '/pma/state'], again.message
+    # A start refused (the caller's error) is answered; the open bag goes on and the
+    # recorder's status stays OK (it used to be ERROR until the next good bag).
+    taken = watch.call(StartRecording, '/recorder/start',
+                       StartRecording.Request(bag_path='sweep1'))
+    assert not taken.success and 'already exists and holds a bag' in taken.message
+    recorder.wait_for_line('~/start refused (still recording', timeout=10)
+    status = watch.next_status()
+    assert status.level == DiagnosticStatus.OK, status.message
+    assert status.message.startswith('recording 2 topics'), status.message
     time.sleep(0.5)
     assert watch.call(StopRecording, '/recorder/stop').message_count > 50
     assert not watch.call(StopRecording, '/recorder/stop').success, 'idle: nothing to stop'

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import sys
 import threading
 import time
@@ -45,6 +46,8 @@ from pma_common.node import ros_context, spin_until_stopped
 
 NS_PER_S = 1_000_000_000
 DEFAULT_QOS_DEPTH = 1000
+MAX_RATE = 1e6                          # a day of bag in 0.1 s
+MIN_CLOCK_HZ, MAX_CLOCK_HZ = 0.001, 1000.0
 _POLICIES = {
     'reliability': ReliabilityPolicy,
     'durability': DurabilityPolicy,
@@ -119,6 +122,27 @@ def parse_remaps(pairs: list[str]) -> dict[str, str]:
     return remaps
 
 
+def playback_start(reader: BagReader, topics: list[str],
+                   start_offset_s: float) -> tuple[int, int]:
+    """(bag time to start at, messages of `topics` from there); BagError if none is left.
+
+    The offset counts from the bag's first message (as in ros2 bag play). An offset past the
+    end would otherwise announce the whole bag and then play nothing.
+    """
+    first_ns, last_ns = reader.time_range_ns()
+    start_ns = first_ns + round(start_offset_s * NS_PER_S)
+    if start_ns == first_ns:
+        return start_ns, sum(reader.topics[t].message_count for t in topics)
+    length = f'the bag lasts {(last_ns - first_ns) / NS_PER_S:.3f} s'
+    if start_ns > last_ns:
+        raise BagError(f'--start-offset {start_offset_s:g} s is past the end: {length}')
+    count = sum(1 for _ in reader.messages(topics, start_time_ns=start_ns))
+    if not count:
+        raise BagError(f'no message of {", ".join(topics)} from --start-offset '
+                       f'{start_offset_s:g} s on ({length})')
+    return start_ns, count
+
+
 class Player(Node):
     """Publishes a bag's messages from a playback thread; the executor serves the services."""
 
@@ -146,9 +170,8 @@ class Player(Node):
             name: self.create_publisher(classes[name], remaps.get(name, name),
                                         playback_qos(info.offered_qos_profiles))
             for name, info in topics.items()}
-        first_ns, _ = reader.time_range_ns()
-        self.start_ns = first_ns + int(args.start_offset * NS_PER_S)
-        self.message_total = sum(topics[t].message_count for t in topics)
+        self.start_ns, self.message_total = playback_start(reader, list(topics),
+                                                           args.start_offset)
         self._lock = threading.Lock()
         self._anchor = (self.start_ns, time.monotonic_ns())  # (bag ns, wall ns) while playing
         self._paused_at: int | None = self.start_ns if args.start_paused else None
@@ -161,8 +184,6 @@ class Player(Node):
         self._step_wanted = threading.Event()   # play_next asked for one message
         self._stepped = threading.Event()       # ... and the playback thread published it
         if args.clock is not None:
-            if args.clock <= 0:
-                raise BagError('--clock rate must be > 0 Hz')
             self.clock_publisher = self.create_publisher(
                 Clock, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
             self.create_timer(1.0 / args.clock, self.publish_clock)
@@ -300,10 +321,22 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument('-p', '--start-paused', action='store_true',
                         help='wait for ~/resume or ~/toggle_paused before playing')
     args = parser.parse_args(argv)
-    if args.rate <= 0:
-        parser.error('--rate must be > 0')
-    if args.start_offset < 0 or args.delay < 0:
-        parser.error('--start-offset and --delay must be >= 0')
+    # float() takes 'nan' and 'inf', which no comparison below refuses.
+    numbers = {'--rate': args.rate, '--start-offset': args.start_offset,
+               '--delay': args.delay, '--clock': args.clock}
+    for name, value in numbers.items():
+        if value is not None and not math.isfinite(value):
+            parser.error(f'{name} must be a finite number, got {value}')
+    # The upper bounds keep the arithmetic in range (bag ns * rate, rclpy's timer period,
+    # threading's longest wait); nobody needs more.
+    if not 0 < args.rate <= MAX_RATE:
+        parser.error(f'--rate must be > 0 and <= {MAX_RATE:g}')
+    if args.clock is not None and not MIN_CLOCK_HZ <= args.clock <= MAX_CLOCK_HZ:
+        parser.error(f'--clock must be {MIN_CLOCK_HZ:g} to {MAX_CLOCK_HZ:g} Hz')
+    if args.start_offset < 0:
+        parser.error('--start-offset must be >= 0')
+    if not 0 <= args.delay <= threading.TIMEOUT_MAX:
+        parser.error(f'--delay must be >= 0 and <= {threading.TIMEOUT_MAX:g} s')
     return args
 
 
@@ -356,6 +389,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         print(f'play: playing {player.message_total} messages on '
               f'{len(player.publishers_by_topic)} topics from {args.bag} at rate {args.rate}'
+              + (f' from {args.start_offset:g} s on' if args.start_offset else '')
               + (' (paused)' if args.start_paused else ''), flush=True)
         player.thread.start()
         try:

@@ -15,7 +15,9 @@ the recorder already holds.
 
 Services (rosbag2's recorder services, plus start/stop): ~/start (pma_interfaces/srv/
 StartRecording), ~/stop (StopRecording), ~/pause, ~/resume, ~/toggle_paused, ~/split_bagfile
-(std_srvs/srv/Trigger), ~/is_paused (pma_interfaces/srv/IsPaused).
+(std_srvs/srv/Trigger), ~/is_paused (pma_interfaces/srv/IsPaused). A ~/start without topics
+records the `topics` parameter as it is then (a run-time set applies to the next bag). A
+refused ~/start is answered and logged (WARN); the open bag, if any, goes on.
 
 SIGINT, SIGTERM and SIGHUP finish the bag (summary, metadata.yaml); signals during that are
 ignored. A write failure (disk full) is logged and reported on /diagnostics and the node stays
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import struct
 import sys
 import threading
@@ -35,6 +38,7 @@ from datetime import datetime
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.executors import SingleThreadedExecutor
@@ -181,8 +185,7 @@ class Recorder(Node):
                  graph_period_s: float = GRAPH_PERIOD_S, **node_kwargs):
         super().__init__('recorder', **node_kwargs)
         self.options = options
-        wanted = self.declare_parameter('topics', topics or DEFAULT_TOPICS).value
-        self.default_topics = self.resolve_topics(wanted)
+        self.default_topics: list[str] = []
         self.subscribed: dict[str, _Subscribed] = {}
         self.skipped: set[str] = set()
         self.bag: Bag | None = None
@@ -197,6 +200,14 @@ class Recorder(Node):
         # One thread runs every callback (a two-thread executor doubled the recorder's CPU
         # at 1 kHz); the lock only guards against a signal-time finish_bag.
         self._lock = threading.RLock()
+        # A set applies to the next bag, as ~/start without topics reads it then; a bad
+        # name is refused with the reason (at start: node_or_exit's one line, no start).
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.declare_parameter('topics', topics or DEFAULT_TOPICS, ParameterDescriptor(
+            description='topics a bag records when ~/start names none; relative names '
+                        'resolve in the node namespace. A change applies to the next bag; '
+                        'the open one keeps its topics'))
         self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # ~/start awaits its topics while the messages' callbacks (default group) run on.
         self.create_service(StartRecording, '~/start', self.on_start,
@@ -210,22 +221,61 @@ class Recorder(Node):
         self.create_timer(graph_period_s, self.check_graph)
         self.create_timer(FLUSH_CHECK_S, self.flush)
         self.create_timer(1.0, self.publish_status)
-        self.presubscribe()
         self.per_sample_topics = set(self.resolve_topics(PER_SAMPLE_TOPICS))
 
     def resolve_topics(self, topics) -> list[str]:
         return list(dict.fromkeys(self.resolve_topic_name(t) for t in topics))
 
+    def topics_problem(self, topics) -> str:
+        """Why `topics` cannot be recorded ('' if they can): rcl's reason for a bad name."""
+        if not topics:
+            return 'no topics given: a bag needs at least one'
+        for topic in topics:
+            try:
+                self.resolve_topic_name(topic)
+            except RuntimeError as exc:   # rclpy's RCLError: 'failed to resolve name: ..., at'
+                reason = str(exc).removeprefix('failed to resolve name: ').rsplit(', at ', 1)[0]
+                return f'{topic!r} is not a valid topic name: {reason}'
+        return ''
+
+    def _validate_parameters(self, parameters) -> SetParametersResult:
+        """Check only; the change is made in _apply_parameters."""
+        for parameter in parameters:
+            if parameter.name == 'topics':
+                reason = self.topics_problem(parameter.value)
+                if reason:
+                    return SetParametersResult(successful=False, reason=f'topics: {reason}')
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters) -> None:
+        for parameter in parameters:
+            if parameter.name != 'topics':
+                continue
+            changed = bool(self.default_topics)      # not the declaration at start-up
+            with self._lock:
+                self.default_topics = self.resolve_topics(parameter.value)
+                bag = self.bag
+            self.presubscribe()
+            if changed:
+                self.get_logger().info(
+                    f'topics: the next bag records {" ".join(self.default_topics)}'
+                    + (f' (the open bag {bag.path} keeps its {len(bag.topics)})'
+                       if bag is not None else ''))
+
     # -- bags ------------------------------------------------------------------------------
 
     def start_bag(self, path: Path | None, topics: list[str] | None = None,
                   custom_data: dict[str, str] | None = None, paused: bool = False) -> Bag:
-        """Finish the open bag, if any, and open a new one (BagError if it cannot be made)."""
+        """Open a new bag, then finish the open one, if any.
+
+        BagError if the new bag cannot be made (bad topics, a path that holds a bag, ...):
+        the open bag, if any, then goes on recording.
+        """
         path = (path or default_bag_name()).absolute()
-        self.target = path
+        reason = self.topics_problem(topics) if topics else ''
+        if reason:
+            raise BagError(reason)
         with self._lock:
-            if self.bag is not None:
-                self.finish_bag()
             data = {**self.options.custom_data, **(custom_data or {})}
             for key, value in self.rig_info.items():
                 data.setdefault(key, value)
@@ -234,9 +284,11 @@ class Recorder(Node):
                                max_bag_size=self.options.max_bag_size,
                                max_bag_duration_s=self.options.max_bag_duration_s,
                                custom_data=data)
+            if self.bag is not None:
+                self.finish_bag()
             bag = Bag(path, self.resolve_topics(topics) if topics else self.default_topics,
                       writer)
-            self.bag, self.error, self.paused = bag, '', False
+            self.bag, self.error, self.paused, self.target = bag, '', False, path
             self._pause_ns = (0, 0)
             self.set_paused(paused)
             now = time.time_ns()
@@ -520,8 +572,10 @@ class Recorder(Node):
                                  list(request.topics),
                                  {kv.key: kv.value for kv in request.custom_data})
         except BagError as exc:
+            # The caller's error, answered here; the recorder is fine (not an ERROR status).
+            still = f'still recording {self.bag.path}' if self.bag is not None else 'idle'
             response.success, response.message = False, str(exc)
-            self.fail(None, str(exc))
+            self.get_logger().warning(f'~/start refused ({still}): {exc}')
             return response
         deadline = time.monotonic() + START_MATCH_TIMEOUT_S
         ready, late = self.start_status(bag)
@@ -617,16 +671,23 @@ class Recorder(Node):
     # -- status ----------------------------------------------------------------------------
 
     def publish_status(self) -> None:
+        status, values = self.status()
+        publish_status(self, self.diagnostics, status, values)
+
+    def status(self) -> tuple[DiagnosticStatus, dict[str, str]]:
+        """ERROR only for a bag that failed (self.error); a refused ~/start is not one."""
         with self._lock:
             bag = self.bag
             status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: bag recorder',
                                       hardware_id=str(self.target or ''))
+            wanted = self.wanted_topics()
             values = {'state': 'idle' if bag is None else
                       ('paused' if self.paused else 'recording'),
                       # readers matched to at least one publisher: what a new bag would get
                       'topics heard': ' '.join(sorted(
                           topic for topic, entry in self.subscribed.items()
-                          if entry.subscription.get_publisher_count() > 0)) or '-'}
+                          if topic in wanted
+                          and entry.subscription.get_publisher_count() > 0)) or '-'}
             if bag is not None:
                 loss = bag.loss()
                 topics = sum(1 for t in bag.topics if t in self.subscribed)
@@ -647,7 +708,7 @@ class Recorder(Node):
             status.message = f'{values["state"]} {topics} topics'
         if self.failed_bags:
             values['incomplete bags (recover them)'] = ', '.join(self.failed_bags)
-        publish_status(self, self.diagnostics, status, values)
+        return status, values
 
 
 def drain(executor, node: Recorder, quiet_s: float = 0.2, limit_s: float = 1.0) -> None:
@@ -707,6 +768,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.idle and args.output:
         parser.error('--idle opens no bag: give the path in the ~/start request instead')
+    if not math.isfinite(args.max_bag_duration):
+        parser.error(f'--max-bag-duration must be a finite number, got {args.max_bag_duration}')
     if args.max_bag_size < 0 or args.max_bag_duration < 0 or args.queue_depth < 1:
         parser.error('--max-bag-size and --max-bag-duration must be >= 0, --queue-depth >= 1')
     return args
@@ -738,9 +801,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(f'recorder: idle; start a bag with {node.get_fully_qualified_name()}'
                       '/start', flush=True)
             else:
+                path = (args.output or default_bag_name()).absolute()
                 try:
-                    node.start_bag(args.output, paused=options.start_paused)
-                except BagError as exc:
+                    node.start_bag(path, paused=options.start_paused)
+                except BagError as exc:   # the bag this run was started for: an ERROR
+                    node.target = path
                     node.fail(None, str(exc))
             spin_until_stopped(executor, node, stop)
             drain(executor, node)
