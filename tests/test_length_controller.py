@@ -112,6 +112,9 @@ def test_an_unreachable_target_is_refused_with_the_reachable_range(rig):
     result = rig['probe'].result(rig['probe'].send_goal(0.20))
     assert not result.success
     assert 'reachable [' in result.message and '0.20' in result.message
+    # `pma move 27cm --settle 1e9` ran until its 30 s timeout, within tolerance all along.
+    result = rig['probe'].result(rig['probe'].send_goal(0.27, timeout_s=5.0, settle_s=1e9))
+    assert not result.success and 'could never succeed' in result.message, result.message
 
 
 def test_a_parameter_it_cannot_work_with_is_refused_and_a_good_one_applies(rig):

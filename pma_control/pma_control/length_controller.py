@@ -348,6 +348,11 @@ class LengthControllerNode(Node):
                     (('tolerance_m', request.tolerance_m), ('settle_s', request.settle_s),
                      ('timeout_s', request.timeout_s))
                     if not (math.isfinite(value) and value >= 0)), '')
+        if not bad and (request.settle_s or DEFAULT_SETTLE_S) >= \
+                (request.timeout_s or DEFAULT_TIMEOUT_S):
+            bad = (f'settle_s {request.settle_s or DEFAULT_SETTLE_S:g} s is not shorter than '
+                   f'timeout_s {request.timeout_s or DEFAULT_TIMEOUT_S:g} s: the goal could '
+                   'never succeed')
         reason = bad or self._fault or self._controller.set_target(request.length_m)
         if reason:
             self._end_goal(goal_handle, False, reason, 'abort')
