@@ -97,7 +97,7 @@ def rig(module_procs, tmp_path_factory):
     probe = Probe()
     wait_until(lambda: len(probe.states) > 10 and probe.control, 20, 'the rig streaming')
     yield {'work': work, 'probe': probe, 'recorder_cwd': recorder_cwd, 'driver': driver,
-           'truth': truth}
+           'controller': controller, 'truth': truth}
     probe.close()
     shutdown()
 
@@ -182,6 +182,7 @@ def test_param_get_set_with_units_and_refusals_with_the_reason(rig):
     assert typo.returncode == 1 and 'did you mean max_gauge_pressure_pa' in typo.stderr
     listing = ok(pma('param', 'list', 'length_controller'))
     assert 'max_gauge_pressure_pa = ' in listing and '#' in listing
+    assert 'fb_filter_time_constant_s = 0.15 (0.15 s)' in listing     # not "(0.1 s)"
     absent = pma('param', 'get', 'no_such_node', 'x', '--timeout', '8s')
     assert absent.returncode == 3 and 'no node /cli/no_such_node' in absent.stderr
 
@@ -275,27 +276,68 @@ def test_ctrl_c_cancels_the_sweep_and_the_driver_vents(rig):
     wait_until(lambda: probe.states[-1].gauge_setpoint_pa == 0.0, 10, 'the device vented')
 
 
-def test_move_then_vent_releases_the_controller(rig):
+def test_set_sweep_and_vent_release_a_controller_that_holds_a_length(rig):
     unreachable = pma('move', '35cm')
     assert unreachable.returncode == 1 and 'move aborted: target 0.3500 m is not reachable' \
         in unreachable.stderr and 'aborted' not in unreachable.stdout, unreachable
-    out = ok(pma('move', '27.5cm', '--goal-timeout', '20s'))
-    assert 'move succeeded' in out
     probe = rig['probe']
-    wait_until(lambda: probe.control[-1].mode != ControlState.MODE_IDLE, 5, 'a target held')
+
+    def hold() -> None:
+        assert 'move succeeded' in ok(pma('move', '27.5cm', '--goal-timeout', '20s'))
+        wait_until(lambda: probe.control[-1].mode != ControlState.MODE_IDLE, 5, 'a target held')
+
+    def released(out: str) -> None:
+        # pma releases the controller it has discovered by then and says so; one it learns of
+        # later (DDS discovery) lets go by itself when another command comes.
+        assert 'released the length controller (it held 27.50 cm)' in out or \
+            'released the target' in rig['controller'].output, out
+        wait_until(lambda: probe.control[-1].mode == ControlState.MODE_IDLE, 5,
+                   'the controller idle')
+
+    # The held length's controller overwrote `pma set`'s setpoint at its next sample.
+    hold()
+    out = ok(pma('set', '100kPa', '--wait', '--timeout', '5s'))
+    released(out)
+    assert 'setpoint 100.0 kPa taken' in out and 'reached' in out
+    assert probe.fresh_state().gauge_setpoint_pa == 100_000.0
+    # ... and took the muscle back, pressurised, once a sweep had ended.
+    hold()
+    out = ok(pma('sweep', '--max', '100kPa', '--step', '100kPa', '--hold', '0.5s'))
+    released(out)
+    assert 'sweep succeeded' in out
+    time.sleep(1.0)                       # a holding controller commands with every sample
+    assert probe.fresh_state().gauge_setpoint_pa == 0.0
+    assert probe.control[-1].mode == ControlState.MODE_IDLE
+    hold()
     out = ok(pma('vent', '--wait'))
-    assert 'released the length controller (it held 27.50 cm)' in out
-    wait_until(lambda: probe.control[-1].mode == ControlState.MODE_IDLE, 5, 'the controller idle')
+    released(out)
     assert probe.fresh_state().gauge_setpoint_pa == 0.0
 
 
-def test_watch_prints_one_line_per_sample(rig):
-    out = ok(pma('watch', '--count', '5', '--si', '--max-rate', '0'))
+def test_watch_prints_one_line_per_sample_and_ctrl_c_is_interrupted(rig):
+    # The default limit (20 Hz) on the rig's 20 Hz stream: every sample (it showed every other
+    # one when it compared stamps 49.999999 ms apart with 50 ms).
+    out = ok(pma('watch', '--count', '20', '--si'))
     lines = out.splitlines()
     assert lines[0].split()[:3] == ['time_s', 'seq', 'gauge_pressure_pa']
     seqs = [int(line.split()[1]) for line in lines[1:]]
-    assert len(seqs) == 5 and seqs == sorted(seqs) and seqs[-1] - seqs[0] <= 6
+    assert len(seqs) == 20 and seqs == sorted(seqs) and seqs[-1] - seqs[0] <= 19 + 2, seqs
     assert all(len(line.split()) == 9 for line in lines[1:])
+    proc = subprocess.Popen([str(PMA), 'watch', '--namespace', NS], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    killer = threading.Timer(30, proc.kill)             # should the lines never come
+    killer.start()
+    try:
+        for _ in range(3):                               # the header and two samples
+            proc.stdout.readline()
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        killer.cancel()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert 'pma watch: ' in err and 'Traceback' not in err
 
 
 def test_run_is_ros2_run(rig, tmp_path):
@@ -468,6 +510,13 @@ def test_ctrl_c_at_the_gauge_prompt_vents_and_changes_nothing(rig, tmp_path):
 
 
 def test_calibrate_refuses_a_result_out_of_bounds_and_changes_nothing(rig, tmp_path):
+    # A check pressure too low to judge the span: refused before the tare and the inflation.
+    tare = driver_parameter('calibration.tare_offset_pa')
+    low = pma('calibrate', '--check-pressure', '10kPa', '--yes', '-o', str(tmp_path / 'x.yaml'))
+    assert low.returncode == 2 and 'refused: a check pressure of 10.0 kPa is too close to zero' \
+        in low.stderr and 'check at 100 kPa or more' in low.stderr, low
+    assert '1/3 pressure zero' not in low.stdout, low              # step 1 never started
+    assert driver_parameter('calibration.tare_offset_pa') == tare
     before = driver_parameter('calibration.length_offset_m')
     # Typed on stdin as a user would: first a wrong unit (asked again), then 5 m at rest.
     result = subprocess.run(

@@ -29,7 +29,7 @@ from pma_bag import BagWriteError, BagWriter
 from pma_cli import calibration as cal
 from pma_cli import quantities as q
 from pma_cli.commands import DRIVER, Parameters, Setpoints
-from pma_cli.session import FAILED, INTERRUPTED, OK, CliError, Interrupted, Session
+from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted, Session
 from pma_driver.parameters import PARAMETERS
 
 MEASURE_S = 2.0
@@ -126,12 +126,8 @@ class Calibration:
         self.notes.append(f'tare: {answer.message}')
 
     def span(self, values: dict, check_pa: float) -> None:
-        ceiling = values['max_gauge_pressure_pa']
         print(f'\n2/3 pressure span: the muscle is inflated to {q.kpa(check_pa, 0)} and held; '
               'read the reference gauge on it')
-        if check_pa > ceiling:
-            raise CliError(f'check pressure {q.kpa(check_pa, 0)} is above max_gauge_pressure_pa '
-                           f'{q.kpa(ceiling, 0)}')
         if not self.prompt.confirm(f'Inflate to {q.kpa(check_pa, 0)} now?'):
             print('  span check skipped')
             return
@@ -214,7 +210,15 @@ def calibrate(session: Session, *, params_out: Path, check_pa: float | None, ski
     run.setpoints.wait_for_driver(timeout_s)
     values = run.driver_values()
     before = dict(values)
-    check_pa = check_pa if check_pa is not None else 0.6 * values['max_gauge_pressure_pa']
+    given = check_pa is not None
+    check_pa = check_pa if given else 0.6 * values['max_gauge_pressure_pa']
+    if not skip_pressure:
+        try:
+            cal.check_span_pressure(values, check_pa)     # before the tare changes anything
+        except cal.CalibrationError as error:
+            raise CliError(f'refused: {error}' + ('' if given else ' (the default, 60 % of '
+                           'max_gauge_pressure_pa: give --check-pressure)'),
+                           USAGE if given else FAILED) from None
     print(f'Calibrating {session.node_name(DRIVER)}: '
           + ', '.join(s for s, skip in (('pressure zero and span', skip_pressure),
                                         ('length offset', skip_length)) if not skip)

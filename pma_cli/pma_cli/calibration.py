@@ -76,6 +76,25 @@ class LengthResult:
     previous_length_m: float  # what the driver published before
 
 
+def check_span_pressure(values: Mapping[str, float], check_pa: float) -> None:
+    """Refuse a check pressure the span check cannot use, before the tare and the inflation:
+    below MIN_CHECK_FRACTION of full scale its reference would be refused (too close to zero)
+    only once both were done, and above max_gauge_pressure_pa the driver refuses it."""
+    full_scale = calibrations(values)[0].full_scale_pa
+    if not (math.isfinite(check_pa) and check_pa >= MIN_CHECK_FRACTION * full_scale):
+        raise CalibrationError(f'a check pressure of {check_pa / 1e3:.1f} kPa is too close to '
+                               f'zero to judge the span: {_minimum_check(full_scale)}')
+    ceiling = values['max_gauge_pressure_pa']
+    if check_pa > ceiling:
+        raise CalibrationError(f'check pressure {check_pa / 1e3:.0f} kPa is above '
+                               f'max_gauge_pressure_pa {ceiling / 1e3:.0f} kPa')
+
+
+def _minimum_check(full_scale_pa: float) -> str:
+    return (f'check at {MIN_CHECK_FRACTION * full_scale_pa / 1e3:.0f} kPa or more '
+            f'({100 * MIN_CHECK_FRACTION:.0f} % of full_scale_pa {full_scale_pa / 1e3:.0f} kPa)')
+
+
 def span_from_reference(values: Mapping[str, float], adc: Measurement,
                         reference_pa: float, zero_adc: float | None = None) -> SpanResult:
     """New volts_at_full: the slope from the count at rest to `adc` reading `reference_pa`.
@@ -89,8 +108,7 @@ def span_from_reference(values: Mapping[str, float], adc: Measurement,
     if not math.isfinite(reference_pa) or reference_pa < MIN_CHECK_FRACTION * full_scale:
         raise CalibrationError(
             f'a reference of {reference_pa / 1e3:.1f} kPa is too close to zero to judge the span:'
-            f' check at {MIN_CHECK_FRACTION * full_scale / 1e3:.0f} kPa or more (20 % of '
-            f'full_scale_pa {full_scale / 1e3:.0f} kPa)')
+            f' {_minimum_check(full_scale)}')
     zero_volts = pressure.volts_at_zero + pressure.tare_offset_pa / pressure.pa_per_volt
     zero_count = zero_volts * ADC_FULL_SCALE / pressure.adc_reference_v \
         if zero_adc is None else zero_adc

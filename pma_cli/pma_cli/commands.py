@@ -19,16 +19,18 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from pma_cli import quantities as q
-from pma_cli.observe import BRANCHES
-from pma_cli.session import NO_ANSWER, OK, CliError, Session
+from pma_cli.observe import BRANCHES, PARTICIPANT_ANNOUNCEMENT_S
+from pma_cli.session import NO_ANSWER, OK, CliError, Latest, Session
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
 
 DRIVER = 'driver_node'
 SETPOINT_TOPIC = 'pma/pressure_setpoint'
+CONTROL_TOPIC = 'pma/control_state'
 ROSOUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 ABSENT_AFTER_S = 4.0        # a node not in the graph by then (which shows others) is not running
 REST_PA = 25_000.0          # below this a vented muscle may be tared (the device's own bound)
+SETTLE_WAIT_S = 30.0        # `pma set --wait`: inflating takes longer than a node's answer
 
 
 # -- setpoints -----------------------------------------------------------------------------
@@ -45,7 +47,7 @@ class Setpoints:
         self.session = session
         self.publisher = session.node.create_publisher(Float64, SETPOINT_TOPIC, 10)
         self.state = session.latest(PmaState, 'pma/state', keep=200)
-        self.control = session.latest(ControlState, 'pma/control_state')
+        self.control = session.latest(ControlState, CONTROL_TOPIC)
         self.refusals: list[tuple[float, str]] = []
         namespace = session.namespace.strip('/').replace('/', '.')
         self._driver_logger = f'{namespace}.{DRIVER}' if namespace else DRIVER
@@ -85,8 +87,10 @@ class Setpoints:
             return self.state.count > seen and abs(state.gauge_setpoint_pa - target) < 0.5
 
         if not self.session.spin_until(answered, timeout_s):
+            why = ('the length controller follows a target and overwrote it' if
+                   holds_target(self.control.message) else 'the driver log says why')
             raise CliError(f'the device did not report setpoint {q.kpa(gauge_pa)} within '
-                           f'{timeout_s:g} s (the driver log says why)')
+                           f'{timeout_s:g} s ({why})')
         refused = [reason for at, reason in self.refusals if at >= sent_at]
         if refused:
             raise CliError(f'the driver refused {q.kpa(gauge_pa)}: {refused[-1]}')
@@ -94,9 +98,7 @@ class Setpoints:
 
     def controller_warning(self) -> str:
         """A warning when the length controller would overwrite a setpoint of ours."""
-        control = self.control.message
-        if control is not None and control.mode in (ControlState.MODE_GOAL,
-                                                    ControlState.MODE_STREAM):
+        if holds_target(self.control.message):
             return ('warning: the length controller follows a target and commands its own '
                     'pressure; cancel its goal (`pma vent` does) or stop the length stream')
         return ''
@@ -152,12 +154,21 @@ def ros_stamp(state: PmaState) -> float:
     return state.header.stamp.sec + 1e-9 * state.header.stamp.nanosec
 
 
+def holds_target(control: ControlState | None) -> bool:
+    """The length controller steers to a length: it commands a pressure on every sample."""
+    return control is not None and control.mode in (ControlState.MODE_GOAL,
+                                                    ControlState.MODE_STREAM)
+
+
 def set_pressure(session: Session, gauge_pa: float, wait: bool, tolerance_pa: float,
                  timeout_s: float) -> int:
+    """Release a holding controller, command, and with `wait` wait up to SETTLE_WAIT_S (or the
+    timeout, if longer) for the pressure: `timeout_s` is how long a node may take to answer."""
     if gauge_pa < 0:
         raise CliError(f'{q.kpa(gauge_pa)} is negative: setpoints are gauge pressure, 0 or more')
     setpoints = Setpoints(session)
     setpoints.wait_for_driver(timeout_s)
+    release_holding_controller(session, setpoints.control, timeout_s)
     state = setpoints.command(gauge_pa, timeout_s)
     print(f'setpoint {q.kpa(gauge_pa)} taken by the device (pressure now '
           f'{q.kpa(state.gauge_pressure_pa)})')
@@ -166,7 +177,7 @@ def set_pressure(session: Session, gauge_pa: float, wait: bool, tolerance_pa: fl
         print(f'pma set: {warning}', file=sys.stderr)
     if wait:
         started = time.monotonic()
-        state = setpoints.settle(gauge_pa, tolerance_pa, timeout_s)
+        state = setpoints.settle(gauge_pa, tolerance_pa, max(timeout_s, SETTLE_WAIT_S))
         print(f'reached {q.kpa(state.gauge_pressure_pa)} in {time.monotonic() - started:.1f} s')
     return OK
 
@@ -214,6 +225,34 @@ def release_controller(session: Session, control: ControlState, timeout_s: float
         client.destroy()
 
 
+def release_holding_controller(session: Session, control: Latest, timeout_s: float) -> None:
+    """Release a length controller that holds a target, and say so: it would overwrite a
+    setpoint of ours at its next sample, or take the muscle back once a sweep ends.
+
+    `control` is a pma/control_state subscription; the controller publishes it with every
+    sample. A fresh process may learn of the controller only at its next participant
+    announcement, a second or more after the driver (measured: up to 1.1 s later, 2.8 s from
+    the start): one not seen by then is taken as not running. Not waiting costs more than
+    the wait: the controller lets go by itself of a target when another node's setpoint
+    reaches it, but a setpoint sent before the controller has matched this process's
+    publisher never does, and the controller overwrites it.
+    """
+    topic = session.resolve(CONTROL_TOPIC)
+
+    def known() -> bool:
+        return control.message is not None or (
+            not session.node.count_publishers(topic)
+            and time.monotonic() - session.started >= PARTICIPANT_ANNOUNCEMENT_S)
+
+    session.spin_until(known, timeout_s)
+    held = control.message
+    if holds_target(held) and math.isfinite(held.target_length_m) \
+            and release_controller(session, held, timeout_s):
+        print(f'released the length controller (it held {q.cm(held.target_length_m)})',
+              flush=True)
+        session.spin_for(0.3)          # its last setpoints reach the driver before ours
+
+
 def vent(session: Session, wait: bool, timeout_s: float) -> int:
     """Cancel any sweep or move, release a holding controller, then command 0 Pa."""
     setpoints = Setpoints(session)
@@ -224,13 +263,7 @@ def vent(session: Session, wait: bool, timeout_s: float) -> int:
         if count:
             print(f'cancelled {count} goal(s) of {session.resolve(action)}')
     session.spin_for(0.3)                       # the controller's state after the cancel
-    control = setpoints.control.message
-    if control is not None and control.mode in (ControlState.MODE_GOAL,
-                                                ControlState.MODE_STREAM) \
-            and math.isfinite(control.target_length_m) \
-            and release_controller(session, control, timeout_s):
-        print(f'released the length controller (it held {q.cm(control.target_length_m)})')
-        session.spin_for(0.3)
+    release_holding_controller(session, setpoints.control, timeout_s)
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -310,6 +343,7 @@ TYPE_NAMES = {ParameterType.PARAMETER_BOOL: 'bool', ParameterType.PARAMETER_INTE
               ParameterType.PARAMETER_INTEGER_ARRAY: 'integer array',
               ParameterType.PARAMETER_DOUBLE_ARRAY: 'double array',
               ParameterType.PARAMETER_STRING_ARRAY: 'string array'}
+INT64 = (-2 ** 63, 2 ** 63 - 1)     # a parameter's integer_value: more raises inside rclpy
 
 
 class Parameters:
@@ -395,7 +429,7 @@ def typed_value(name: str, text: str, current_type: int):
         if current_type == ParameterType.PARAMETER_DOUBLE:
             return q.parse(text, kind) if kind else float(text)
         if current_type == ParameterType.PARAMETER_INTEGER:
-            return int(text)
+            return q.parse_count(text, *INT64)
         if current_type == ParameterType.PARAMETER_BOOL:
             lowered = text.strip().lower()
             if lowered not in ('true', 'false'):
@@ -409,10 +443,12 @@ def typed_value(name: str, text: str, current_type: int):
         value = yaml.safe_load(text)
         if not isinstance(value, list):
             raise ValueError('give a YAML list, e.g. [1.0, 2.0]')
+        if any(isinstance(v, int) and not INT64[0] <= v <= INT64[1] for v in value):
+            raise ValueError(f'an integer is outside {INT64[0]} .. {INT64[1]}')
         return value
     except (ValueError, yaml.YAMLError) as error:
-        raise CliError(f'{text!r} is not a {TYPE_NAMES.get(current_type, "value")} for {name}: '
-                       f'{error}', 2) from None
+        raise CliError(f'{text!r} is not a valid {TYPE_NAMES.get(current_type, "value")} for '
+                       f'{name}: {error}', 2) from None
 
 
 def shown(name: str, value) -> str:

@@ -171,6 +171,8 @@ def export_csv(bag: Path, out: Path | None, topic: str = STATE_TOPIC,
             if not comments:
                 meta_path = out.with_name(out.name + '.metadata.yaml')
                 meta_path.write_text(yaml.safe_dump(meta, sort_keys=False), encoding='utf-8')
+    except BrokenPipeError:
+        raise                  # `pma export BAG --csv - | head`: main ends quietly
     except OSError as error:
         raise ExportError(f'cannot write {error.filename}: {error.strerror}') from None
     return ExportSummary(rows, matched, state_topic, prediction_topic, truncated, meta_path)

@@ -11,11 +11,13 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
 
 from action_msgs.msg import GoalStatus
 from rclpy.action import ActionClient
 
 from pma_cli import quantities as q
+from pma_cli.commands import CONTROL_TOPIC, holds_target, release_holding_controller
 from pma_cli.session import (
     FAILED,
     INTERRUPTED,
@@ -28,7 +30,7 @@ from pma_cli.session import (
 )
 from pma_driver.sweep import STREAMED_PROFILES, SweepError, read_profile_csv
 from pma_interfaces.action import MoveToLength, Sweep
-from pma_interfaces.msg import PmaState
+from pma_interfaces.msg import ControlState, PmaState
 
 CANCEL_WAIT_S = 15.0
 DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or FORC set
@@ -65,13 +67,18 @@ class Progress:
 
 
 def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, timeout_s: float,
-             what: str, hint: str):
-    """(status, result) of one goal; a stop signal cancels it and its result is still awaited."""
+             what: str, hint: str, before: Callable[[], None] | None = None):
+    """(status, result) of one goal; a stop signal cancels it and its result is still awaited.
+
+    `before` runs once the server is there, before the goal is sent.
+    """
     client = ActionClient(session.node, action_type, name)
     try:
         if not session.spin_until(client.server_is_ready, timeout_s):
             raise CliError(f'no {what} answers on {session.resolve(name)} (waited '
                            f'{timeout_s:g} s): {hint}', NO_ANSWER)
+        if before is not None:
+            before()
         sent = client.send_goal_async(goal, feedback_callback=lambda m: on_feedback(m.feedback))
         handle = session.wait_future(sent, timeout_s, f'the {what} (goal acceptance)')
         if not handle.accepted:
@@ -160,7 +167,10 @@ def _say_result(line: str, as_asked: bool) -> None:
 
 
 def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
+    """Run the goal; a length controller that holds a target is released first, as `pma vent`
+    does, or it would take the muscle back (pressurised) once the sweep ends."""
     state = session.latest(PmaState, 'pma/state')
+    control = session.latest(ControlState, CONTROL_TOPIC)
     progress = Progress()
     unit = 'setpoint' if goal.profile in STREAMED_PROFILES else 'step'
 
@@ -177,7 +187,8 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     try:
         status, result, cancelled = run_goal(
             session, Sweep, 'pma/sweep', goal, on_feedback=on_feedback, timeout_s=timeout_s,
-            what='driver', hint=session.where_hint('pma/state', 'driver_node'))
+            what='driver', hint=session.where_hint('pma/state', 'driver_node'),
+            before=lambda: release_holding_controller(session, control, timeout_s))
     finally:
         progress.end()
     word = STATUS_WORDS.get(status, f'status {status}')
@@ -185,6 +196,10 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
                 f'{result.message} ({result.sample_count} samples)', result.success or cancelled)
     if result.bag_path:
         print(f'bag: {result.bag_path}')
+    if holds_target(control.message):          # one that came into the graph too late
+        print(f'pma sweep: warning: the length controller holds '
+              f'{q.cm(control.message.target_length_m)} and takes the muscle back; `pma vent` '
+              'releases it', file=sys.stderr)
     if cancelled:
         return INTERRUPTED
     return OK if result.success else FAILED

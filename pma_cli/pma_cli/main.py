@@ -4,7 +4,8 @@ Every verb is a small client of the project's own topics, services and actions (
 lists what each one calls, beside its `ros2` spelling). Quantities are typed the way people
 say them (200kPa, 26.5cm, 5s; a plain number is SI) and printed in kPa and cm. Exit codes:
 0 done, 1 refused or failed (the message says why), 2 bad arguments, 3 nothing answered (not
-running, or another namespace), 130 interrupted (the goal was cancelled first).
+running, or another namespace), 130 interrupted (the goal was cancelled first); a reader that
+closes the pipe early (`pma watch | head`) ends it quietly with 141, as SIGPIPE ends a shell tool.
 """
 
 from __future__ import annotations
@@ -16,13 +17,15 @@ import sys
 from pathlib import Path
 
 from pma_cli import quantities as q
-from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted
+from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted, namespace_of
 from pma_driver.sweep import FORC_FAMILIES, PROFILES
+from pma_interfaces.action import Sweep
 
 DEFAULT_TIMEOUT_S = 10.0
 # `pma status` listens at most this long for every node's diagnostics (usually ~4 s:
 # observe.MIN_LISTEN_S).
 STATUS_LISTEN_S = 8.0
+BROKEN_PIPE = 141           # 128 + SIGPIPE: what a shell tool's exit is when its reader left
 
 
 def _argument(parse, name: str):
@@ -36,8 +39,9 @@ def _argument(parse, name: str):
     return convert
 
 
-def _quantity(kind: str):
-    return _argument(lambda text: q.parse(text, kind), kind)
+def _quantity(kind: str, **bounds):
+    """A quantity of `kind`; `bounds` as for quantities.parse (minimum=, strict=)."""
+    return _argument(lambda text: q.parse(text, kind, **bounds), kind)
 
 
 def _quantities(kind: str):
@@ -48,23 +52,87 @@ def _rate(kind: str):
     return _argument(lambda text: q.parse_rate(text, kind), f'{kind} rate')
 
 
+def _field_count(message, field: str, minimum: int):
+    """A whole number the message's integer field can hold (else it wraps or raises), from
+    `minimum` (the field's own rule) up."""
+    field_type = message.get_fields_and_field_types()[field]        # 'uint32', 'int64', ...
+    bits = int(field_type.removeprefix('u').removeprefix('int'))
+    top = 2 ** bits - 1 if field_type.startswith('u') else 2 ** (bits - 1) - 1
+    return _argument(lambda text: q.parse_count(text, minimum, top), 'count')
+
+
+def _rcl_name(what: str, check):
+    """An argparse type for a name rcl validates, checked here: a node or client made with
+    `bad name!` or `1abc` in its name ends in rclpy's traceback. `check` raises rclpy's
+    NameValidationException, whose first line has the reason."""
+    from rclpy.exceptions import NameValidationException
+
+    def convert(text: str) -> str:
+        try:
+            check(text)
+        except NameValidationException as error:
+            first = str(error).splitlines()[0]          # 'Invalid namespace: namespace must ...:'
+            kind, _, reason = first.removeprefix('Invalid ').partition(': ')
+            raise argparse.ArgumentTypeError(
+                f'{text!r} is not a {what}: {reason.removeprefix(kind + " ").rstrip(":")}'
+                ) from None
+        return text
+    convert.__name__ = what
+    return convert
+
+
+def _check_namespace(text: str) -> None:
+    from rclpy.validate_namespace import validate_namespace
+    validate_namespace(namespace_of(text))
+
+
+def _check_node(text: str) -> None:
+    """`driver_node`, `left/driver_node` or `/left/driver_node`."""
+    from rclpy.validate_node_name import validate_node_name
+    namespace, _, name = text.rpartition('/')
+    validate_node_name(name)
+    if namespace:
+        _check_namespace(namespace)
+
+
+def _output_file(text: str) -> Path:
+    """A file to write. Path() drops a trailing slash, so `out/` would become a file `out`:
+    a directory is refused. (Whether the directory it is in exists is the verb's to check when
+    it runs: an earlier command may make it.)"""
+    path = Path(text)
+    if text != '-' and (text.endswith(('/', os.sep)) or path.is_dir()):
+        raise argparse.ArgumentTypeError(f'{text!r} is a directory: give a file name to write')
+    return path
+
+
 class _Parser(argparse.ArgumentParser):
-    """Takes `-5kPa` as a (negative) quantity: argparse alone takes only a bare number such as
-    `-5` for a value, and calls `-5kPa` a missing argument. No option of pma starts with a
-    digit, so nothing that does can be one. (Sets argparse's `_negative_number_matcher`, the
-    one place its rule lives; should a Python drop it, `-5kPa` needs `--` again.)"""
+    """Takes `-5kPa`, `-inf` and `-nan` as (negative) quantities: argparse alone takes only a
+    bare number such as `-5` for a value, calls `-5kPa` a missing argument and `-nan` the
+    option `-n an`. No option of pma starts with a digit or is `-inf` or `-nan`, so nothing
+    that does can be one; the quantity parser then says what is wrong with it. (Sets argparse's
+    `_negative_number_matcher` and checks it before `_parse_optional`'s prefix matching;
+    should a Python drop them, `-5kPa` needs `--` again.)"""
+
+    NEGATIVE = re.compile(r'^-(\.?\d|(inf|infinity|nan)$)', re.IGNORECASE)
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._negative_number_matcher = re.compile(r'^-\.?\d')
+        self._negative_number_matcher = self.NEGATIVE
+
+    def _parse_optional(self, arg_string):
+        if self.NEGATIVE.match(arg_string):
+            return None              # a positional value
+        return super()._parse_optional(arg_string)
 
 
 def parser() -> argparse.ArgumentParser:
     common = _Parser(add_help=False)
-    common.add_argument('-n', '--namespace', default=os.environ.get('PMA_NAMESPACE', ''),
-                        help="the muscle's namespace (left, /right; default: $PMA_NAMESPACE, "
-                             'else none)')
-    common.add_argument('--timeout', type=_quantity('time'), default=DEFAULT_TIMEOUT_S,
+    common.add_argument('-n', '--namespace', type=_rcl_name('ROS namespace', _check_namespace),
+                        default=os.environ.get('PMA_NAMESPACE', ''),
+                        help="the muscle's namespace (left, /right, / for the root; default: "
+                             '$PMA_NAMESPACE, else the root)')
+    common.add_argument('--timeout', type=_quantity('time', minimum=0.0, strict=True),
+                        default=DEFAULT_TIMEOUT_S,
                         metavar='TIME', help='how long to wait for the node to answer '
                         f'(default {DEFAULT_TIMEOUT_S:g}s)')
     top = _Parser(
@@ -80,19 +148,24 @@ def parser() -> argparse.ArgumentParser:
 
     p = verb('status', 'link, rate, pressure, length, model and controller, from /diagnostics '
              'and the topics; exit 0 when the driver streams without an error')
-    p.add_argument('--wait', type=_quantity('time'), nargs='?', const=30.0, default=0.0,
+    p.add_argument('--wait', type=_quantity('time', minimum=0.0), nargs='?', const=30.0,
+                   default=0.0,
                    metavar='TIME', help='first wait until the driver streams (default 30s)')
     p = verb('watch', 'one line per sample: pressure, setpoint, length, the model\'s prediction '
              '(Ctrl-C ends it)')
-    p.add_argument('--count', type=int, default=0, help='stop after this many lines')
-    p.add_argument('--max-rate', type=float, default=20.0, metavar='HZ',
-                   help='at most this many lines a second (default 20; 0 = every sample)')
+    p.add_argument('--count', type=_argument(q.parse_count, 'count'), default=0,
+                   help='stop after this many lines (default 0: until Ctrl-C)')
+    p.add_argument('--max-rate', type=_quantity('frequency', minimum=0.0), default=20.0,
+                   metavar='HZ', help='at most about this many lines a second; a stream at '
+                   'that rate shows every sample (default 20; 0 = no limit)')
     p.add_argument('--si', action='store_true', help='columns in Pa and m instead of kPa and cm')
     p = verb('set', 'command a gauge pressure (pma/pressure_setpoint) and confirm the device '
-             'took it')
+             'took it; a length controller that holds a length is released first')
     p.add_argument('pressure', type=_quantity('pressure'), help='e.g. 200kPa, 2bar, 200000')
-    p.add_argument('--wait', action='store_true', help='also wait until the pressure is there')
-    p.add_argument('--tolerance', type=_quantity('pressure'), default=10_000.0,
+    p.add_argument('--wait', action='store_true', help='also wait until the pressure is there '
+                   '(up to 30s, or --timeout if longer)')
+    p.add_argument('--tolerance', type=_quantity('pressure', minimum=0.0, strict=True),
+                   default=10_000.0,
                    help='for --wait (default 10kPa)')
     p = verb('vent', 'cancel any sweep or move and command 0 Pa')
     p.add_argument('--wait', action='store_true', help='wait until the pressure is near 0')
@@ -100,7 +173,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--vent', action='store_true',
                    help='vent first and wait until the pressure is steady')
     p = verb('sweep', 'run a pressure profile (the Sweep action: a staircase by default) with a '
-             'progress bar; Ctrl-C cancels it and the driver vents',
+             'progress bar (a length controller that holds a length is released first); '
+             'Ctrl-C cancels it and the driver vents',
              epilog='profiles and their flags: staircase --max --step [--hold] [--reversals]; '
              'forc --max --step --forc-count [--forc-family] [--hold]; ramp --max --rate '
              '[--reversals] [--hold]; sine --amplitude --offset --frequency [--max]; csv --csv '
@@ -116,7 +190,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--hold', type=_quantity('time'), default=None, dest='hold_s',
                    metavar='TIME', help='staircase, forc: hold at each step (default 5s); '
                    'ramp: at each turning point (default 0)')
-    p.add_argument('--cycles', type=int, default=1,
+    p.add_argument('--cycles', type=_field_count(Sweep.Goal, 'cycles', 1), default=1,
                    help='repetitions of the whole profile; sine: periods (default 1)')
     p.add_argument('--rest', type=_quantity('time'), default=0.0, dest='rest_s',
                    metavar='TIME', help='rest at 0 Pa between cycles (default none)')
@@ -134,7 +208,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--csv', type=Path, dest='profile_csv', metavar='FILE',
                    help='csv: a file with columns time_s,gauge_pressure_pa (SI; a sample log '
                         'replays as a profile)')
-    p.add_argument('--forc-count', type=int, default=0,
+    p.add_argument('--forc-count', type=_field_count(Sweep.Goal, 'forc_count', 1), default=0,
                    help='forc: number of reversal curves')
     p.add_argument('--forc-family', choices=FORC_FAMILIES, default='',
                    help='forc: ascending (default), descending or both (for refit '
@@ -160,14 +234,16 @@ def parser() -> argparse.ArgumentParser:
                    help='abort if not settled by then (default: the action\'s 30s)')
     p = verb('param', "get, set or list a node's parameters (what `ros2 param` does)")
     p.add_argument('action', choices=('get', 'set', 'list'))
-    p.add_argument('node', help='driver_node, model_node, length_controller, recorder, ... '
+    p.add_argument('node', type=_rcl_name('ROS node name', _check_node),
+                   help='driver_node, model_node, length_controller, recorder, ... '
                    '(relative to --namespace, or absolute)')
     p.add_argument('name', nargs='?', help='parameter name (get, set)')
     p.add_argument('value', nargs='?', help='new value (set); units where the name has one: '
                    'max_gauge_pressure_pa 450kPa')
     p = verb('calibrate', 'guided calibration: pressure zero and span against a reference '
              'gauge, length offset from a tape measurement; writes a driver params file')
-    p.add_argument('-o', '--params-out', type=Path, default=Path('pma_calibration.yaml'),
+    p.add_argument('-o', '--params-out', type=_output_file,
+                   default=Path('pma_calibration.yaml'),
                    help='params file to write (default pma_calibration.yaml)')
     p.add_argument('--check-pressure', type=_quantity('pressure'), default=None,
                    help='span check pressure (default 60 %% of max_gauge_pressure_pa)')
@@ -179,8 +255,9 @@ def parser() -> argparse.ArgumentParser:
                    '(the gauge and tape readings are still asked)')
     p = verb('export', 'a bag as CSV: one row per pma/state with its prediction, SI columns')
     p.add_argument('bag', type=Path, help='bag directory or .mcap')
-    p.add_argument('--csv', type=Path, required=True, metavar='OUT',
-                   help="CSV file to write ('-' = standard output)")
+    p.add_argument('--csv', type=_output_file, required=True,
+                   metavar='OUT', help="CSV file to write, in a directory that exists ('-' = "
+                   'standard output)')
     p.add_argument('--topic', default='pma/state', help='PmaState topic (default pma/state, in '
                    'any namespace)')
     p.add_argument('--no-comments', action='store_true',
@@ -224,7 +301,7 @@ def dispatch(args, session) -> int:
         return observe.Watch(session, args.si, args.max_rate).run(args.count, args.timeout)
     if args.verb == 'set':
         return commands.set_pressure(session, args.pressure, args.wait, args.tolerance,
-                                     args.timeout if not args.wait else max(args.timeout, 30.0))
+                                     args.timeout)
     if args.verb == 'vent':
         return commands.vent(session, args.wait, args.timeout)
     if args.verb == 'tare':
@@ -256,12 +333,28 @@ def dispatch(args, session) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """`_main`, ended quietly when standard output is a pipe whose reader has gone (the Python
+    docs' recipe for SIGPIPE: stdout to /dev/null, so the exit's own flush fails no more)."""
+    try:
+        code = _main(argv)
+        sys.stdout.flush()
+        return code
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return BROKEN_PIPE
+
+
+def _main(argv: list[str] | None) -> int:
     args = parser().parse_args(argv)
     if args.verb == 'run':
         return run_executable(args.package, args.executable, args.args)
     if args.verb == 'export':
         from pma_cli.export import ExportError, export_csv
         out = None if str(args.csv) == '-' else args.csv
+        if out is not None and not out.parent.is_dir():
+            print(f'pma export: there is no directory {out.parent} to write {out.name} in',
+                  file=sys.stderr)
+            return USAGE                       # before the bag is read
         try:
             summary = export_csv(args.bag, out, args.topic, comments=not args.no_comments)
         except ExportError as error:

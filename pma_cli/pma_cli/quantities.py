@@ -32,8 +32,12 @@ class QuantityError(ValueError):
     """Text that is not a quantity of the kind asked for; the message says what would be."""
 
 
-def parse(text: str, kind: str) -> float:
-    """SI value of `text`: a number with a unit of `kind`, or a plain number in SI."""
+def parse(text: str, kind: str, *, minimum: float | None = None, strict: bool = False) -> float:
+    """SI value of `text`: a number with a unit of `kind`, or a plain number in SI.
+
+    `minimum` (exclusive when `strict`) bounds what `pma` uses itself: a timeout of -1 s is a
+    typo, not a choice. What goes to a node is left to the node, which says why it refuses.
+    """
     units, si_unit, examples = KINDS[kind]
     match = _QUANTITY.match(text)
     if match is None:
@@ -47,6 +51,27 @@ def parse(text: str, kind: str) -> float:
     value = number * units[unit] if unit else number
     if not math.isfinite(value):
         raise QuantityError(f'{text!r} is not a finite {kind}')
+    # Finite in SI but not in a unit it is printed in (1e308 m is inf cm): as good as inf.
+    overflows = [u for u, factor in units.items() if not math.isfinite(value / factor)]
+    if overflows:
+        raise QuantityError(f'{text!r} is not a finite {kind} in {_spelling(overflows[0])}')
+    if minimum is not None and (value <= minimum if strict else value < minimum):
+        raise QuantityError(f'{text!r}: the {kind} must be {"more than" if strict else "at least"}'
+                            f' {minimum:g} {si_unit}')
+    return value
+
+
+def parse_count(text: str, minimum: int = 0, maximum: int | None = None) -> int:
+    """A whole number from `minimum` to `maximum`. A count that goes into a message field must
+    fit the field: a uint32 wraps 4294967298 round to 2 without a word, and refuses -1 with a
+    traceback."""
+    try:
+        value = int(text.strip())
+    except ValueError:
+        raise QuantityError(f'{text!r} is not a whole number') from None
+    if value < minimum or (maximum is not None and value > maximum):
+        raise QuantityError(f'{text!r} is out of range: give a whole number from {minimum}'
+                            + (f' to {maximum}' if maximum is not None else ' up'))
     return value
 
 
@@ -63,7 +88,10 @@ def parse_rate(text: str, kind: str = 'pressure') -> float:
     if per not in TIME_UNITS:
         raise QuantityError(f'{text!r}: {per!r} is not a unit of time (known: '
                             f'{", ".join(TIME_UNITS)})')
-    return parse(amount, kind) / TIME_UNITS[per]
+    rate = parse(amount, kind) / TIME_UNITS[per]
+    if not math.isfinite(rate):
+        raise QuantityError(f'{text!r} is not a finite rate')
+    return rate
 
 
 def parse_list(text: str, kind: str) -> list[float]:
@@ -126,5 +154,7 @@ def human(value: float, kind: str | None) -> str:
     if kind == 'length':
         return cm(value, 2)
     if kind == 'time':
-        return seconds(value)
+        # All its digits below a minute (0.15 s, not the 0.1 s a progress line would say).
+        return seconds(value) if abs(value) >= 60 and value == round(value) \
+            else f'{value:g} s'
     return ''

@@ -53,6 +53,7 @@ class Session:
 
     def __init__(self, namespace: str, stop: StopRequest):
         self.stop = stop
+        self.started = time.monotonic()        # discovery of the other nodes began here
         self.namespace = namespace_of(namespace)
         # A leading underscore hides the node from `ros2 node list`.
         self.node = Node(f'_pma_cli_{os.getpid()}', namespace=self.namespace)
@@ -151,7 +152,8 @@ class Session:
         others = self.other_namespaces_with(topic)
         hint = f'is {what} running in namespace {self.namespace}?'
         if others:
-            flags = ', '.join(f'--namespace {n.lstrip("/")}' for n in others)
+            # The root namespace is `--namespace /` (an empty flag would read as a typo).
+            flags = ', '.join(f'--namespace {n.lstrip("/") or "/"}' for n in others)
             hint += f' It runs in {", ".join(others)}: add {flags}.'
         return hint
 

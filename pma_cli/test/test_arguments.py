@@ -1,7 +1,10 @@
 """`pma`'s argument parsing: a negative quantity is a value, an option stays an option."""
 
 import pytest
-from pma_cli.main import parser
+from pma_cli.commands import typed_value
+from pma_cli.main import main, parser
+from pma_cli.session import CliError
+from rcl_interfaces.msg import ParameterType
 
 
 def parsed(*argv: str):
@@ -32,3 +35,120 @@ def test_what_is_neither_is_refused_with_usage_status(argv, capsys):
         parsed(*argv)
     assert ended.value.code == 2
     assert 'error:' in capsys.readouterr().err
+
+
+def refusal(capsys, *argv: str) -> str:
+    """argparse's one error line for argv (exit 2, no traceback)."""
+    with pytest.raises(SystemExit) as ended:
+        parsed(*argv)
+    assert ended.value.code == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if 'error:' in line]
+    assert len(errors) == 1
+    return errors[0]
+
+
+@pytest.mark.parametrize('value', ['-inf', '-nan', '-Infinity', '-NaN'])
+def test_minus_inf_and_nan_are_values_the_quantity_parser_refuses(value, capsys):
+    # argparse took `-inf` for an option (pressure "required") and `-nan` for `-n an`.
+    assert f"{value!r} is not a pressure" in refusal(capsys, 'set', value)
+
+
+def test_a_namespace_starting_with_an_stays_the_short_option():
+    assert parsed('status', '-nanimal').namespace == 'animal'
+
+
+@pytest.mark.parametrize(('flag', 'value'), [
+    ('--cycles', '-1'), ('--cycles', '0'), ('--cycles', '4294967298'),
+    ('--cycles', '5000000000'), ('--forc-count', '-2'), ('--forc-count', '4294967297'),
+    ('--cycles', '2.5'),
+])
+def test_counts_outside_their_message_field_are_refused_not_wrapped(flag, value, capsys):
+    # Sweep.Goal's cycles and forc_count are uint32: -1 raised inside rclpy, 2**32 + 2 became 2.
+    line = refusal(capsys, 'sweep', '--max', '200kPa', '--step', '100kPa', flag, value)
+    assert flag in line and repr(value) in line
+
+
+def test_the_largest_count_the_field_holds_is_taken():
+    args = parsed('sweep', '--cycles', '4294967295', '--forc-count', '4294967295')
+    assert (args.cycles, args.forc_count) == (4294967295, 4294967295)
+
+
+def test_watch_count_is_zero_or_more(capsys):
+    assert parsed('watch').count == 0                  # until Ctrl-C
+    assert "'-3' is out of range" in refusal(capsys, 'watch', '--count', '-3')
+    assert 'at least 0 Hz' in refusal(capsys, 'watch', '--max-rate', '-1')
+    assert parsed('watch', '--max-rate', '5Hz').max_rate == 5.0
+
+
+@pytest.mark.parametrize('verb', ['length', 'move'])
+def test_a_length_that_overflows_in_cm_is_refused_like_inf(verb, capsys):
+    assert 'not a finite length' in refusal(capsys, verb, '1e308')
+
+
+@pytest.mark.parametrize('value', ['-1', '0', '0s', '-5ms'])
+def test_a_timeout_must_be_more_than_zero(value, capsys):
+    assert 'must be more than 0 s' in refusal(capsys, 'length', '27cm', '--timeout', value)
+
+
+@pytest.mark.parametrize(('value', 'words'), [
+    ('bad name!', "must not contain characters other than alphanumerics, '_', or '/'"),
+    ('1abc', 'must not have a token that starts with a number'),
+    ('a//b', "must not contain repeated '/'"),
+])
+def test_a_namespace_rcl_would_refuse_is_a_usage_error(value, words, capsys):
+    line = refusal(capsys, 'status', '--namespace', value)
+    assert f'{value!r} is not a ROS namespace: {words}' in line
+
+
+@pytest.mark.parametrize('value', ['/', '', 'left', '/left/', ' right '])
+def test_namespaces_as_people_type_them_are_taken(value):
+    assert parsed('status', '--namespace', value).namespace == value
+
+
+def test_an_output_that_names_a_directory_is_refused(tmp_path, capsys):
+    # Path() drops the trailing slash: `missing/` used to become a file named `missing`.
+    assert 'is a directory' in refusal(capsys, 'export', 'bag', '--csv', f'{tmp_path}/new/')
+    assert 'is a directory' in refusal(capsys, 'export', 'bag', '--csv', str(tmp_path))
+    assert 'is a directory' in refusal(capsys, 'calibrate', '-o', f'{tmp_path}/')
+    assert parsed('export', 'bag', '--csv', f'{tmp_path}/out.csv').csv == tmp_path / 'out.csv'
+    assert str(parsed('export', 'bag', '--csv', '-').csv) == '-'
+
+
+def test_export_into_a_missing_directory_is_refused_before_the_bag_is_read(tmp_path, capsys):
+    # Checked when it runs, not by the parser: a documented line may make the directory first.
+    assert main(['export', str(tmp_path / 'no_bag'), '--csv', f'{tmp_path}/new/out.csv']) == 2
+    assert capsys.readouterr().err == (f'pma export: there is no directory {tmp_path}/new to '
+                                       'write out.csv in\n')
+    assert not (tmp_path / 'new').exists()
+
+
+@pytest.mark.parametrize(('value', 'words'), [
+    ('bad node!', "must not contain characters other than alphanumerics or '_'"),
+    ('1x', 'must not start with a number'), ('driver_node/', 'must not be empty'),
+    ('/1abc/driver_node', "'/1abc/driver_node' is not a ROS node name: must not have a token"),
+])
+def test_a_node_name_rcl_would_refuse_is_a_usage_error(value, words, capsys):
+    assert words in refusal(capsys, 'param', 'get', value, 'x')
+
+
+@pytest.mark.parametrize('value', ['driver_node', 'left/driver_node', '/left/driver_node'])
+def test_node_names_relative_or_absolute_are_taken(value):
+    assert parsed('param', 'list', value).node == value
+
+
+@pytest.mark.parametrize(('text', 'kind', 'words'), [
+    ('99999999999999999999', ParameterType.PARAMETER_INTEGER, 'out of range'),
+    ('-9223372036854775809', ParameterType.PARAMETER_INTEGER, 'out of range'),
+    ('1.5', ParameterType.PARAMETER_INTEGER, 'not a whole number'),
+    ('[1, 99999999999999999999]', ParameterType.PARAMETER_INTEGER_ARRAY, 'outside'),
+])
+def test_an_integer_parameter_value_must_fit_int64(text, kind, words):
+    # rclpy raised a SystemError from inside the service call for 2**64.
+    with pytest.raises(CliError, match=words) as error:
+        typed_value('qos_depth', text, kind)
+    assert error.value.code == 2
+
+
+def test_the_largest_int64_is_a_parameter_value():
+    assert typed_value('qos_depth', '9223372036854775807',
+                       ParameterType.PARAMETER_INTEGER) == 2 ** 63 - 1

@@ -86,6 +86,20 @@ def test_span_refusals_say_why():
         cal.span_from_reference(believed, at_300, math.nan)
 
 
+def test_a_check_pressure_the_span_cannot_use_is_refused_before_anything_is_done():
+    # Checked against the driver's parameters before the tare: `--check-pressure 10kPa` used
+    # to tare and inflate, then refuse the 10.7 kPa reference.
+    believed = values(full_scale_pa=500_000.0)
+    cal.check_span_pressure(believed, 100_000.0)                  # 20 % of full scale
+    with pytest.raises(cal.CalibrationError, match=r'10\.0 kPa is too close to zero.*check at '
+                       r'100 kPa or more \(20 % of full_scale_pa 500 kPa\)'):
+        cal.check_span_pressure(believed, 10_000.0)
+    with pytest.raises(cal.CalibrationError, match='above max_gauge_pressure_pa'):
+        cal.check_span_pressure(believed, believed['max_gauge_pressure_pa'] + 1.0)
+    with pytest.raises(cal.CalibrationError, match='too close to zero'):
+        cal.check_span_pressure(believed, math.nan)
+
+
 def test_a_span_that_leaves_the_adc_reference_is_refused_by_the_drivers_rule():
     # Near the top of the allowed error, on a sensor already at the reference: over 5.0 V.
     believed = values(volts_at_full=4.9)

@@ -31,6 +31,8 @@ def test_parse_gives_si(text, kind, si):
     ('5kPa', 'time', "'kPa' is not a unit of time"),
     ('', 'length', 'not a length'),
     ('1e999', 'pressure', 'not a finite'),
+    ('1e308', 'length', 'not a finite length in cm'),    # finite in m, inf where it is shown
+    ('1e308', 'time', 'not a finite time in ms'),
     ('kPa', 'pressure', 'not a pressure'),
 ])
 def test_parse_refuses_with_a_reason(text, kind, words):
@@ -104,3 +106,36 @@ def test_durations_read_naturally():
 ])
 def test_parameter_names_say_their_unit(name, kind):
     assert q.unit_of_name(name) == kind
+
+
+def test_a_minimum_bounds_what_pma_uses_itself():
+    assert q.parse('5s', 'time', minimum=0.0, strict=True) == 5.0
+    assert q.parse('0', 'frequency', minimum=0.0) == 0.0
+    with pytest.raises(q.QuantityError, match="'-1': the time must be more than 0 s"):
+        q.parse('-1', 'time', minimum=0.0, strict=True)
+    with pytest.raises(q.QuantityError, match='at least 0 Hz'):
+        q.parse('-1Hz', 'frequency', minimum=0.0)
+
+
+def test_a_rate_that_overflows_is_refused():
+    with pytest.raises(q.QuantityError, match='not a finite rate'):
+        q.parse_rate('1e305kPa/ms')
+
+
+@pytest.mark.parametrize(('text', 'words'), [
+    ('-1', "'-1' is out of range: give a whole number from 1 to 4294967295"),
+    ('4294967296', 'out of range'), ('2.5', 'not a whole number'), ('ten', 'not a whole'),
+])
+def test_counts_are_whole_and_in_range(text, words):
+    assert q.parse_count(' 7 ', 1, 2**32 - 1) == 7
+    with pytest.raises(q.QuantityError, match=words):
+        q.parse_count(text, 1, 2**32 - 1)
+
+
+@pytest.mark.parametrize(('seconds', 'shown'), [
+    (0.15, '0.15 s'), (0.001, '0.001 s'), (12.0, '12 s'), (42.5, '42.5 s'), (125.0, '2 min 05 s'),
+    (90.5, '90.5 s'),
+])
+def test_a_time_parameter_is_shown_with_its_digits(seconds, shown):
+    # fb_filter_time_constant_s = 0.15 was listed as "(0.1 s)".
+    assert q.human(seconds, 'time') == shown
