@@ -101,6 +101,8 @@ def test_move_to_length_settles_and_holds(rig):
     assert result.success, result.message
     assert abs(result.final_length_m - 0.265) <= 0.002
     assert 0.0 < result.settle_time_s < 15.0
+    wait_until(lambda: rig['probe'].control[-1].mode == ControlState.MODE_HOLD, 5,
+               'MODE_HOLD after the goal (it read MODE_STREAM, a stream nobody sent)')
     since = time.monotonic()
     time.sleep(3.0)                                  # the controller keeps holding it
     held = probe.lengths_since(since)

@@ -156,8 +156,8 @@ def ros_stamp(state: PmaState) -> float:
 
 def holds_target(control: ControlState | None) -> bool:
     """The length controller steers to a length: it commands a pressure on every sample."""
-    return control is not None and control.mode in (ControlState.MODE_GOAL,
-                                                    ControlState.MODE_STREAM)
+    return control is not None and control.mode in (
+        ControlState.MODE_GOAL, ControlState.MODE_STREAM, ControlState.MODE_HOLD)
 
 
 def set_pressure(session: Session, gauge_pa: float, wait: bool, tolerance_pa: float,

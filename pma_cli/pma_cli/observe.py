@@ -30,7 +30,8 @@ VALVES = {PmaState.VALVE_HOLD: 'hold', PmaState.VALVE_FILL: 'fill', PmaState.VAL
 BRANCHES = {PmaPrediction.BRANCH_INCREASING: 'increasing',
             PmaPrediction.BRANCH_DECREASING: 'decreasing'}
 MODES = {ControlState.MODE_IDLE: 'idle', ControlState.MODE_GOAL: 'goal',
-         ControlState.MODE_STREAM: 'stream', ControlState.MODE_FAULT: 'fault'}
+         ControlState.MODE_STREAM: 'stream', ControlState.MODE_FAULT: 'fault',
+         ControlState.MODE_HOLD: 'hold'}
 STATUS_BITS = {PmaState.STATUS_OVERPRESSURE: 'OVERPRESSURE',
                PmaState.STATUS_HEARTBEAT_LOST: 'HEARTBEAT_LOST',
                PmaState.STATUS_ECHO_TIMEOUT: 'ECHO_TIMEOUT',
@@ -160,7 +161,8 @@ def control_line(status: NodeStatus | None, control: ControlState | None) -> str
         parts.append(f'{status.level} {status.message}')
     if control is not None:
         parts.append(f'mode {MODES.get(control.mode, control.mode)}')
-        if control.mode in (ControlState.MODE_GOAL, ControlState.MODE_STREAM):
+        if control.mode in (ControlState.MODE_GOAL, ControlState.MODE_STREAM,
+                            ControlState.MODE_HOLD):
             parts.append(f'target {q.cm(control.target_length_m)}, command '
                          f'{q.kpa(control.gauge_pressure_command_pa)}')
     return 'control   ' + ' | '.join(parts)

@@ -119,6 +119,7 @@ class LengthControllerNode(Node):
         self._params = default_params()
         self._controller = LengthController(self._params.build_online(), self._settings())
         self._goal = None                    # the running goal handle
+        self._streamed = False               # the target came from pma/length_setpoint
         self._goal_started = 0.0
         self._inside_since: float | None = None   # since when the goal is within tolerance
         self._last_sample_at: float | None = None
@@ -284,9 +285,10 @@ class LengthControllerNode(Node):
             msg.mode, msg.message = ControlState.MODE_FAULT, self._fault
         elif target is None:
             msg.mode = ControlState.MODE_IDLE
+        elif self._goal is not None:
+            msg.mode = ControlState.MODE_GOAL
         else:
-            msg.mode = ControlState.MODE_GOAL if self._goal is not None else \
-                ControlState.MODE_STREAM
+            msg.mode = ControlState.MODE_STREAM if self._streamed else ControlState.MODE_HOLD
         msg.target_length_m = math.nan if target is None else target
         msg.setpoint_length_m = output.setpoint_length_m
         msg.measured_length_m = state.length_m
@@ -328,6 +330,7 @@ class LengthControllerNode(Node):
             self.get_logger().warning(f'refused pma/length_setpoint: {reason}',
                                       throttle_duration_sec=2.0)
             return
+        self._streamed = True
         if self._goal is not None:
             self._end_goal(self._goal, False, 'preempted by pma/length_setpoint', 'abort')
 
@@ -359,7 +362,7 @@ class LengthControllerNode(Node):
             return
         if self._goal is not None:
             self._end_goal(self._goal, False, 'preempted by a new goal', 'abort')
-        self._goal = goal_handle
+        self._goal, self._streamed = goal_handle, False
         self._goal_started = time.monotonic()
         self._inside_since = None
 
