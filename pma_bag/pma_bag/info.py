@@ -23,6 +23,7 @@ from pathlib import Path
 
 from pma_bag.errors import BagError
 from pma_bag.reader import BagReader, TopicInfo, TruncatedBagWarning
+from pma_common.console import closed_pipe_ends_quietly
 
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
 # The recorder's loss counts in custom_data (docs/bags.md), shown under their own heading.
@@ -186,6 +187,7 @@ def check_lines(reader: BagReader) -> tuple[list[str], bool]:
     return lines, ok
 
 
+@closed_pipe_ends_quietly
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='info', description=__doc__.split('\n')[0])
     parser.add_argument('bag', type=Path, help='bag directory or .mcap file')

@@ -15,6 +15,7 @@ from pathlib import Path
 from pma_bag.errors import BagError
 from pma_bag.reader import BagReader, TruncatedBagWarning
 from pma_bag.writer import BagWriter
+from pma_common.console import closed_pipe_ends_quietly
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,7 @@ def recover_bag(bag: str | os.PathLike, output: str | os.PathLike | None = None)
         return RecoveryReport(target, writer.message_count, writer.topics, reader.truncated)
 
 
+@closed_pipe_ends_quietly
 def main(argv: list[str] | None = None) -> int:
     """`ros2 run pma_bag recover BAG [-o OUT]`: no ROS needed, so none is started."""
     import argparse

@@ -5,7 +5,9 @@ Values are compared after decoding, never as bytes (rclpy leaves padding bytes u
 """
 
 import math
+import os
 import re
+import subprocess
 import time
 from pathlib import Path
 
@@ -260,3 +262,18 @@ def test_the_recorder_reads_pma_state_seq_without_decoding(frame_id):
     state.header.frame_id = frame_id
     state.header.stamp.sec = 17
     assert pma_state_seq(serialize_message(state)) == 4_000_000_123
+
+
+def test_info_into_a_pipe_closed_early_ends_quietly(written):
+    """`ros2 run pma_bag info BAG | head -3` printed a BrokenPipeError traceback."""
+    bag, _ = written
+    info = Path(__file__).resolve().parents[2] / 'ros2_ws' / 'install' / 'pma_bag' / 'lib' / \
+        'pma_bag' / 'info'
+    read, write = os.pipe()
+    os.close(read)                       # head has read its lines and left
+    try:
+        result = subprocess.run([str(info), str(bag)], stdout=write, stderr=subprocess.PIPE,
+                                text=True, timeout=60, check=False)
+    finally:
+        os.close(write)
+    assert (result.returncode, result.stderr) == (141, ''), result.stderr

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from pma_cli import quantities as q
 from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted, namespace_of
+from pma_common.console import closed_pipe_ends_quietly
 from pma_driver.sweep import FORC_FAMILIES, PROFILES
 from pma_interfaces.action import Sweep
 
@@ -25,7 +26,6 @@ DEFAULT_TIMEOUT_S = 10.0
 # `pma status` listens at most this long for every node's diagnostics (usually ~4 s:
 # observe.MIN_LISTEN_S).
 STATUS_LISTEN_S = 8.0
-BROKEN_PIPE = 141           # 128 + SIGPIPE: what a shell tool's exit is when its reader left
 
 
 def _argument(parse, name: str):
@@ -332,16 +332,9 @@ def dispatch(args, session) -> int:
     raise CliError(f'unknown verb {args.verb}', USAGE)
 
 
+@closed_pipe_ends_quietly
 def main(argv: list[str] | None = None) -> int:
-    """`_main`, ended quietly when standard output is a pipe whose reader has gone (the Python
-    docs' recipe for SIGPIPE: stdout to /dev/null, so the exit's own flush fails no more)."""
-    try:
-        code = _main(argv)
-        sys.stdout.flush()
-        return code
-    except BrokenPipeError:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return BROKEN_PIPE
+    return _main(argv)
 
 
 def _main(argv: list[str] | None) -> int:

@@ -20,6 +20,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+from pma_common.console import closed_pipe_ends_quietly
 from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.provenance import input_run
 from pma_model.report import (
@@ -154,6 +155,7 @@ def plotted_choice(report: dict, name: str | None,
     return name, note + (f', memory {rule}' if rule else '')
 
 
+@closed_pipe_ends_quietly
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
     try:

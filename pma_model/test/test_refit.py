@@ -2,7 +2,10 @@
 
 import itertools
 import json
+import os
+import subprocess
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +22,8 @@ from pma_model import units
 from pma_model.params import ModelParams
 
 PAPER_TABLE = resources.files('pma_model').joinpath('data', 'paper_table1.csv')
+REFIT = Path(__file__).resolve().parents[2] / 'ros2_ws' / 'install' / 'pma_model' / 'lib' / \
+    'pma_model' / 'refit'
 MODELS = {'sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear'}
 METRIC_KEYS = {'mae_cm', 'mse_cm2', 'rmse_cm', 'max_cm', 'r2', 'r', 'aic', 'aicc', 'bic', 'n',
                'k'}
@@ -134,6 +139,18 @@ def assert_clean_error(code, output, text):
     errors = [line for line in output.splitlines()
               if line.startswith('refit:') and not line.startswith('refit: warning:')]
     assert len(errors) == 1 and text in errors[0], output
+
+
+def test_a_pipe_closed_early_ends_refit_quietly():
+    """`refit TABLE | head -3` ended in a BrokenPipeError traceback."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        result = subprocess.run([str(REFIT), str(PAPER_TABLE), '--no-holdout'], stdout=write,
+                                stderr=subprocess.PIPE, text=True, timeout=150, check=False)
+    finally:
+        os.close(write)
+    assert result.returncode == 141 and 'Traceback' not in result.stderr, result.stderr
 
 
 def test_missing_file(procs, tmp_path):
