@@ -334,10 +334,6 @@ def dispatch(args, session) -> int:
 
 @closed_pipe_ends_quietly
 def main(argv: list[str] | None = None) -> int:
-    return _main(argv)
-
-
-def _main(argv: list[str] | None) -> int:
     args = parser().parse_args(argv)
     if args.verb == 'run':
         return run_executable(args.package, args.executable, args.args)
