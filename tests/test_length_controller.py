@@ -23,7 +23,7 @@ from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
 from pma_model.params import paper_table1
-from support.ros import SpinningNode, shutdown, wait_until
+from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -263,7 +263,7 @@ def test_another_command_source_releases_the_target(rig):
     # A sweep (0 -> 100 -> 0 kPa) while a length is held.
     hold(0.27)
     sweep = ActionClient(node, Sweep, 'pma/sweep')
-    assert sweep.wait_for_server(20)
+    wait_for_action_server(sweep)
     goal = Sweep.Goal(max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
     handle = probe._wait(probe.spinning.in_executor(sweep.send_goal_async, goal), 10)
     result = probe._wait(probe.spinning.in_executor(handle.get_result_async), 60).result

@@ -31,7 +31,7 @@ from pma_bag import BagReader
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import ModelParams, PmaPrediction, PmaState
 from support.procs import INSTALL
-from support.ros import SpinningNode, shutdown, wait_until
+from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -118,7 +118,7 @@ def swept(module_procs, probe, tmp_path_factory):
     wait_until(lambda: live.count('predictions') >= 10, 30, 'live predictions')
 
     client = ActionClient(probe.node, Sweep, 'pma/sweep')
-    assert client.wait_for_server(timeout_sec=20)
+    wait_for_action_server(client)
     bag = work / 'sweep_bag'
     goal = Sweep.Goal(max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=1.0, cycles=1,
                       record=True, bag_path=str(bag), note='pipeline test, muscle m1')

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from support.procs import INSTALL, ROOT
-from support.ros import SpinningNode, shutdown, wait_until
+from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_until
 
 HELPERS = Path(__file__).parent / 'helpers'
 EXECUTABLES = {
@@ -128,7 +128,7 @@ def test_sweep_action_runs_with_feedback_across_processes(procs, probe):
     client = ActionClient(probe.node, Sweep, 'pma/sweep')
     feedback: list[float] = []
     try:
-        assert client.wait_for_server(timeout_sec=20), 'action server not discovered'
+        wait_for_action_server(client)
         goal = Sweep.Goal(max_gauge_pressure_pa=200e3, step_pa=50e3, hold_s=0.0, cycles=1)
         sent = probe.in_executor(client.send_goal_async, goal,
                                  feedback_callback=lambda f: feedback.append(

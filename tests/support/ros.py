@@ -22,6 +22,13 @@ from pma_common.service import ask, poll
 NEW_CLIENT_SETTLE_S = 0.5
 
 
+def wait_for_action_server(client, timeout: float = 20.0) -> None:
+    """`client.wait_for_server`, then NEW_CLIENT_SETTLE_S: a goal is a command, sent once, and
+    a client made after its server has only its own side of the match to go by."""
+    assert client.wait_for_server(timeout_sec=timeout), f'no action server ({timeout:g} s)'
+    time.sleep(NEW_CLIENT_SETTLE_S)
+
+
 class SpinningNode:
     def __init__(self, name: str):
         if not rclpy.ok():
