@@ -44,6 +44,21 @@ def _quantity(kind: str, **bounds):
     return _argument(lambda text: q.parse(text, kind, **bounds), kind)
 
 
+def _target(kind: str):
+    """A verb's own quantity (`pma set 200`, `pma move 27`): as _quantity, with a note on stderr
+    when a plain number reads like a unit left out; it is still taken as SI."""
+    parse = _quantity(kind)
+
+    def convert(text: str) -> float:
+        value = parse(text)
+        slip = q.unit_slip(text, kind)
+        if slip:
+            print(f'pma: note: {slip}', file=sys.stderr)
+        return value
+    convert.__name__ = kind
+    return convert
+
+
 def _quantities(kind: str):
     return _argument(lambda text: q.parse_list(text, kind), f'{kind} list')
 
@@ -161,7 +176,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--si', action='store_true', help='columns in Pa and m instead of kPa and cm')
     p = verb('set', 'command a gauge pressure (pma/pressure_setpoint) and confirm the device '
              'took it; a length controller that holds a length is released first')
-    p.add_argument('pressure', type=_quantity('pressure'), help='e.g. 200kPa, 2bar, 200000')
+    p.add_argument('pressure', type=_target('pressure'), help='e.g. 200kPa, 2bar, 200000')
     p.add_argument('--wait', action='store_true', help='also wait until the pressure is there '
                    '(up to 30s, or --timeout if longer)')
     p.add_argument('--tolerance', type=_quantity('pressure', minimum=0.0, strict=True),
@@ -218,14 +233,14 @@ def parser() -> argparse.ArgumentParser:
                         'no path = auto-named); needs a recorder: pma run pma_bag record --idle')
     p.add_argument('--note', default='', help="operator's note for the bag's metadata")
     p = verb('length', 'which pressure gives this length? (the inverse model service)')
-    p.add_argument('length', type=_quantity('length'), help='e.g. 26.5cm, 0.265')
+    p.add_argument('length', type=_target('length'), help='e.g. 26.5cm, 0.265')
     p.add_argument('--branch', choices=('auto', 'inc', 'dec', 'increasing', 'decreasing'),
                    default='auto', help='inc/dec: that major branch; auto (default): from the '
                    'current state along the path the muscle will follow')
     p.add_argument('--si', action='store_true', help='print only the pressure in Pa')
     p = verb('move', 'move to a length and hold it (the length controller\'s MoveToLength); '
              'Ctrl-C cancels')
-    p.add_argument('length', type=_quantity('length'), help='e.g. 26.5cm')
+    p.add_argument('length', type=_target('length'), help='e.g. 26.5cm')
     p.add_argument('--tolerance', type=_quantity('length'), default=0.0,
                    help='settled within this (default: the action\'s 2mm)')
     p.add_argument('--settle', type=_quantity('time'), default=0.0,

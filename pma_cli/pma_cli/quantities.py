@@ -61,6 +61,25 @@ def parse(text: str, kind: str, *, minimum: float | None = None, strict: bool = 
     return value
 
 
+# A plain number is SI, but a muscle is about 0.3 m long and inflates to hundreds of kPa: these
+# look like a unit left out (`pma move 27`, `pma set 200`).
+_UNIT_SLIPS = {'length': (lambda v: v >= 1.0, 'cm'), 'pressure': (lambda v: 0 < v < 1000, 'kPa')}
+
+
+def unit_slip(text: str, kind: str) -> str:
+    """A note when a plain number of `kind` reads like a unit left out ('' otherwise)."""
+    match = _QUANTITY.match(text)
+    if match is None or match.group(2) or kind not in _UNIT_SLIPS:
+        return ''
+    looks_wrong, unit = _UNIT_SLIPS[kind]
+    value = float(match.group(1))
+    if not (math.isfinite(value) and looks_wrong(value)):
+        return ''
+    _, si_unit, _ = KINDS[kind]
+    return (f'{text} is read as {value:g} {si_unit} (a plain number is SI): did you mean '
+            f'{text}{unit}?')
+
+
 def parse_count(text: str, minimum: int = 0, maximum: int | None = None) -> int:
     """A whole number from `minimum` to `maximum`. A count that goes into a message field must
     fit the field: a uint32 wraps 4294967298 round to 2 without a word, and refuses -1 with a

@@ -152,3 +152,22 @@ def test_an_integer_parameter_value_must_fit_int64(text, kind, words):
 def test_the_largest_int64_is_a_parameter_value():
     assert typed_value('qos_depth', '9223372036854775807',
                        ParameterType.PARAMETER_INTEGER) == 2 ** 63 - 1
+
+
+@pytest.mark.parametrize(('argv', 'note'), [
+    (('move', '27'), 'did you mean 27cm?'),
+    (('length', '27'), 'did you mean 27cm?'),
+    (('set', '200'), 'did you mean 200kPa?'),
+])
+def test_a_plain_number_like_a_unit_left_out_is_taken_as_si_with_a_note(argv, note, capsys):
+    # `pma move 27` said only `moving to 2700.00 cm`, then that it was not reachable.
+    args = parsed(*argv)
+    assert getattr(args, 'length', None) == 27.0 or args.pressure == 200.0
+    err = capsys.readouterr().err
+    assert f'pma: note: {argv[1]} is read as' in err and note in err, err
+
+
+def test_a_plain_number_that_fits_gets_no_note(capsys):
+    parsed('move', '0.27')
+    parsed('set', '200000')
+    assert capsys.readouterr().err == ''

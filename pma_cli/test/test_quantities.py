@@ -139,3 +139,13 @@ def test_counts_are_whole_and_in_range(text, words):
 def test_a_time_parameter_is_shown_with_its_digits(seconds, shown):
     # fb_filter_time_constant_s = 0.15 was listed as "(0.1 s)".
     assert q.human(seconds, 'time') == shown
+
+
+@pytest.mark.parametrize(('text', 'kind', 'note'), [
+    ('27', 'length', '27 is read as 27 m (a plain number is SI): did you mean 27cm?'),
+    ('200', 'pressure', '200 is read as 200 Pa (a plain number is SI): did you mean 200kPa?'),
+    ('0.27', 'length', ''), ('27cm', 'length', ''), ('200000', 'pressure', ''),
+    ('0', 'pressure', ''), ('2bar', 'pressure', ''), ('5', 'time', ''),
+])
+def test_a_plain_number_that_reads_like_a_unit_left_out_gets_a_note(text, kind, note):
+    assert q.unit_slip(text, kind) == note
