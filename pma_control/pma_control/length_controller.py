@@ -81,6 +81,12 @@ SETTING_DESCRIPTIONS = {
 }
 
 
+def goal_limits(request) -> tuple[float, float, float]:
+    """(tolerance_m, settle_s, timeout_s) of a MoveToLength goal, a 0 being the default."""
+    return (request.tolerance_m or DEFAULT_TOLERANCE_M, request.settle_s or DEFAULT_SETTLE_S,
+            request.timeout_s or DEFAULT_TIMEOUT_S)
+
+
 def _range(low: float, high: float) -> list[FloatingPointRange]:
     return [FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)]
 
@@ -351,11 +357,10 @@ class LengthControllerNode(Node):
                     (('tolerance_m', request.tolerance_m), ('settle_s', request.settle_s),
                      ('timeout_s', request.timeout_s))
                     if not (math.isfinite(value) and value >= 0)), '')
-        if not bad and (request.settle_s or DEFAULT_SETTLE_S) >= \
-                (request.timeout_s or DEFAULT_TIMEOUT_S):
-            bad = (f'settle_s {request.settle_s or DEFAULT_SETTLE_S:g} s is not shorter than '
-                   f'timeout_s {request.timeout_s or DEFAULT_TIMEOUT_S:g} s: the goal could '
-                   'never succeed')
+        _, settle_s, timeout_s = goal_limits(request)
+        if not bad and settle_s >= timeout_s:
+            bad = (f'settle_s {settle_s:g} s is not shorter than timeout_s {timeout_s:g} s: '
+                   'the goal could never succeed')
         reason = bad or self._fault or self._controller.set_target(request.length_m)
         if reason:
             self._end_goal(goal_handle, False, reason, 'abort')
@@ -386,8 +391,7 @@ class LengthControllerNode(Node):
                 self._end_goal(goal_handle, False, 'no pma/state sample yet: is the driver '
                                'running and active?', 'abort')
             return
-        tolerance = request.tolerance_m or DEFAULT_TOLERANCE_M
-        settle_s = request.settle_s or DEFAULT_SETTLE_S
+        tolerance, settle_s, timeout_s = goal_limits(request)
         error = request.length_m - output.estimated_length_m
         goal_handle.publish_feedback(MoveToLength.Feedback(
             measured_length_m=self._last_state.length_m,
@@ -403,7 +407,6 @@ class LengthControllerNode(Node):
                            f'{settle_s:g} s after {settle_time:.2f} s; holding', 'succeed',
                            settle_time)
             return
-        timeout_s = request.timeout_s or DEFAULT_TIMEOUT_S
         if elapsed > timeout_s:
             self._end_goal(goal_handle, False, f'not settled within {timeout_s:g} s (error '
                            f'{error * 1000:.1f} mm); still holding the target', 'abort')
