@@ -323,6 +323,14 @@ def test_watch_prints_one_line_per_sample_and_ctrl_c_is_interrupted(rig):
     seqs = [int(line.split()[1]) for line in lines[1:]]
     assert len(seqs) == 20 and seqs == sorted(seqs) and seqs[-1] - seqs[0] <= 19 + 2, seqs
     assert all(len(line.split()) == 9 for line in lines[1:])
+    # For people: a sample without a prediction (the first ones, published before pma's
+    # subscription was matched) shows '-' in the model column, not 'nan'; later ones join.
+    human = ok(pma('watch', '--count', '60')).splitlines()
+    assert human[0].split()[:2] == ['t', '[s]']
+    model_cells = [line.split()[5] for line in human[1:]]
+    assert len(model_cells) == 60
+    assert all(cell == '-' or math.isfinite(float(cell)) for cell in model_cells), model_cells
+    assert model_cells[-1] != '-', model_cells
     proc = subprocess.Popen([str(PMA), 'watch', '--namespace', NS], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     killer = threading.Timer(30, proc.kill)             # should the lines never come

@@ -327,11 +327,14 @@ class Watch:
                        f'{_number(state.gauge_setpoint_pa, ".1f"):>10}',
                        f'{_number(state.length_m, ".5f"):>9}', f'{_number(predicted, ".5f"):>10}')
         else:
+            # No prediction for the sample (no model_node, or the first samples, published
+            # before this subscription was matched) reads '-', as the branch does; a
+            # prediction of NaN reads 'nan'.
+            model = _number(predicted * 100, '.2f') if prediction else '-'
             numbers = (f'{t - self.t0:9.3f}', f'{state.seq:8d}',
                        f'{_number(state.gauge_pressure_pa / 1e3, ".1f"):>10}',
                        f'{_number(state.gauge_setpoint_pa / 1e3, ".1f"):>10}',
-                       f'{_number(state.length_m * 100, ".2f"):>9}',
-                       f'{_number(predicted * 100, ".2f"):>10}')
+                       f'{_number(state.length_m * 100, ".2f"):>9}', f'{model:>10}')
         return ' '.join((*numbers, f'{branch:>10}', f'{VALVES.get(state.valve_state, "?"):>5}',
                          status_text(state.status)))
 
