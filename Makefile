@@ -28,15 +28,15 @@ firmware:
 # worker has its own range of ROS domains (conftest.py). A third worker on this 2-core machine
 # was faster once (9:50 against 12:05) but starved the simulated AVR in both CI runs (replies
 # later than the driver's 0.5 s; docs/development.md), so two. Tests that measure timing or
-# loss (marked `serial`) run afterwards, alone on the machine. Modules with a `slow` test start
-# first (conftest.py), in that order: xdist's own reorder (by number of tests) left them last.
+# loss (marked `serial`) run afterwards, alone on the machine; tests marked `in_process` (the
+# model's computations) run beside the workers at nice 19 (tools/test.sh). Modules with a
+# `slow` test start first (conftest.py), in that order: xdist's own reorder (by number of
+# tests) left them last.
 WORKERS ?= 2
 PARALLEL := -n $(WORKERS) --dist loadfile --no-loadscope-reorder
 
-# (Exit code 5: PYTEST_ARGS selected no test of that part.)
 test: setup lint firmware
-	@$(ENV) python -m pytest $(PARALLEL) -m "not serial" $(PYTEST_ARGS) || [ $$? -eq 5 ]
-	@$(ENV) python -m pytest -m serial $(PYTEST_ARGS) || [ $$? -eq 5 ]
+	@$(ENV) WORKERS=$(WORKERS) tools/test.sh $(PYTEST_ARGS)
 
 unit: setup
 	@$(ENV) python -m pytest $(PARALLEL) -m "not integration" $(PYTEST_ARGS)

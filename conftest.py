@@ -54,6 +54,17 @@ def pytest_collection_modifyitems(config, items):
     slow_modules = {getattr(item, 'module', None) for item in items
                     if item.get_closest_marker('slow')} - {None}
     items.sort(key=lambda item: getattr(item, 'module', None) not in slow_modules)   # stable
+    for item in items:
+        started = PROCESS_FIXTURES & set(getattr(item, 'fixturenames', ()))
+        if item.get_closest_marker('in_process') and started:
+            raise pytest.UsageError(
+                f'{item.nodeid} is marked in_process but starts processes '
+                f'({", ".join(sorted(started))}): `make test` runs in_process tests at a low '
+                f'CPU priority, where a process on a deadline would starve')
+
+
+# Fixtures that start processes; a test using one is not `in_process`.
+PROCESS_FIXTURES = {'procs', 'module_procs'}
 
 
 def pytest_report_header(config):

@@ -16,6 +16,8 @@ import pytest
 from support.closed_loop_runs import sine_error_m, sine_profile, track
 from support.muscle_families import BOUC_WEN, STROKE_M
 
+pytestmark = pytest.mark.in_process
+
 SINE_HZ = 0.1
 
 

@@ -26,7 +26,7 @@ from support.muscle_families import (
     score,
 )
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.in_process, pytest.mark.slow]
 
 DRIFT_START_S = 60.0
 DURATION_S = 300.0

@@ -51,7 +51,7 @@ from support.muscle_families import (
 
 # The module fixture runs every scenario once (about 90 s of one core, more when the
 # workers outnumber the cores); pyproject's 180 s is for hangs, not for this.
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.in_process, pytest.mark.slow, pytest.mark.timeout(600)]
 
 NESTED_TURNS_KPA = (0, 350, 150, 300, 200, 250, 0, 500, 100, 400, 250, 500, 0, 200, 50, 450,
                     300, 350, 0, 250, 150, 220, 180, 500, 380, 460, 420, 0)

@@ -43,6 +43,56 @@ def test_second_setup_is_a_no_op():
     assert 'workspace up to date' in result.stdout, result.stdout
 
 
+RUNNER_SUITE = """
+import os
+from pathlib import Path
+
+import pytest
+
+FAIL = os.environ.get('FAIL_PART', '')
+
+
+def test_process():
+    assert FAIL != 'process'
+
+
+@pytest.mark.in_process
+def test_in_process():
+    autogroup = Path('/proc/self/autogroup')
+    Path(os.environ['PRIORITY_FILE']).write_text(
+        f"{os.nice(0)}|{autogroup.read_text() if autogroup.exists() else ''}")
+    assert FAIL != 'in_process'
+
+
+@pytest.mark.serial
+def test_serial():
+    assert FAIL != 'serial'
+"""
+
+
+def test_the_test_runner_runs_every_part_and_fails_when_any_part_fails(tmp_path):
+    """tools/test.sh, what `make test` runs: its exit status must not hide a part's failure."""
+    (tmp_path / 'pytest.ini').write_text(
+        '[pytest]\naddopts = -p no:cacheprovider\nmarkers =\n    in_process\n    serial\n')
+    (tmp_path / 'test_suite.py').write_text(RUNNER_SUITE)
+    priority = tmp_path / 'priority'
+    for part in ('', 'process', 'in_process', 'serial'):
+        env = {**os.environ, 'FAIL_PART': part, 'PRIORITY_FILE': str(priority)}
+        run = subprocess.run([str(ROOT / 'tools' / 'test.sh'), str(tmp_path)], env=env,
+                             check=False, capture_output=True, text=True, timeout=120)
+        assert run.returncode == (1 if part else 0), (part, run.stdout[-3000:], run.stderr)
+        # Each part ran its own test once: the process part, then the in-process report,
+        # then the serial part.
+        reports = [line for line in run.stdout.splitlines() if ' passed' in line
+                   or ' failed' in line]
+        assert len(reports) == 3, run.stdout[-3000:]
+        assert 'the in_process tests' in run.stdout
+        nice, _, autogroup = priority.read_text().partition('|')
+        assert int(nice) == 19
+        if autogroup:                 # a kernel with autogroups: its own group, at nice 19
+            assert autogroup.rstrip().endswith('nice 19'), autogroup
+
+
 def test_generated_types_import_with_their_constants():
     from pma_interfaces.action import Sweep
     from pma_interfaces.msg import ModelParams, PmaPrediction, PmaState

@@ -27,6 +27,8 @@ from rosbags.typesys import get_types_from_msg
 
 from pma_bag.schemas import message_definition
 
+pytestmark = pytest.mark.in_process
+
 PACKAGE = Path(__file__).resolve().parents[1]
 ROOT = PACKAGE.parent
 LAYOUT = PACKAGE / 'foxglove' / 'pma_testbed.json'

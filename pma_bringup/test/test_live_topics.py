@@ -10,6 +10,8 @@ from pma_bringup.foxglove_live import (
     viewer_urls,
 )
 
+pytestmark = pytest.mark.in_process
+
 
 @pytest.mark.parametrize('host', ['127.0.0.1', '0.0.0.0', '::', '::1', 'localhost',
                                   'rig-pc.lab.example.org', '192.168.10.7'])

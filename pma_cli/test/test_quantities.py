@@ -8,6 +8,8 @@ from hypothesis import strategies as st
 
 from pma_cli import quantities as q
 
+pytestmark = pytest.mark.in_process
+
 
 @pytest.mark.parametrize(('text', 'kind', 'si'), [
     ('200kPa', 'pressure', 200_000.0), ('200 kPa', 'pressure', 200_000.0),

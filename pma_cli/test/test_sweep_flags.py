@@ -7,6 +7,8 @@ from pma_cli.session import CliError
 
 from pma_driver.sweep import SweepError, SweepGoal, plan_goal
 
+pytestmark = pytest.mark.in_process
+
 CEILING_PA = 500_000.0
 
 

@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 
 from pma_common.sequence import U32, SequenceTracker
 
+pytestmark = pytest.mark.in_process
+
 
 def feed(numbers, **kwargs) -> SequenceTracker:
     tracker = SequenceTracker(**kwargs)

@@ -16,6 +16,8 @@ from pma_driver.sim.device import DeviceConfig, Rig
 from pma_driver.sim.families import FAMILY_NAMES, muscle_family
 from pma_model.params import default_params, paper_table1
 
+pytestmark = pytest.mark.in_process
+
 STROKE_M = paper_table1().stroke_m   # 30.06 -> 24.20 cm
 
 

@@ -6,6 +6,8 @@ import pytest
 from pma_driver.clock_sync import ClockSync
 from pma_driver.protocol import U32
 
+pytestmark = pytest.mark.in_process
+
 MIN_LATENCY_S = 0.001
 
 

@@ -5,6 +5,8 @@ import pytest
 
 from pma_driver.sim.closed_loop import run_closed_loop
 
+pytestmark = pytest.mark.in_process
+
 
 def first_rise_s(command_delay_s: float) -> float:
     """When the gauge pressure first rises after a 300 kPa step commanded at t = 1 s."""

@@ -11,6 +11,8 @@ from pma_driver.calibration import PressureCalibration
 from pma_driver.control import DeviceControl
 from pma_driver.sim.device import DeviceConfig, SimDevice
 
+pytestmark = pytest.mark.in_process
+
 SENSOR = PressureCalibration()
 
 

@@ -15,6 +15,8 @@ from pma_driver.link import LinkState, LinkStats
 from pma_driver.messages import link_level, link_values, sample_messages
 from pma_driver.protocol import Hello, Sample
 
+pytestmark = pytest.mark.in_process
+
 PRESSURE = PressureCalibration()
 LENGTH = LengthCalibration()
 

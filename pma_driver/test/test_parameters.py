@@ -12,6 +12,8 @@ from pma_driver.calibration import LengthCalibration, PressureCalibration
 from pma_driver.parameters import PARAMETERS, check_parameters, defaults
 from pma_driver.protocol import Hello
 
+pytestmark = pytest.mark.in_process
+
 CONFIG = __import__('pathlib').Path(__file__).resolve().parents[1] / 'config' / 'driver_node.yaml'
 HELLO = Hello(1, 'fake_arduino', '0.1.0', 20, 1000, 500_000, 500_000, 1000)
 

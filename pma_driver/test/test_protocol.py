@@ -20,6 +20,8 @@ from pma_driver.protocol import (
     Sample,
 )
 
+pytestmark = pytest.mark.in_process
+
 U32 = protocol.U32
 
 samples = st.builds(

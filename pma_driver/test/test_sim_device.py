@@ -10,6 +10,8 @@ from pma_driver.protocol import Ack, FrameDecoder, Hello, Nak, Sample, Valve
 from pma_driver.sim import device as sim
 from pma_driver.sim.device import DeviceConfig, LinkFaultConfig, LinkFaults, SimDevice, bang_bang
 
+pytestmark = pytest.mark.in_process
+
 SENSOR = PressureCalibration()
 CEILING = sim.COMPILED_CEILING_PA
 

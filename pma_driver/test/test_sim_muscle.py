@@ -12,6 +12,8 @@ import pytest
 from pma_driver.sim import muscle
 from pma_driver.sim.muscle import PreisachMuscle
 
+pytestmark = pytest.mark.in_process
+
 ROOT = Path(__file__).resolve().parents[2]
 TABLE_CSVS = [ROOT / 'pma_model' / 'pma_model' / 'data' / 'paper_table1.csv',
               ROOT.parent / 'shared' / 'data' / 'paper_table1.csv']

@@ -31,6 +31,8 @@ from pma_driver.sweep_runner import (
     SweepSettings,
 )
 
+pytestmark = pytest.mark.in_process
+
 SENSOR = PressureCalibration()
 SETTINGS = SweepSettings(tolerance_pa=10_000.0, step_timeout_s=5.0)
 CALIBRATION = {'calibration.volts_at_zero': 0.5, 'calibration.volts_at_full': 4.5}

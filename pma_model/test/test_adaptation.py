@@ -12,6 +12,8 @@ from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
 from pma_model.params import default_params
 
+pytestmark = pytest.mark.in_process
+
 RATE_HZ = 50.0
 
 

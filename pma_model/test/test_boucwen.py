@@ -9,6 +9,8 @@ from pma_model.branches import HillBranch
 from pma_model.metrics import fit_metrics
 from pma_model.params import paper_table1
 
+pytestmark = pytest.mark.in_process
+
 
 @pytest.fixture(scope='module')
 def loop():

@@ -19,6 +19,8 @@ from pma_model.branches import (
 )
 from pma_model.params import default_params
 
+pytestmark = pytest.mark.in_process
+
 PARAMS = default_params()
 ALL_BRANCHES = {f'{direction}-{form}': getattr(PARAMS, direction).of_form(form)
                 for direction in ('increasing', 'decreasing') for form in ('sigmoid', 'hill')}

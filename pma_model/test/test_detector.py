@@ -14,6 +14,8 @@ from pma_model.detector import (
     detect_branches,
 )
 
+pytestmark = pytest.mark.in_process
+
 
 def online(pressures, deadband_pa):
     detector = BranchDetector(deadband_pa)

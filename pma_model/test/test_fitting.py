@@ -15,6 +15,8 @@ from pma_model.fitting import (
 from pma_model.metrics import fit_metrics
 from pma_model.params import paper_table1
 
+pytestmark = pytest.mark.in_process
+
 PAPER_C = 6.214
 
 

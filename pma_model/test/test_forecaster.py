@@ -18,6 +18,8 @@ from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
 from pma_model.params import ModelParams, default_params
 
+pytestmark = pytest.mark.in_process
+
 NOISE_M = 5e-4
 
 

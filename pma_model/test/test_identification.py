@@ -30,6 +30,8 @@ from pma_model.identification import (
 from pma_model.memory import HysteresisModel
 from pma_model.params import ModelParams, ParamsError, default_params
 
+pytestmark = pytest.mark.in_process
+
 KPA = 1000.0
 RATE_HZ = 50.0
 

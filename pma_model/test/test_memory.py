@@ -14,6 +14,8 @@ from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
 from pma_model.memory import MAX_TURNING_POINTS, HysteresisModel
 from pma_model.params import default_params
 
+pytestmark = pytest.mark.in_process
+
 KPA = 1000.0
 
 

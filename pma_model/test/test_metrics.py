@@ -10,6 +10,8 @@ from pma_model import units
 from pma_model.metrics import fit_metrics
 from pma_model.params import default_params, paper_table1
 
+pytestmark = pytest.mark.in_process
+
 
 @pytest.fixture(scope='module')
 def table():

@@ -20,6 +20,8 @@ from pma_model.params import (
     paper_table1,
 )
 
+pytestmark = pytest.mark.in_process
+
 CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'model_node.yaml'
 SHARED_TABLE = Path(__file__).resolve().parents[2].parent / 'shared' / 'data' / \
     'paper_table1.csv'

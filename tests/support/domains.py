@@ -7,7 +7,14 @@ import random
 
 
 def worker_domains() -> range:
-    """Domain IDs 1-101, split between pytest-xdist workers so that two never share one."""
+    """Domain IDs 1-101, split between pytest-xdist workers so that two never share one.
+
+    PMA_TEST_DOMAINS=FIRST-LAST gives a session a range of its own instead, for two sessions
+    run side by side (`make test`'s in-process part, tools/test.sh).
+    """
+    if 'PMA_TEST_DOMAINS' in os.environ:
+        first, last = (int(end) for end in os.environ['PMA_TEST_DOMAINS'].split('-'))
+        return range(first, last + 1)
     worker = os.environ.get('PYTEST_XDIST_WORKER', '')          # 'gw0', 'gw1', ...
     count = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
     if not worker.startswith('gw') or count <= 1:
