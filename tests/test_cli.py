@@ -249,9 +249,15 @@ def test_sweep_profiles_from_flags_stream_their_setpoints_and_a_wrong_flag_is_re
         <= 120_000.0
 
     start = settled_at_zero()
+    # A goal the driver's checks refuse is refused by pma itself, with the flag, exit 2 ...
     refused = pma('sweep', '--profile', 'ramp', '--max', '300kPa')
-    assert refused.returncode == 1 and 'ramp_rate_pa_s' in refused.stderr, refused
-    assert 'sweep aborted' not in refused.stdout, refused   # a refusal goes to stderr
+    assert refused.returncode == 2 and 'ramp_rate_pa_s must be > 0 Pa/s' in refused.stderr \
+        and '(--rate); nothing was sent' in refused.stderr, refused
+    assert refused.stdout == '', refused
+    # ... but for the driver's ceiling, its parameter: the driver refuses that one, exit 1.
+    above = pma('sweep', '--max', '600kPa', '--step', '100kPa')
+    assert above.returncode == 1 and 'above the driver ceiling' in above.stderr, above
+    assert 'sweep aborted' not in above.stdout, above       # a refusal goes to stderr
     assert all(state.gauge_setpoint_pa == 0.0 for state in probe.states[start:])
 
 
@@ -302,6 +308,12 @@ def test_set_sweep_and_vent_release_a_controller_that_holds_a_length(rig):
     assert probe.fresh_state().gauge_setpoint_pa == 100_000.0
     # ... and took the muscle back, pressurised, once a sweep had ended.
     hold()
+    # A sweep the driver would refuse (no --max) is refused before anything is sent: the
+    # held length stays held (it used to be released, then the goal refused).
+    refused = pma('sweep', '--step', '100kPa')
+    assert refused.returncode == 2 and '(--max); nothing was sent' in refused.stderr, refused
+    time.sleep(1.0)
+    assert probe.control[-1].mode != ControlState.MODE_IDLE
     out = ok(pma('sweep', '--max', '100kPa', '--step', '100kPa', '--hold', '0.5s'))
     released(out)
     assert 'sweep succeeded' in out

@@ -28,7 +28,13 @@ from pma_cli.session import (
     Interrupted,
     Session,
 )
-from pma_driver.sweep import STREAMED_PROFILES, SweepError, read_profile_csv
+from pma_driver.sweep import (
+    STREAMED_PROFILES,
+    SweepError,
+    SweepGoal,
+    plan_goal,
+    read_profile_csv,
+)
 from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import ControlState, PmaState
 
@@ -104,8 +110,8 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
 def sweep_goal(args) -> Sweep.Goal:
     """The Sweep goal `pma sweep`'s flags describe.
 
-    Only the flags given are filled in, so a flag the profile does not use reaches the driver,
-    which refuses the goal and says which field does not belong (nothing is commanded).
+    Only the flags given are filled in, so a flag the profile does not use is refused with
+    its field's name (the driver's checks, which checked_sweep_goal runs first), not ignored.
     """
     hold_s = args.hold_s
     if hold_s is None:
@@ -128,6 +134,36 @@ def sweep_goal(args) -> Sweep.Goal:
         profile_pressure_pa=pressures, forc_count=args.forc_count,
         forc_family=args.forc_family, record=args.record is not None, bag_path=bag_path,
         note=args.note)
+
+
+# The flag of `pma sweep` behind each goal field, for a refusal that names the field.
+FLAG_OF_FIELD = {
+    'max_gauge_pressure_pa': '--max', 'step_pa': '--step', 'hold_s': '--hold',
+    'cycles': '--cycles', 'rest_s': '--rest', 'reversal_pressures_pa': '--reversals',
+    'ramp_rate_pa_s': '--rate', 'sine_amplitude_pa': '--amplitude',
+    'sine_offset_pa': '--offset', 'sine_frequency_hz': '--frequency',
+    'profile_time_s': '--csv', 'profile_pressure_pa': '--csv', 'forc_count': '--forc-count',
+    'forc_family': '--forc-family',
+}
+
+
+def checked_sweep_goal(args) -> Sweep.Goal:
+    """sweep_goal, checked before the graph is joined as the driver checks it, but for the
+    driver's ceiling (its parameter, which only the driver knows).
+
+    A goal the driver would refuse (`pma sweep` without `--max`, a ramp without `--rate`) is
+    refused at once, and a length controller holding a length is not released for nothing.
+    """
+    goal = sweep_goal(args)
+    try:
+        plan_goal(SweepGoal.of(goal), ceiling_pa=math.inf)
+    except SweepError as error:
+        reason = str(error)
+        named = sorted((reason.find(name), flag) for name, flag in FLAG_OF_FIELD.items()
+                       if name in reason)                 # the field the reason names first
+        flag = f' ({named[0][1]})' if named else ''
+        raise CliError(f'{reason}{flag}; nothing was sent', USAGE) from None
+    return goal
 
 
 def describe(goal: Sweep.Goal) -> str:

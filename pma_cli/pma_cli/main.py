@@ -322,7 +322,7 @@ def dispatch(args, session) -> int:
     if args.verb == 'tare':
         return commands.tare(session, args.vent, args.timeout)
     if args.verb == 'sweep':
-        return goals.sweep(session, goals.sweep_goal(args), timeout_s=args.timeout)
+        return goals.sweep(session, args.goal, timeout_s=args.timeout)
     if args.verb == 'length':
         return commands.pressure_for_length(session, args.length, args.branch, args.si,
                                             args.timeout)
@@ -373,6 +373,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f'pma export: warning: the bag is truncated ({summary.truncated}); exported '
                   'what it holds before the damage', file=sys.stderr)
         return 0
+
+    if args.verb == 'sweep':
+        from pma_cli import goals
+        try:
+            args.goal = goals.checked_sweep_goal(args)      # before the graph is joined
+        except CliError as error:
+            print(f'pma sweep: {error}', file=sys.stderr)
+            return error.code
 
     from pma_cli.session import Session
     from pma_common.node import ros_context

@@ -1,7 +1,7 @@
 """`pma sweep`'s flags become the Sweep goal the driver checks (pma_driver.sweep.plan_goal)."""
 
 import pytest
-from pma_cli.goals import describe, sweep_goal
+from pma_cli.goals import checked_sweep_goal, describe, sweep_goal
 from pma_cli.main import parser
 from pma_cli.session import CliError
 
@@ -18,11 +18,7 @@ def goal_of(*argv: str):
 
 def planned(goal):
     """What the driver makes of it (the same checks its action server runs)."""
-    fields = {name: getattr(goal, name) for name in SweepGoal.__dataclass_fields__}
-    fields['reversal_pressures_pa'] = tuple(fields['reversal_pressures_pa'])
-    fields['profile_time_s'] = tuple(fields['profile_time_s'])
-    fields['profile_pressure_pa'] = tuple(fields['profile_pressure_pa'])
-    return plan_goal(SweepGoal(**fields), ceiling_pa=CEILING_PA)
+    return plan_goal(SweepGoal.of(goal), ceiling_pa=CEILING_PA)
 
 
 @pytest.mark.parametrize('argv', [
@@ -72,3 +68,27 @@ def test_an_unreadable_csv_is_a_usage_error_before_anything_is_sent(tmp_path):
 def test_a_flag_the_profile_does_not_use_is_refused_by_the_driver_with_its_name(argv, words):
     with pytest.raises(SweepError, match=words):
         planned(goal_of(*argv))
+
+
+@pytest.mark.parametrize(('argv', 'flag'), [
+    ((), '--max'),                                           # `pma sweep` alone
+    (('--max', '300kPa'), '--step'),
+    (('--profile', 'ramp', '--max', '300kPa'), '--rate'),
+    (('--profile', 'sine', '--amplitude', '100kPa', '--offset', '150kPa'), '--frequency'),
+    (('--rate', '50kPa/s', '--max', '300kPa', '--step', '50kPa'), '--rate'),
+])
+def test_pma_refuses_what_the_driver_would_before_sending_and_names_the_flag(argv, flag):
+    args = parser().parse_args(['sweep', *argv])
+    with pytest.raises(CliError, match=f'\\({flag}\\); nothing was sent') as error:
+        checked_sweep_goal(args)
+    assert error.value.code == 2
+    with pytest.raises(SweepError):                          # what the driver would say
+        planned(sweep_goal(args))
+
+
+def test_only_the_driver_knows_its_ceiling():
+    # Above the default 500 kPa ceiling: pma sends it, the driver (its parameter) decides.
+    goal = checked_sweep_goal(parser().parse_args(['sweep', '--max', '600kPa', '--step',
+                                                   '100kPa']))
+    with pytest.raises(SweepError, match='above the driver ceiling'):
+        planned(goal)

@@ -13,7 +13,7 @@ import logging
 import math
 import sys
 import time
-from dataclasses import fields, replace
+from dataclasses import replace
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
@@ -337,8 +337,7 @@ class PmaDriver(Node):
             feedback.step_count = progress.step_count
             goal_handle.publish_feedback(feedback)
 
-        # Field by field, by name: SweepGoal mirrors the action's goal.
-        goal = SweepGoal(**{f.name: getattr(request, f.name) for f in fields(SweepGoal)})
+        goal = SweepGoal.of(request)
         report = self._sweeps.run(
             goal,
             SweepSettings(values['sweep.tolerance_pa'], values['sweep.step_timeout_s']),

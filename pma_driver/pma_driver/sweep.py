@@ -91,6 +91,11 @@ class SweepGoal:
     def profile_name(self) -> str:
         return self.profile or 'staircase'
 
+    @classmethod
+    def of(cls, goal) -> SweepGoal:
+        """The fields of any object that has them by name (a `Sweep.Goal` message)."""
+        return cls(**{field.name: getattr(goal, field.name) for field in fields(cls)})
+
 
 @dataclass(frozen=True)
 class SweepPlan:
