@@ -36,7 +36,7 @@ WORKERS ?= 2
 PARALLEL := -n $(WORKERS) --dist loadfile --no-loadscope-reorder
 
 test: setup lint firmware
-	@$(ENV) WORKERS=$(WORKERS) tools/test.sh $(PYTEST_ARGS)
+	@$(ENV) PARALLEL="$(PARALLEL)" tools/test.sh $(PYTEST_ARGS)
 
 unit: setup
 	@$(ENV) python -m pytest $(PARALLEL) -m "not integration" $(PYTEST_ARGS)

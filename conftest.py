@@ -45,6 +45,10 @@ def pytest_configure(config):
 _DOMAIN_KEY = pytest.StashKey[int]()
 
 
+# Fixtures that start processes; a test using one is not `in_process`.
+PROCESS_FIXTURES = {'procs', 'module_procs'}
+
+
 def pytest_collection_modifyitems(config, items):
     """Modules with a test marked `slow` run first, each module's tests kept together and in
     order. `make test` gives xdist the modules in this order (--no-loadscope-reorder), so a
@@ -61,10 +65,6 @@ def pytest_collection_modifyitems(config, items):
                 f'{item.nodeid} is marked in_process but starts processes '
                 f'({", ".join(sorted(started))}): `make test` runs in_process tests at a low '
                 f'CPU priority, where a process on a deadline would starve')
-
-
-# Fixtures that start processes; a test using one is not `in_process`.
-PROCESS_FIXTURES = {'procs', 'module_procs'}
 
 
 def pytest_report_header(config):

@@ -77,7 +77,9 @@ def test_the_test_runner_runs_every_part_and_fails_when_any_part_fails(tmp_path)
     (tmp_path / 'test_suite.py').write_text(RUNNER_SUITE)
     priority = tmp_path / 'priority'
     for part in ('', 'process', 'in_process', 'serial'):
-        env = {**os.environ, 'FAIL_PART': part, 'PRIORITY_FILE': str(priority)}
+        priority.unlink(missing_ok=True)            # written afresh by each run's in-process part
+        env = {**os.environ, 'FAIL_PART': part, 'PRIORITY_FILE': str(priority),
+               'PARALLEL': '-n 2 --dist loadfile'}
         run = subprocess.run([str(ROOT / 'tools' / 'test.sh'), str(tmp_path)], env=env,
                              check=False, capture_output=True, text=True, timeout=120)
         assert run.returncode == (1 if part else 0), (part, run.stdout[-3000:], run.stderr)

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # `make test`'s pytest part (docs/development.md, Tests). Arguments go to every pytest run.
 #
-# 1. The tests that start processes, on WORKERS pytest-xdist workers (a module per worker),
+# 1. The tests that start processes, with the Makefile's pytest-xdist options (its PARALLEL:
+#    WORKERS workers, a module per worker),
 #    and beside them, in a pytest session of its own at nice 19, the tests marked
 #    `in_process` (the model's computations, about a third of the suite's CPU): they take
 #    the CPU the process tests leave idle while those wait on DDS and on simulated devices,
@@ -12,7 +13,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
-workers=${WORKERS:-2}
+read -r -a parallel <<< "${PARALLEL:?the pytest-xdist options (the Makefile passes its PARALLEL)}"
 in_process_log=$(mktemp "${TMPDIR:-/tmp}/pma-in-process-tests.XXXXXX")
 in_process_pid=
 cleanup() {
@@ -36,8 +37,7 @@ PMA_TEST_DOMAINS=102-120 setsid bash -c \
     > "$in_process_log" 2>&1 &
 in_process_pid=$!
 
-python -m pytest -n "$workers" --dist loadfile --no-loadscope-reorder \
-    -m "not in_process and not serial" "$@"
+python -m pytest "${parallel[@]}" -m "not in_process and not serial" "$@"
 process_status=$?
 
 echo "[test] the in_process tests, run at nice 19 beside those above:"
