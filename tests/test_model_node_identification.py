@@ -107,7 +107,10 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
                 'play_share_slope_falling', 'branch_correction_mm',
                 'branch_difference_mm', 'creep_gains', 'mix_weights', 'play_rule_correction_mm',
                 'play_rule_difference_mm', 'play_rule_creep_gains',
-                'first_loading_term_mm'} <= keys
+                'first_loading_term_mm', 'local_offset_mm'} <= keys
+        # The node's own mix learned a local offset from the rig's lengths.
+        assert any(float(kv.value) != 0.0 for a in diagnostics for s in a.status
+                   for kv in s.values if kv.key == 'local_offset_mm')
         # The run travels far past one loading: its term has ended and left the filter.
         first_loading = [kv.value for a in diagnostics for s in a.status for kv in s.values
                          if kv.key == 'first_loading_term_mm']

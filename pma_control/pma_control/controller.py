@@ -16,7 +16,9 @@ a command the feedforward already gave, and integrating it overshoots the step.
 The length sensor (HC-SR04) is noisy (~1.5 mm) and quantised (3 mm), so the error is taken
 from an estimate, not from the raw reading: the model's length for the measured pressure
 (smooth, no lag) plus a slowly learned bias (a scalar Kalman filter on measured - model),
-which absorbs what the model gets wrong (a muscle unlike the fit, drift, creep).
+which absorbs what the model gets wrong (a muscle unlike the fit, drift, creep). The
+mix's own local offset (pma_model.local_offset) is off in the controller's model: this bias
+is its measured-minus-model feedback, and one is enough.
 
 Three modes, compared on the same simulated muscles in docs/control.md:
   'ff_fb'  feedforward + feedback (the default)
@@ -33,6 +35,7 @@ import math
 from dataclasses import dataclass, fields
 
 from pma_model.detector import BRANCH_AUTO
+from pma_model.forecaster import RuleMix
 from pma_model.identification import OnlineModel
 
 MODES = ('ff_fb', 'ff', 'fb')
@@ -97,12 +100,19 @@ class ControlOutput:
     rate_limited: bool
 
 
+def _feedback_only_here(model: OnlineModel | RuleMix) -> OnlineModel | RuleMix:
+    """The model without the mix's local offset: the bias filter below is this controller's
+    measured-minus-model feedback, and the offset would learn the same residual a second time
+    (measured: 0.1 Hz tracking 4-14 % worse with both, docs/control.md)."""
+    return model.without_local_offset() if isinstance(model, RuleMix) else model
+
+
 class LengthController:
     """Feed it every sample (`update`); aim it with `set_target`."""
 
     def __init__(self, model: OnlineModel, settings: ControllerSettings | None = None):
         self.settings = settings or ControllerSettings()
-        self.model = model
+        self.model = _feedback_only_here(model)
         self.reset()
 
     # -- state -------------------------------------------------------------------------
@@ -122,6 +132,7 @@ class LengthController:
 
     def replace_model(self, model: OnlineModel) -> None:
         """A new fit (a refit was loaded): keep the muscle's history and the learned bias."""
+        model = _feedback_only_here(model)
         model.resume_from(self.model)
         self.model = model
 

@@ -38,6 +38,7 @@ from scipy.optimize import brentq
 from pma_model.adaptation import Drift
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING, BRANCH_NAMES
 from pma_model.identification import IdentificationSettings, OnlineModel, Prediction, elapsed_s
+from pma_model.local_offset import LocalOffset
 from pma_model.memory import InverseResult
 
 MIX_MEMORY = 'mix'            # the model's memory setting that runs MIX_RULES mixed
@@ -67,6 +68,9 @@ class RuleMix:
     temperature_m2s: float = MIX_TEMPERATURE_M2S
     losses_m2s: np.ndarray | None = None
     learning: bool = True       # False: the weights stay as given (identification off)
+    # The local offset (local_offset.py) learns from the measured lengths; a caller with its
+    # own measured-minus-model feedback (the length controller) turns it off.
+    local_offset: bool = True
     memory: ClassVar[str] = MIX_MEMORY
 
     def __post_init__(self):
@@ -86,6 +90,16 @@ class RuleMix:
             raise ValueError(f'losses_m2s must be {len(self.experts)} finite numbers, '
                              f'got {self.losses_m2s!r}')
         self.last_predictions: list[Prediction] = []   # each rule's, at the last step
+        first = self.experts[0]
+        self.local = LocalOffset(first.identification.length_noise_m,
+                                 first.adaptation.outlier_m)
+
+    def without_local_offset(self) -> RuleMix:
+        """This mix with its local offset off and forgotten (for a caller that feeds the
+        measured length back itself); returns self."""
+        self.local_offset = False
+        self.local = LocalOffset(self.local.noise_m, self.local.outlier_m)
+        return self
 
     @classmethod
     def of_rules(cls, build, rules=MIX_RULES, **settings) -> RuleMix:
@@ -161,12 +175,16 @@ class RuleMix:
             if np.any(errors <= cap):    # one every rule rejects says nothing about them
                 self.losses_m2s = self.losses_m2s * math.exp(-dt / self.time_constant_s) + \
                     np.minimum(errors, cap) ** 2 * dt
+        local = self.local.advance(float(pressure_pa))
+        mixed = float(weights @ lengths)
+        if self.learning and self.local_offset and math.isfinite(measured):
+            self.local.learn(measured, mixed)
         # Built directly: dataclasses.replace costs as much as the mixing.
         return Prediction(
-            length_m=float(weights @ lengths), branch=first.branch,
+            length_m=mixed + local, branch=first.branch,
             static_length_m=float(weights @ [p.static_length_m for p in predictions]),
             offset_m=float(weights @ [p.offset_m for p in predictions]),
-            gain=float(weights @ [p.gain for p in predictions]))
+            gain=float(weights @ [p.gain for p in predictions]), local_offset_m=local)
 
     # --- inverse --------------------------------------------------------------------
 
@@ -174,30 +192,34 @@ class RuleMix:
     def settled_length_m(self) -> float:
         """The mixture's length here once creep has settled (where every path starts)."""
         return float(self.weights @ [float(e.drift.correct(e.model.length_m))
-                                     for e in self.experts])
+                                     for e in self.experts]) + self.local.offset_m
 
     def settled_aim_m(self, length_m: float, max_creep_share: float) -> float:
         """The rules' aims (OnlineModel.settled_aim_m), mixed: exact where they learned the
-        same creep, close where they did not (their creep and lengths differ by millimetres)."""
-        return float(self.weights @ [e.settled_aim_m(length_m, max_creep_share)
-                                     for e in self.experts])
+        same creep, close where they did not (their creep and lengths differ by millimetres).
+        The local offset is in both lengths, so it is taken out and put back."""
+        local = self.local.offset_m
+        return float(self.weights @ [e.settled_aim_m(length_m - local, max_creep_share)
+                                     for e in self.experts]) + local
 
     def pressure_for_length(self, length_m: float, branch: int = BRANCH_AUTO) -> InverseResult:
         """The pressure at which the mixture settles at length_m (see OnlineModel's).
 
         AUTO: along the path pressure would follow from the current state, in the
-        direction the target needs (shorter than now: rising); INCREASING / DECREASING:
-        on that direction's major branches, mixed.
+        direction the target needs (shorter than now: rising), the local offset fading along
+        it as pressure travels; INCREASING / DECREASING: on that direction's major branches,
+        mixed (no local offset: it belongs to the current state).
         """
         if branch not in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING) or \
                 not math.isfinite(float(length_m)):
             return self.experts[0].pressure_for_length(length_m, branch)   # its refusal
         length_m = float(length_m)
         weights = self.weights
-        if np.count_nonzero(weights > NEGLIGIBLE_WEIGHT) == 1:
+        path = branch == BRANCH_AUTO
+        local = self.local.at if path else (lambda _p_pa: 0.0)   # the major branches have none
+        if np.count_nonzero(weights > NEGLIGIBLE_WEIGHT) == 1 and local(0.0) == 0.0:
             # One rule carries the mix (the others move it by < 1e-10 m): its exact inverse.
             return self.experts[int(np.argmax(weights))].pressure_for_length(length_m, branch)
-        path = branch == BRANCH_AUTO
         here = self.experts[0].model.pressure_pa
         rising = length_m < self.settled_length_m if path else branch == BRANCH_INCREASING
         start = here if path else (0.0 if rising else self.max_gauge_pressure_pa)
@@ -206,7 +228,7 @@ class RuleMix:
                 for w, e in zip(weights, self.experts, strict=True) if w > 0.0]
 
         def mixed(p_pa: float) -> float:
-            return sum(w * length_at(p_pa) for w, length_at in maps)
+            return sum(w * length_at(p_pa) for w, length_at in maps) + local(p_pa)
 
         name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
         where = (f'{name} path from the current state ({here:.6g} Pa)' if path
@@ -235,6 +257,9 @@ class RuleMix:
             for mine, theirs in zip(self.experts, other.experts, strict=True):
                 mine.resume_from(theirs)
             self.losses_m2s = other.losses_m2s.copy()
+            if self.local_offset and other.local_offset:
+                self.local = replace(other.local, noise_m=self.local.noise_m,
+                                     outlier_m=self.local.outlier_m)
         else:
             source = other.experts[0] if isinstance(other, RuleMix) else other
             for mine in self.experts:

@@ -411,6 +411,7 @@ class Prediction:
     static_length_m: float   # the memory model alone (no creep, no drift)
     offset_m: float          # drift correction: length = offset + gain * (static + creep)
     gain: float
+    local_offset_m: float = 0.0   # the mix's local offset (local_offset.py), in length_m
 
 
 @dataclass

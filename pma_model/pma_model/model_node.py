@@ -401,6 +401,7 @@ class ModelNode(Node):
             learned = self._model.learned()
             learned_count = self._model.samples_learned
             mix = _mix_weights(self._model)
+            local_offset_m = self._model.local.offset_m if mix else math.nan
             first_loading = 'ended' if self._model.first_loading_ended else \
                 f'{1e3 * self._model.virgin_term_m:.2f}'
         status = DiagnosticStatus()
@@ -450,6 +451,8 @@ class ModelNode(Node):
         if mix:
             values.update(
                 mix_weights=' '.join(f'{rule} {weight:.3f}' for rule, weight in mix.items()),
+                # What the rules leave here, carried until pressure moves on (local_offset.py).
+                local_offset_mm=f'{1e3 * local_offset_m:.2f}',
                 play_rule_correction_mm=_millimetres(learned.play_rule_correction_m),
                 play_rule_difference_mm=_millimetres(learned.play_rule_difference_m),
                 play_rule_creep_gains=' '.join(f'{v:.3f}' for v in learned.play_rule_creep_gains))

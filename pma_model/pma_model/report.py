@@ -324,7 +324,9 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
     against the measured length, from rest, so the path must start at rest (a sweep does).
     'switch', 'madelung' and 'play' run as they are; 'identify' and 'mix' run online as
     model_node would, predicting each sample before learning from it (docs/model.md, "Online
-    identification"). 'identify' learns as it would inside the mix, so one run of the mix
+    identification"); the mix is scored without its local offset (local_offset.py), which
+    is no memory rule but the sensor's lengths fed back, and would win any comparison of
+    memories. 'identify' learns as it would inside the mix, so one run of the mix
     gives both; what they learned along the path is reported (`identified`, with the mix's
     final weights in `mix_weights`) and written by --params-out when one of them wins. A
     staircase is scored on its hold means (the
@@ -352,7 +354,8 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
             *b, memory=rule, deadband_pa=deadband_pa))
         online = {memory: [] for memory in ONLINE_MEMORIES}
         for sample in zip(samples.pressure_pa, samples.length_m, samples.time_s, strict=True):
-            online[MIX_MEMORY].append(mix.step(*sample).length_m)
+            prediction = mix.step(*sample)
+            online[MIX_MEMORY].append(prediction.length_m - prediction.local_offset_m)
             online['identify'].append(mix.last_predictions[0].length_m)
         identified[name] = mix.learned().learned_values()
         mix_weights[name] = mix.weights_by_rule()

@@ -88,15 +88,20 @@ def test_the_mixture_is_as_good_as_the_better_rule(truth_rule, kind):
 def test_the_mixture_lies_between_the_rules_and_never_jumps():
     pressure, measured, time_s, _ = measured_truth('play', seed=2)
     mix = mix_of_rules()
-    mixed, each = [], []
+    mixed, local, each = [], [], []
     for p, length, t in zip(pressure, measured, time_s, strict=True):
         weights = mix.weights
-        mixed.append(mix.step(p, length, t).length_m)
+        prediction = mix.step(p, length, t)
+        mixed.append(prediction.length_m - prediction.local_offset_m)
+        local.append(prediction.local_offset_m)
         each.append([prediction.length_m for prediction in mix.last_predictions])
         assert min(each[-1]) - 1e-12 <= mixed[-1] <= max(each[-1]) + 1e-12
         assert mixed[-1] == pytest.approx(float(weights @ each[-1]), abs=1e-12)
     largest_rule_step = np.abs(np.diff(np.array(each), axis=0)).max()
     assert np.abs(np.diff(mixed)).max() <= 1.05 * largest_rule_step
+    # The local offset learned something and moves by less than the sensor's noise a sample.
+    assert np.abs(local).max() > 0.0
+    assert np.abs(np.diff(local)).max() < mix.local.noise_m
 
 
 def settle(mix: RuleMix, start_pa: float, end_pa: float, t_s: float) -> float:
@@ -114,6 +119,7 @@ def test_pressure_for_length_is_where_the_mixture_settles(target_m):
     mix, _, _ = run_on_truth('play', seed=3)
     mix.losses_m2s = np.array([0.0, mix.temperature_m2s * math.log(3.0)])   # weights 3:1
     here = mix.experts[0].model.pressure_pa
+    assert abs(mix.local.offset_m) > 1e-5      # the path's local offset fades as it settles
     answer = mix.pressure_for_length(target_m)
     assert answer.success, answer.message
     assert 0.0 <= answer.gauge_pressure_pa <= mix.max_gauge_pressure_pa
@@ -155,6 +161,7 @@ def test_on_the_major_branches_it_inverts_the_mixed_branches():
 def test_a_rule_that_carries_the_mix_answers_with_its_own_exact_inverse():
     mix, _, _ = run_on_truth('play', seed=3)
     mix.losses_m2s = np.array([0.0, 30 * mix.temperature_m2s])      # play's weight 1e-13
+    mix.local.offset_m = 0.0                # with a local offset, the path is searched
     identify = mix.experts[0]
     for branch in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING):
         answer = mix.pressure_for_length(0.27, branch)
@@ -180,6 +187,7 @@ def test_a_restart_resumes_the_history_and_the_weights():
     fresh = mix_of_rules()
     fresh.resume_from(mix)
     np.testing.assert_array_equal(fresh.weights, mix.weights)
+    assert fresh.local.offset_m == mix.local.offset_m != 0.0
     for mine, theirs in zip(fresh.experts, mix.experts, strict=True):
         assert mine.model.pressure_pa == theirs.model.pressure_pa
         assert [p for p, _ in mine.model.turning_points] == \

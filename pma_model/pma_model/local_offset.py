@@ -1,0 +1,73 @@
+"""The error the memory rules leave near the current pressure, carried until pressure moves on.
+
+A rule with return-point memory predicts that a closed minor loop puts the muscle back on the
+curve it left. A muscle without that property (a Duhem- or Bouc-Wen-like one, docs/model.md
+§3.1) is still millimetres off there, and stays off until the pressure has travelled far
+enough for its state to forget: the error is local in pressure, not a slow drift, and the
+rules' branch corrections (learned per knot, for every visit) cannot take it. Rules with the
+property leave smaller errors of the same kind where their scanning-curve shapes are wrong.
+
+This is a scalar Kalman filter on the mix's out-of-sample residual, measured - predicted,
+whose state (the offset) fades as exp(-travel / FADE_PA) and gains uncertainty in proportion
+to the pressure travelled (WALK_M2_PER_PA). At a hold it does not fade, and it averages the
+lengths measured there instead of chasing their noise (no travel, no new uncertainty). Travel
+is counted through a play of PLAY_PA, so the pressure reading's noise is not taken for it.
+It changes only the predicted length (and the inverse along the current path, which sees the
+offset fade the same way), never what the rules learn.
+
+Chosen on the mix's predictions on every family (docs/model-history.md, 2026-11-28): RMSE
+against the mix without it, per family, seeds 1-8, sigmoid: 0.83-1.03x at 50 Hz, 0.89-1.02x
+at 20 Hz; on eight held-out muscles 0.80-0.95x. A faster walk follows the sensor's noise
+(5e-12 m^2/Pa: 1.08x on `wide`); fading faster leaves more of the Duhem muscle's gaps.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+FADE_PA = 100_000.0       # pressure travel over which an unexplained offset fades (1/e)
+WALK_M2_PER_PA = 3e-12    # offset variance gained per pascal travelled (0.55 mm per 100 kPa)
+PLAY_PA = 10_000.0        # +/-4 sigma of the pressure reading's noise (10 bits: 1.3 kPa)
+
+
+@dataclass
+class LocalOffset:
+    """The offset's estimate and variance, and the pressure it was last moved to."""
+
+    noise_m: float = 0.0017       # the length sensor's noise (identification's length_noise_m)
+    outlier_m: float = 0.01       # residuals beyond this are not learned from (adaptation's)
+    offset_m: float = 0.0
+    variance_m2: float = 0.0
+    _play_pa: float = math.nan
+
+    def advance(self, pressure_pa: float) -> float:
+        """Move to this pressure (fading and loosening by the travel); the offset here."""
+        if math.isnan(self._play_pa):
+            self._play_pa = pressure_pa
+        half = 0.5 * PLAY_PA
+        moved = min(max(self._play_pa, pressure_pa - half), pressure_pa + half)
+        travel = abs(moved - self._play_pa)
+        self._play_pa = moved
+        if travel > 0.0:
+            fade = math.exp(-travel / FADE_PA)
+            self.offset_m *= fade
+            self.variance_m2 = fade * fade * self.variance_m2 + WALK_M2_PER_PA * travel
+        return self.offset_m
+
+    def learn(self, measured_m: float, predicted_without_m: float) -> None:
+        """Update from a measured length and the mix's prediction before this offset."""
+        residual = measured_m - predicted_without_m
+        if not abs(residual) <= self.outlier_m or self.variance_m2 <= 0.0:
+            return
+        gain = self.variance_m2 / (self.variance_m2 + self.noise_m ** 2)
+        self.offset_m += gain * (residual - self.offset_m)
+        self.variance_m2 *= 1.0 - gain
+
+    def at(self, pressure_pa: float) -> float:
+        """The offset expected once pressure has gone straight from here to `pressure_pa`
+        (what the inverse adds along the path)."""
+        if math.isnan(self._play_pa) or self.offset_m == 0.0:
+            return self.offset_m
+        travel = max(abs(pressure_pa - self._play_pa) - 0.5 * PLAY_PA, 0.0)
+        return self.offset_m * math.exp(-travel / FADE_PA)
