@@ -30,6 +30,7 @@ from support.muscle_families import (
     GENERALIZED_PLAY,
     LEARNED_RULES,
     MIXED,
+    MIXED_WITHOUT_LOCAL_OFFSET,
     PAPER,
     PATH_KINDS,
     STATIC_RULES,
@@ -90,19 +91,19 @@ def test_the_default_memorys_max_error_is_at_most_0_7_of_the_switch(family):
         assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
 
 
-@pytest.mark.parametrize(('kind', 'seed', 'bound'), [('random', 1, 0.7), ('random', 2, 0.75),
-                                                    ('nested', 1, 0.8)])
+@pytest.mark.parametrize(('kind', 'seed', 'bound'), [('random', 1, 0.7), ('random', 2, 0.7),
+                                                    ('nested', 1, 0.72)])
 def test_on_the_duhem_muscle_the_max_error_stays_near_the_criterion_where_it_misses(
         kind, seed, bound):
     # The Duhem muscle's minor loops do not close: after a nest of small loops inside a long
     # fall it is millimetres longer than before the nest, and a model with return-point
-    # memory (which the issue requires) comes back to its own length. On random/seed 2 the
-    # mix errs 0.71x the switch's max (t = 179.6 s); over seeds 1-8 it misses on 5 of 16
-    # runs, and even the muscle itself made to keep return-point memory misses on 6 (the
-    # oracle tests below; docs/model.md §3.1). Nested/seed 1 errs 0.76x early, at 25.7 s,
-    # while its falling share is still being learned (0.66x when samples just after a
-    # reversal counted less, which cost RMSE on every muscle: docs/model.md §5). How far
-    # from the criterion, then:
+    # memory (which the issue requires) comes back to its own length. The mix's local offset
+    # carries that gap until the pressure moves on: random/seed 2 errs 0.62x the switch's
+    # max (0.71x without it, at t = 179.6 s); over seeds 1-8 the mix misses on 3 of 16 runs,
+    # and even the muscle itself made to keep return-point memory misses on 6 (the oracle
+    # tests below; docs/model.md §3.1). Nested/seed 1 errs 0.70x early, at 25.7 s, while its
+    # falling share is still being learned (0.76x without the local offset). How far from
+    # the criterion, then:
     scenario = Scenario('asymmetric', kind, seed=seed)
     ours, paper = score(scenario, MIXED), score(scenario, PAPER)
     assert ours.max_m <= bound * paper.max_m
@@ -151,6 +152,20 @@ def test_on_the_duhem_muscle_even_the_exact_muscle_with_return_point_memory_miss
     paper = score(scenario, PAPER)
     assert oracle_score(scenario).max_m > 0.7 * paper.max_m
     assert oracle_error_near_m(scenario, worst_moment_s(scenario, MIXED)) > 0.7 * paper.max_m
+
+
+@pytest.mark.parametrize(('family', 'at_most'), [
+    ('asymmetric', 0.9), (BOUC_WEN, 0.85), ('narrow', 1.05), ('wide', 1.15), ('creep', 1.03)])
+def test_the_local_offset_helps_where_loops_do_not_close_and_costs_little_where_they_do(
+        family, at_most):
+    # What the rules leave near the current pressure (pma_model.local_offset), RMSE with it
+    # over without, seed 1 (nested, random; docs/model.md §3.1): 0.77x, 0.85x on the Duhem
+    # muscle and 0.78x, 0.78x on Bouc-Wen, the two without return-point memory; 0.97x, 1.02x
+    # on narrow, 0.95x, 1.00x on creep; wide pays most, 1.00x, 1.12x (seeds 1-8: 1.03x).
+    for kind in PATH_KINDS:
+        scenario = Scenario(family, kind)
+        ratio = score(scenario, MIXED).rmse_m / score(scenario, MIXED_WITHOUT_LOCAL_OFFSET).rmse_m
+        assert ratio <= at_most, (kind, ratio)
 
 
 @pytest.mark.parametrize('family', FAMILY_NAMES)

@@ -190,7 +190,8 @@ class RuleMix:
 
     @property
     def settled_length_m(self) -> float:
-        """The mixture's length here once creep has settled (where every path starts)."""
+        """The mixture's length here once creep has settled (where every path starts), with
+        the local offset."""
         return float(self.weights @ [float(e.drift.correct(e.model.length_m))
                                      for e in self.experts]) + self.local.offset_m
 
@@ -216,8 +217,9 @@ class RuleMix:
         length_m = float(length_m)
         weights = self.weights
         path = branch == BRANCH_AUTO
-        local = self.local.at if path else (lambda _p_pa: 0.0)   # the major branches have none
-        if np.count_nonzero(weights > NEGLIGIBLE_WEIGHT) == 1 and local(0.0) == 0.0:
+        carried = path and self.local.offset_m != 0.0    # the major branches have none
+        local = self.local.at if carried else (lambda _p_pa: 0.0)
+        if np.count_nonzero(weights > NEGLIGIBLE_WEIGHT) == 1 and not carried:
             # One rule carries the mix (the others move it by < 1e-10 m): its exact inverse.
             return self.experts[int(np.argmax(weights))].pressure_for_length(length_m, branch)
         here = self.experts[0].model.pressure_pa

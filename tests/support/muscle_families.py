@@ -59,11 +59,12 @@ class Config:
     memory: str
     learn: bool
     adapt: bool = False
+    local_offset: bool = True     # the mix's (pma_model.local_offset); False: without it
 
     @property
     def label(self) -> str:
         if self.memory == MIX:
-            return 'mix (identify + play)'
+            return 'mix (identify + play)' + ('' if self.local_offset else ', no local offset')
         name = {'switch': 'switch (paper)'}.get(self.memory, self.memory) \
             if not self.learn else f'{self.memory} + learned'
         if self.memory == 'identify':
@@ -78,7 +79,8 @@ class Config:
 
     def build(self, form: str) -> OnlineModel | RuleMix:
         """The online model this configuration runs (a RuleMix for MIX)."""
-        return self.params(form).build_online()
+        model = self.params(form).build_online()
+        return model if self.local_offset else model.without_local_offset()
 
 
 MIX = MIX_MEMORY   # forecaster.RuleMix over 'identify' and 'play', each learning: the default
@@ -87,6 +89,7 @@ STATIC_RULES = (Config('madelung', False), Config('play', False))
 LEARNED_RULES = (Config('switch', True), Config('madelung', True), Config('play', True))
 IDENTIFY = Config('identify', True)
 MIXED = Config(MIX, True)
+MIXED_WITHOUT_LOCAL_OFFSET = Config(MIX, True, local_offset=False)
 ALL_CONFIGS = (PAPER, *STATIC_RULES, *LEARNED_RULES, IDENTIFY, MIXED)
 
 
