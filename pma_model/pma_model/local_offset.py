@@ -17,7 +17,7 @@ offset fade the same way), never what the rules learn.
 
 Chosen on the mix's predictions on every family (docs/model-history.md, 2026-11-28): RMSE
 against the mix without it, per family, seeds 1-8, sigmoid: 0.83-1.03x at 50 Hz, 0.89-1.02x
-at 20 Hz; on eight held-out muscles 0.80-0.95x. A faster walk follows the sensor's noise
+at 20 Hz; on eight held-out muscles 0.81-0.96x. A faster walk follows the sensor's noise
 (5e-12 m^2/Pa: 1.08x on `wide`); fading faster leaves more of the Duhem muscle's gaps.
 """
 
