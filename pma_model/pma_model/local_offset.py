@@ -35,8 +35,8 @@ PLAY_PA = 10_000.0        # +/-4 sigma of the pressure reading's noise (10 bits:
 class LocalOffset:
     """The offset's estimate and variance, and the pressure it was last moved to."""
 
-    noise_m: float = 0.0017       # the length sensor's noise (identification's length_noise_m)
-    outlier_m: float = 0.01       # residuals beyond this are not learned from (adaptation's)
+    noise_m: float                # the length sensor's noise (identification's length_noise_m)
+    outlier_m: float              # residuals beyond this are not learned from (adaptation's)
     offset_m: float = 0.0
     variance_m2: float = 0.0
     _play_pa: float = math.nan

@@ -5,11 +5,13 @@ import math
 import numpy as np
 import pytest
 
+from pma_model.adaptation import AdaptationSettings
 from pma_model.local_offset import FADE_PA, PLAY_PA, LocalOffset
 
 pytestmark = pytest.mark.in_process
 
 NOISE_M = 0.0017
+OUTLIER_M = AdaptationSettings().outlier_m   # 1 cm
 
 
 def travelled(local: LocalOffset, start_pa: float, end_pa: float, *, residual_m=math.nan,
@@ -23,7 +25,7 @@ def travelled(local: LocalOffset, start_pa: float, end_pa: float, *, residual_m=
 
 
 def test_a_residual_the_memory_leaves_is_learned_from_the_sensors_noise():
-    local = LocalOffset(NOISE_M)
+    local = LocalOffset(NOISE_M, OUTLIER_M)
     travelled(local, 0.0, 300e3, residual_m=0.002, steps=600, rng=np.random.default_rng(1))
     # Most of it: while pressure travels, the offset also fades (1.33 mm measured).
     assert 0.001 < local.offset_m < 0.002
@@ -43,7 +45,7 @@ def hold(local: LocalOffset, pressure_pa: float, rng, *, residual_m=math.nan,
 
 def test_a_noisy_hold_is_no_travel():
     rng = np.random.default_rng(2)
-    local = LocalOffset(NOISE_M)
+    local = LocalOffset(NOISE_M, OUTLIER_M)
     travelled(local, 0.0, 300e3, residual_m=0.002, steps=600, rng=rng)
     before = local.offset_m
     hold(local, local._play_pa, rng)
@@ -52,7 +54,7 @@ def test_a_noisy_hold_is_no_travel():
 
 def test_at_a_hold_it_averages_the_lengths_and_does_not_chase_their_noise():
     rng = np.random.default_rng(3)
-    local = LocalOffset(NOISE_M)
+    local = LocalOffset(NOISE_M, OUTLIER_M)
     travelled(local, 0.0, 300e3, residual_m=0.002, steps=600, rng=rng)
     offsets = hold(local, local._play_pa, rng, residual_m=0.004)   # the sensor reads 2 mm more
     assert local.offset_m == pytest.approx(0.004, abs=0.0005)
@@ -60,7 +62,7 @@ def test_at_a_hold_it_averages_the_lengths_and_does_not_chase_their_noise():
 
 
 def test_travel_forgets_it_as_the_inverse_expects():
-    local = LocalOffset(NOISE_M)
+    local = LocalOffset(NOISE_M, OUTLIER_M)
     travelled(local, 0.0, 300e3, residual_m=0.002, steps=600)
     learned = local.offset_m
     expected = local.at(150e3)
@@ -73,7 +75,7 @@ def test_travel_forgets_it_as_the_inverse_expects():
 
 @pytest.mark.parametrize('measured', [math.nan, math.inf, 0.3 + 0.02])
 def test_lengths_it_cannot_use_teach_it_nothing(measured):
-    local = LocalOffset(NOISE_M, outlier_m=0.01)
+    local = LocalOffset(NOISE_M, OUTLIER_M)
     travelled(local, 0.0, 200e3, residual_m=0.001, steps=300)
     before = (local.offset_m, local.variance_m2)
     local.advance(200e3)
