@@ -3,11 +3,11 @@
 #
 # 1. The tests that start processes, with the Makefile's pytest-xdist options (its PARALLEL:
 #    WORKERS workers, a module per worker),
-#    and beside them, in a pytest session of its own at nice 19, the tests marked
-#    `in_process` (the model's computations, about a third of the suite's CPU): they take
-#    the CPU the process tests leave idle while those wait on DDS and on simulated devices,
-#    and a process on a deadline (the simulated AVR, a driver's 0.5 s reply) keeps its
-#    priority. Their output follows the process tests'.
+#    and beside them, in a pytest session of its own at nice 19 with the same xdist options,
+#    the tests marked `in_process` (the model's computations, about a third of the suite's
+#    CPU): they take the CPU the process tests leave idle on either core while those wait
+#    on DDS and on simulated devices, and a process on a deadline (the simulated AVR, a
+#    driver's 0.5 s reply) keeps its priority. Their output follows the process tests'.
 # 2. Then the tests marked `serial` (they measure timing or loss), alone on the machine.
 # Exit status: the first failing part's (5, no test selected, counts as a pass).
 set -uo pipefail
@@ -33,7 +33,7 @@ passed() { [ "$1" -eq 0 ] || [ "$1" -eq 5 ]; }
 # is 600 s there; a timeout given in the arguments still wins.
 PMA_TEST_DOMAINS=102-120 setsid bash -c \
     'echo 19 > /proc/self/autogroup 2>/dev/null; exec nice -n 19 "$@"' in_process \
-    python -m pytest --timeout 600 -m "in_process and not serial" "$@" \
+    python -m pytest "${parallel[@]}" --timeout 600 -m "in_process and not serial" "$@" \
     > "$in_process_log" 2>&1 &
 in_process_pid=$!
 
