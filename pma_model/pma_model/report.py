@@ -351,11 +351,10 @@ def memory_check(samples: Samples, fitted: dict[str, FittedModel],
             continue
         branches = (model.branches['increasing'], model.branches['decreasing'])
         mix = RuleMix.of_rules(lambda rule, b=branches: OnlineModel(
-            *b, memory=rule, deadband_pa=deadband_pa))
+            *b, memory=rule, deadband_pa=deadband_pa), local_offset=False)
         online = {memory: [] for memory in ONLINE_MEMORIES}
         for sample in zip(samples.pressure_pa, samples.length_m, samples.time_s, strict=True):
-            prediction = mix.step(*sample)
-            online[MIX_MEMORY].append(prediction.length_m - prediction.local_offset_m)
+            online[MIX_MEMORY].append(mix.step(*sample).length_m)
             online['identify'].append(mix.last_predictions[0].length_m)
         identified[name] = mix.learned().learned_values()
         mix_weights[name] = mix.weights_by_rule()
