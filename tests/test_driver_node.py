@@ -63,6 +63,7 @@ class Probe:
         self.node = spinning.node
         self.call = spinning.call
         self.in_executor = spinning.in_executor
+        self.send_goal = spinning.send_goal
         self.lock = threading.Lock()
         self.states: list[tuple[float, PmaState]] = []
         self.pressures: list[FluidPressure] = []
@@ -363,11 +364,8 @@ def run_goal(probe, goal, timeout: float, feedback: list | None = None,
     """Send a goal that must be accepted (to pma/sweep, or `client`'s action); its final
     (status, result)."""
     client = client or probe.sweep
-    sent = probe.in_executor(client.send_goal_async, goal,
-                             feedback_callback=None if feedback is None else (
-                                 lambda f: feedback.append(f.feedback)))
-    wait_until(sent.done, 10, 'goal answer')
-    handle = sent.result()
+    handle = probe.send_goal(client, goal, feedback_callback=None if feedback is None else (
+        lambda f: feedback.append(f.feedback)))
     assert handle.accepted
     result_future = probe.in_executor(handle.get_result_async)
     wait_until(result_future.done, timeout, 'sweep result')
@@ -451,10 +449,8 @@ def test_sweep_cancel_vents(rig, probe):
     sweep_ready(rig, probe)
     feedback: list[Sweep.Feedback] = []
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=5.0, cycles=2)
-    sent = probe.in_executor(probe.sweep.send_goal_async, goal,
+    handle = probe.send_goal(probe.sweep, goal,
                              feedback_callback=lambda f: feedback.append(f.feedback))
-    wait_until(sent.done, 10, 'goal answer')
-    handle = sent.result()
     wait_until(lambda: any(f.step_index >= 1 for f in feedback), 20, 'second step')
     cancel = probe.in_executor(handle.cancel_goal_async)
     wait_until(cancel.done, 10, 'cancel answer')
@@ -468,9 +464,8 @@ def test_sweep_cancel_vents(rig, probe):
 def test_sweep_aborts_and_vents_when_the_data_stops(rig, probe):
     sweep_ready(rig, probe, '--stall-after', '5', '--stall-for', '4')
     goal = Sweep.Goal(max_gauge_pressure_pa=400_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
-    sent = probe.in_executor(probe.sweep.send_goal_async, goal)
-    wait_until(sent.done, 10, 'goal answer')
-    result_future = probe.in_executor(sent.result().get_result_async)
+    handle = probe.send_goal(probe.sweep, goal)
+    result_future = probe.in_executor(handle.get_result_async)
     wait_until(result_future.done, 30, 'sweep result')
     result = result_future.result().result
     # Seen either way, depending on where in the plan the stall hits: the link goes to

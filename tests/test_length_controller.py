@@ -57,9 +57,9 @@ class Probe:
     def send_goal(self, length_m: float, timeout_s: float = 20.0, **fields):
         assert self.move.wait_for_server(20), 'no pma/move_to_length server'
         goal = MoveToLength.Goal(length_m=length_m, timeout_s=timeout_s, **fields)
-        accepted = self._wait(self.spinning.in_executor(self.move.send_goal_async, goal), 10)
-        assert accepted.accepted
-        return accepted
+        handle = self.spinning.send_goal(self.move, goal)
+        assert handle.accepted
+        return handle
 
     @staticmethod
     def _wait(future, timeout: float):
@@ -265,7 +265,7 @@ def test_another_command_source_releases_the_target(rig):
     sweep = ActionClient(node, Sweep, 'pma/sweep')
     wait_for_action_server(sweep)
     goal = Sweep.Goal(max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
-    handle = probe._wait(probe.spinning.in_executor(sweep.send_goal_async, goal), 10)
+    handle = probe.spinning.send_goal(sweep, goal)
     result = probe._wait(probe.spinning.in_executor(handle.get_result_async), 60).result
     assert result.success, result.message
     rig['controller'].wait_for_line('released the target: the device holds', 5)

@@ -124,10 +124,9 @@ def swept(module_procs, probe, tmp_path_factory):
                       record=True, bag_path=str(bag), note='pipeline test, muscle m1')
     with live.lock:
         first_state = len(live.states)
-    sent = probe.in_executor(client.send_goal_async, goal)
-    wait_until(sent.done, 20, 'goal accepted')
-    assert sent.result().accepted
-    result_future = probe.in_executor(sent.result().get_result_async)
+    handle = probe.send_goal(client, goal, timeout=20)
+    assert handle.accepted
+    result_future = probe.in_executor(handle.get_result_async)
     wait_until(result_future.done, 240, 'sweep result')
     result = result_future.result().result
     client.destroy()

@@ -182,11 +182,8 @@ def test_sweep_action_runs_with_feedback_across_processes(procs, probe):
     try:
         wait_for_action_server(client)
         goal = Sweep.Goal(max_gauge_pressure_pa=200e3, step_pa=50e3, hold_s=0.0, cycles=1)
-        sent = probe.in_executor(client.send_goal_async, goal,
-                                 feedback_callback=lambda f: feedback.append(
-                                     f.feedback.gauge_setpoint_pa))
-        wait_until(sent.done, 20, 'goal acceptance')
-        handle = sent.result()
+        handle = probe.send_goal(client, goal, timeout=20, feedback_callback=lambda f: (
+            feedback.append(f.feedback.gauge_setpoint_pa)))
         assert handle.accepted
         result_future = probe.in_executor(handle.get_result_async)
         wait_until(result_future.done, 20, 'sweep result')

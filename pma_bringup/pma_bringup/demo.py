@@ -160,9 +160,8 @@ def run_sweep(spin, client, label: str, goal, timeout: float):
                   f'{feedback.gauge_setpoint_pa / 1e3:5.0f} kPa  {feedback.sample_count} samples',
                   end='' if interactive else '\n', flush=True)
 
-    sent = spin.call(client.send_goal_async, goal, feedback_callback=on_feedback)
-    _wait(sent, 20, 'the sweep goal to be accepted')
-    handle = sent.result()
+    handle = _send_goal(spin, client, goal, 20, 'the sweep goal to be accepted',
+                        feedback_callback=on_feedback)
     if not handle.accepted:
         raise RuntimeError(f'{label}: the driver rejected the sweep goal (see driver_node.log)')
     result_future = spin.call(handle.get_result_async)
@@ -185,6 +184,18 @@ def _wait(future, timeout: float, what: str) -> None:
 
     if not poll(future.done, timeout):
         raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what}')
+
+
+def _send_goal(spin, client, goal, timeout: float, what: str, *, feedback_callback=None):
+    """The goal's handle, sent again under its ID while unanswered (pma_common.action)."""
+    from pma_common.action import send_goal
+    from pma_common.service import poll
+
+    handle = send_goal(client, goal, timeout, poll, feedback_callback=feedback_callback,
+                       call=spin.call)
+    if handle is None:
+        raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what}')
+    return handle
 
 
 def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
@@ -255,10 +266,10 @@ def move_to(spin, client, length_m: float) -> str:
     """One MoveToLength goal, as `ros2 action send_goal` would send it; a one-line summary."""
     from pma_interfaces.action import MoveToLength
 
-    sent = spin.call(client.send_goal_async, MoveToLength.Goal(
-        length_m=length_m, tolerance_m=0.002, settle_s=1.0, timeout_s=20.0))
-    _wait(sent, 10, 'move_to_length accepted')
-    done = spin.call(sent.result().get_result_async)
+    handle = _send_goal(spin, client, MoveToLength.Goal(
+        length_m=length_m, tolerance_m=0.002, settle_s=1.0, timeout_s=20.0), 10,
+        'move_to_length accepted')
+    done = spin.call(handle.get_result_async)
     _wait(done, 40, 'move_to_length result')
     result = done.result().result
     if not result.success:

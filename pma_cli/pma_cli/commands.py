@@ -215,8 +215,7 @@ def release_controller(session: Session, control: ControlState, timeout_s: float
         if not session.spin_until(client.server_is_ready, timeout_s):
             return False
         goal = MoveToLength.Goal(length_m=control.target_length_m)
-        handle = session.wait_future(client.send_goal_async(goal), timeout_s,
-                                     'the length controller')
+        handle = session.send_goal(client, goal, timeout_s, 'the length controller')
         result = handle.get_result_async()
         session.wait_future(handle.cancel_goal_async(), timeout_s, 'the length controller')
         session.wait_future(result, timeout_s, 'the length controller')

@@ -40,8 +40,11 @@ from pma_interfaces.msg import ControlState, PmaState
 
 CANCEL_WAIT_S = 15.0
 DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or FORC set
+# STATUS_UNKNOWN: the server holds no goal of that ID (pma_common.action: a rejection taken
+# for the duplicate of an accepted goal).
 STATUS_WORDS = {GoalStatus.STATUS_SUCCEEDED: 'succeeded', GoalStatus.STATUS_ABORTED: 'aborted',
-                GoalStatus.STATUS_CANCELED: 'cancelled'}
+                GoalStatus.STATUS_CANCELED: 'cancelled',
+                GoalStatus.STATUS_UNKNOWN: 'not known to the server (rejected?)'}
 
 
 class Progress:
@@ -85,8 +88,8 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
                            f'{timeout_s:g} s): {hint}', NO_ANSWER)
         if before is not None:
             before()
-        sent = client.send_goal_async(goal, feedback_callback=lambda m: on_feedback(m.feedback))
-        handle = session.wait_future(sent, timeout_s, f'the {what} (goal acceptance)')
+        handle = session.send_goal(client, goal, timeout_s, f'the {what} (goal acceptance)',
+                                   feedback_callback=lambda m: on_feedback(m.feedback))
         if not handle.accepted:
             raise CliError(f'the {what} rejected the goal')
         result_future = handle.get_result_async()

@@ -17,6 +17,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rclpy.task import Future
 
+from pma_common.action import send_goal
 from pma_common.service import ask
 from pma_common.stop import StopRequest
 
@@ -102,6 +103,15 @@ class Session:
         if not self.spin_until(future.done, timeout_s):
             raise CliError(f'no answer from {what} within {timeout_s:g} s', NO_ANSWER)
         return future.result()
+
+    def send_goal(self, client, goal, timeout_s: float, what: str, feedback_callback=None):
+        """The goal's handle from `client`'s server (ready); sent again under its goal ID
+        while unanswered, so it runs once (pma_common.action)."""
+        handle = send_goal(client, goal, timeout_s, self.spin_until,
+                           feedback_callback=feedback_callback)
+        if handle is None:
+            raise CliError(f'no answer from {what} within {timeout_s:g} s', NO_ANSWER)
+        return handle
 
     def wait_for_service(self, client, timeout_s: float, hint: str) -> None:
         if not self.spin_until(client.service_is_ready, timeout_s):

@@ -13,6 +13,7 @@ from collections.abc import Callable
 import rclpy
 from rclpy.node import Node
 
+from pma_common.action import send_goal
 from pma_common.background import BackgroundSpin
 from pma_common.service import ask, poll
 
@@ -23,8 +24,9 @@ NEW_CLIENT_SETTLE_S = 0.5
 
 
 def wait_for_action_server(client, timeout: float = 20.0) -> None:
-    """`client.wait_for_server`, then NEW_CLIENT_SETTLE_S: a goal is a command, sent once, and
-    a client made after its server has only its own side of the match to go by."""
+    """`client.wait_for_server`, then NEW_CLIENT_SETTLE_S. SpinningNode.send_goal makes sure
+    the goal's answers come back, but feedback is a topic: the server's feedback writer may
+    not have matched a new client's reader yet, and what it publishes before is not heard."""
     assert client.wait_for_server(timeout_sec=timeout), f'no action server ({timeout:g} s)'
     time.sleep(NEW_CLIENT_SETTLE_S)
 
@@ -39,6 +41,15 @@ class SpinningNode:
         self._spin = BackgroundSpin(self.node)
         self.in_executor = self._spin.call
         self._clients: dict[str, object] = {}
+
+    def send_goal(self, client, goal, *, timeout: float = 10.0, feedback_callback=None):
+        """The handle of `goal`, sent as the product's tools send one (pma_common.action:
+        sent again under its goal ID while unanswered, so it runs once)."""
+        handle = send_goal(client, goal, timeout, poll, feedback_callback=feedback_callback,
+                           call=self.in_executor)
+        if handle is None:
+            raise TimeoutError(f'no answer to the goal within {timeout} s')
+        return handle
 
     def collect(self, msg_type, topic: str, qos=10):
         """(list that every message on `topic` is appended to, the subscription)."""

@@ -1,0 +1,169 @@
+"""`send_goal` sends a goal again under its ID while unanswered, over a real rclpy action.
+
+Discovery cannot be made to drop a goal answer on demand; a client that drops the first one
+it receives looks the same to `send_goal` (the answer went out, the goal was accepted, and
+nothing came back). Everything else is the real ActionServer and ActionClient.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from action_msgs.msg import GoalStatus
+from rclpy.action import ActionClient, ActionServer, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from rclpy.task import Future
+
+from pma_common.action import results_answered, send_goal
+from pma_common.background import BackgroundSpin
+from pma_common.service import poll
+from pma_interfaces.action import Sweep
+
+RESEND_S = 0.3
+
+
+class LosesFirstGoalAnswer(ActionClient):
+    """An ActionClient that never hears the first answer to a goal request, and counts the
+    goal requests it sends."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.sent = 0
+        self.lost = 0
+
+    def send_goal_async(self, *args, **kwargs):
+        self.sent += 1
+        return super().send_goal_async(*args, **kwargs)
+
+    async def execute(self, taken_data):
+        if 'goal' in taken_data and not self.lost:
+            self.lost += 1
+            del taken_data['goal']
+        await super().execute(taken_data)
+
+
+class Server:
+    """A Sweep server that counts goal callbacks and executions; `answer(n)` decides the
+    n-th goal callback (from 1): 'accept', 'reject', 'late' (accept after 3 resend periods)
+    or 'never'."""
+
+    def __init__(self, node: Node):
+        self.node = node
+        self.goal_calls = 0
+        self.executions = 0
+        self.answer = lambda n: 'accept'
+        ActionServer(node, Sweep, 'pma/sweep', execute_callback=self._execute,
+                     goal_callback=self._on_goal, callback_group=ReentrantCallbackGroup())
+
+    async def _on_goal(self, _goal) -> GoalResponse:
+        self.goal_calls += 1
+        answer = self.answer(self.goal_calls)
+        if answer == 'never':
+            await Future()
+        if answer == 'late':
+            later = Future()
+            timer = self.node.create_timer(3 * RESEND_S, lambda: later.set_result(None))
+            await later
+            timer.cancel()
+        return GoalResponse.REJECT if answer == 'reject' else GoalResponse.ACCEPT
+
+    def _execute(self, goal_handle) -> Sweep.Result:
+        self.executions += 1
+        goal_handle.publish_feedback(Sweep.Feedback(progress=1.0))
+        goal_handle.succeed()
+        return Sweep.Result(success=True, message=f'execution {self.executions}')
+
+
+@pytest.fixture
+def rig(context):
+    """(server, spun client node): each node spun by a thread of its own."""
+    server_node = Node('send_goal_server', context=context)
+    client_node = Node('send_goal_client', context=context)
+    spins = [BackgroundSpin(server_node), BackgroundSpin(client_node)]
+    yield Server(server_node), spins[1]
+    for spin in spins:
+        spin.close()
+    for node in (server_node, client_node):
+        node.destroy_node()
+
+
+def ready(spin: BackgroundSpin, client_type=ActionClient):
+    client = client_type(spin.node, Sweep, 'pma/sweep')
+    assert client.wait_for_server(timeout_sec=10)
+    return client
+
+
+def result_of(spin: BackgroundSpin, handle):
+    future = spin.call(handle.get_result_async)
+    assert poll(future.done, 10), 'no result'
+    return future.result()
+
+
+def test_a_goal_whose_answer_is_lost_is_sent_again_under_its_id_and_runs_once(rig):
+    server, spin = rig
+    client = ready(spin, LosesFirstGoalAnswer)
+    feedback = []
+    handle = send_goal(client, Sweep.Goal(), 10, poll, call=spin.call, resend_s=RESEND_S,
+                       feedback_callback=lambda m: feedback.append(m.feedback.progress))
+    assert handle is not None and handle.accepted
+    assert (client.lost, client.sent) == (1, 2)
+    # The resend was rejected as the goal ID's duplicate, without a goal callback.
+    assert (server.goal_calls, server.executions) == (1, 1)
+    answer = result_of(spin, handle)
+    assert answer.status == GoalStatus.STATUS_SUCCEEDED
+    assert answer.result.message == 'execution 1'
+    assert poll(lambda: feedback == [1.0], 5), feedback
+
+
+def test_an_answered_goal_is_sent_once(rig):
+    server, spin = rig
+    client = ready(spin, LosesFirstGoalAnswer)
+    client.lost = 1                                        # loses nothing
+    handle = send_goal(client, Sweep.Goal(), 10, poll, call=spin.call, resend_s=RESEND_S)
+    assert handle.accepted and client.sent == 1 and server.goal_calls == 1
+    assert result_of(spin, handle).result.message == 'execution 1'
+
+
+def test_a_server_slower_than_the_resend_period_runs_the_goal_once(rig):
+    """The first request waits in the goal callback while its resends arrive: the resend
+    that is accepted is the goal, and the first is refused once its callback returns."""
+    server, spin = rig
+    server.answer = lambda n: 'late' if n == 1 else 'accept'
+    client = ready(spin)
+    handle = send_goal(client, Sweep.Goal(), 10, poll, call=spin.call, resend_s=RESEND_S)
+    assert handle.accepted
+    assert result_of(spin, handle).result.message == 'execution 1'
+    assert poll(lambda: server.goal_calls == 2, 5)      # the late first call has returned
+    threading.Event().wait(2 * RESEND_S)
+    assert server.executions == 1
+
+
+def test_a_rejected_first_request_is_the_answer(rig):
+    server, spin = rig
+    server.answer = lambda n: 'reject'
+    client = ready(spin)
+    handle = send_goal(client, Sweep.Goal(), 10, poll, call=spin.call, resend_s=RESEND_S)
+    assert handle is not None and not handle.accepted
+    assert (server.goal_calls, server.executions) == (1, 0)
+
+
+def test_a_server_that_never_answers_the_goal_gives_none(rig):
+    server, spin = rig
+    server.answer = lambda n: 'never'
+    client = ready(spin)
+    assert send_goal(client, Sweep.Goal(), 1.0, poll, call=spin.call, resend_s=RESEND_S) is None
+    # No goal was created, so each resend reached the goal callback; none was answered.
+    assert server.goal_calls >= 2 and server.executions == 0
+
+
+def test_no_result_answer_without_a_server_is_false(context):
+    node = Node('send_goal_alone', context=context)
+    spin = BackgroundSpin(node)
+    try:
+        client = ActionClient(node, Sweep, 'pma/nobody')
+        assert not results_answered(client, 1.0, poll, spin.call, resend_s=RESEND_S)
+    finally:
+        spin.close()
+        node.destroy_node()
