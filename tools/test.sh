@@ -37,7 +37,8 @@ PMA_TEST_DOMAINS=102-120 setsid bash -c \
     > "$in_process_log" 2>&1 &
 in_process_pid=$!
 
-python -m pytest "${parallel[@]}" -m "not in_process and not serial" "$@"
+# The slowest process tests are listed at the end: where `make test`'s time goes, in CI too.
+python -m pytest "${parallel[@]}" --durations 15 -m "not in_process and not serial" "$@"
 process_status=$?
 
 echo "[test] the in_process tests, run at nice 19 beside those above:"
