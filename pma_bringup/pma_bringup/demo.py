@@ -198,11 +198,31 @@ def _send_goal(spin, client, goal, timeout: float, what: str, *, feedback_callba
     return handle
 
 
-def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
+class ServiceClients:
+    """The demo's service clients, made with its node before it spins and kept.
+
+    Made just before its first call, a client's answer can be lost while the server's reply
+    writer is still matching it (pma_common.service; a command is sent once), and made or
+    destroyed while the node spins in its thread it can break the wait (rclpy, see the
+    action clients in main).
+    """
+
+    def __init__(self, node):
+        from rcl_interfaces.srv import SetParameters
+
+        from pma_interfaces.srv import PressureForLength, StartRecording, StopRecording
+
+        self.pressure_for_length = node.create_client(PressureForLength, 'pressure_for_length')
+        self.start_recording = node.create_client(StartRecording, 'recorder/start')
+        self.stop_recording = node.create_client(StopRecording, 'recorder/stop')
+        self.model_parameters = node.create_client(SetParameters, 'model_node/set_parameters')
+
+
+def ask_pressures(client, lengths_m: list[float]) -> list[tuple]:
+    """`client` is ServiceClients.pressure_for_length."""
     from pma_common.service import ask, poll
     from pma_interfaces.srv import PressureForLength
 
-    client = node.create_client(PressureForLength, 'pressure_for_length')
     if not client.wait_for_service(timeout_sec=20):
         raise RuntimeError('pressure_for_length (model_node) is not available')
     answers = []
@@ -215,51 +235,47 @@ def ask_pressures(node, lengths_m: list[float]) -> list[tuple]:
             if answer is None:
                 raise RuntimeError('pressure_for_length (model_node) did not answer in 10 s')
             answers.append((length_m, branch, answer))
-    node.destroy_client(client)
     return answers
 
 
-def set_parameter(node, target: str, name: str, value: str) -> str:
-    """`ros2 param set TARGET NAME VALUE` for a string; the refusal's reason ('' if set)."""
+def set_parameter(client, name: str, value: str) -> str:
+    """`ros2 param set` of a string through `client` (a set_parameters client); the refusal's
+    reason ('' if set). Setting a value twice is setting it once: resent while unanswered."""
     from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
 
-    client = node.create_client(SetParameters, f'{target}/set_parameters')
-    try:
-        if not client.wait_for_service(timeout_sec=10):
-            return f'{target} has no parameter service'
-        future = client.call_async(SetParameters.Request(parameters=[Parameter(
-            name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING,
-                                            string_value=value))]))
-        _wait(future, 20, f'{target}/set_parameters')
-        result = future.result().results[0]
-        return '' if result.successful else result.reason
-    finally:
-        node.destroy_client(client)
+    from pma_common.service import ask, poll
+
+    if not client.wait_for_service(timeout_sec=10):
+        return f'nothing serves {client.srv_name}'
+    response = ask(client, SetParameters.Request(parameters=[Parameter(
+        name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING,
+                                        string_value=value))]), 20, poll)
+    if response is None:
+        raise RuntimeError(f'timed out after 20 s waiting for {client.srv_name}')
+    result = response.results[0]
+    return '' if result.successful else result.reason
 
 
-def record_bag(node, path: Path | None, custom_data: dict[str, str] | None = None) -> str:
+def record_bag(clients: ServiceClients, path: Path | None,
+               custom_data: dict[str, str] | None = None) -> str:
     """Start (path, with its custom_data) or stop (None) a bag on the idle recorder; its
     answer's message."""
     from diagnostic_msgs.msg import KeyValue
 
     from pma_interfaces.srv import StartRecording, StopRecording
 
-    kind, request = ((StartRecording, StartRecording.Request(
+    client, request = ((clients.start_recording, StartRecording.Request(
         bag_path=str(path),
         custom_data=[KeyValue(key=k, value=v) for k, v in (custom_data or {}).items()]))
-        if path is not None else (StopRecording, StopRecording.Request()))
-    client = node.create_client(kind, 'recorder/start' if path is not None else 'recorder/stop')
-    try:
-        if not client.wait_for_service(timeout_sec=10):
-            raise RuntimeError('the recorder does not answer (see logs/recorder.log)')
-        future = client.call_async(request)
-        _wait(future, 20, 'the recorder')
-        if not future.result().success:
-            raise RuntimeError(f'recorder: {future.result().message}')
-        return future.result().message
-    finally:
-        node.destroy_client(client)
+        if path is not None else (clients.stop_recording, StopRecording.Request()))
+    if not client.wait_for_service(timeout_sec=10):
+        raise RuntimeError('the recorder does not answer (see logs/recorder.log)')
+    future = client.call_async(request)
+    _wait(future, 20, 'the recorder')
+    if not future.result().success:
+        raise RuntimeError(f'recorder: {future.result().message}')
+    return future.result().message
 
 
 def move_to(spin, client, length_m: float) -> str:
@@ -278,7 +294,7 @@ def move_to(spin, client, length_m: float) -> str:
             f'at {result.final_length_m * 100:.2f} cm')
 
 
-def run_control(spin, client, run_dir: Path, truth_csv: Path,
+def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv: Path, *,
                 rate_hz: float) -> list[tuple[str, Path]]:
     """Steps (through `client`, the pma/move_to_length action client) and a streamed sine
     through length_controller, recorded, plotted against the simulated truth (the run and the
@@ -304,7 +320,7 @@ def run_control(spin, client, run_dir: Path, truth_csv: Path,
     if not client.wait_for_server(timeout_sec=20):
         raise RuntimeError('no pma/move_to_length (see logs/length_controller.log)')
     bag = run_dir / 'control'
-    record_bag(node, bag, {'run_id': run_dir.name,
+    record_bag(services, bag, {'run_id': run_dir.name,
                            'note': 'demo: MoveToLength steps, then a streamed 0.1 Hz sine'})
     begin = len(steps)
     for length_m in (0.255, 0.285, 0.265):
@@ -318,7 +334,7 @@ def run_control(spin, client, run_dir: Path, truth_csv: Path,
         setpoints.publish(LengthSetpoint(length_m=0.2725 - 0.0225 * math.cos(phase)))
         time.sleep(0.02)
     time.sleep(0.5)
-    say(f'   {record_bag(node, None)}')
+    say(f'   {record_bag(services, None)}')
     truth = TruthLog.true_lengths(truth_csv)
     rows = []
     for c in steps[begin:]:
@@ -409,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
         # after the first sweep, which was the last; pma_common.background).
         sweeps = ActionClient(node, Sweep, 'pma/sweep')
         moves = ActionClient(node, MoveToLength, 'pma/move_to_length')
+        services = ServiceClients(node)
         spin = BackgroundSpin(node)   # its callbacks only collect
 
         from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
@@ -446,7 +463,8 @@ def main(argv: list[str] | None = None) -> int:
 
         say('5/8 pressure_for_length (the inverse model)')
         print('        length     branch             gauge pressure   reachable on that branch')
-        for length_m, branch, answer in ask_pressures(node, [0.29, 0.27, 0.25]):
+        for length_m, branch, answer in ask_pressures(services.pressure_for_length,
+                                                      [0.29, 0.27, 0.25]):
             name = BRANCH_NAMES[branch] if branch else f'auto: {BRANCH_NAMES[answer.branch]}'
             if answer.success:
                 reach = f'{answer.min_length_m * 100:.2f}..{answer.max_length_m * 100:.2f} cm'
@@ -471,7 +489,7 @@ def main(argv: list[str] | None = None) -> int:
         say('7/8 model_node loads the refit (ros2 param set /model_node params_file ...); '
             'the controller follows')
         loaded_before = len(model_params)
-        refused = set_parameter(node, '/model_node', 'params_file', str(params_out))
+        refused = set_parameter(services.model_parameters, 'params_file', str(params_out))
         if refused:
             raise RuntimeError(f'model_node refused the refit: {refused}')
         deadline = time.monotonic() + 15
@@ -485,7 +503,8 @@ def main(argv: list[str] | None = None) -> int:
             say('   model_node did not report new parameters (see logs/model_node.log)')
 
         say('8/8 length control: steps 25.5 -> 28.5 -> 26.5 cm (MoveToLength), then a sine')
-        control_outputs = run_control(spin, moves, run_dir, truth_csv, args.rate_hz)
+        control_outputs = run_control(spin, moves, services, run_dir, truth_csv,
+                                      rate_hz=args.rate_hz)
 
         elapsed = time.monotonic() - started
         say(f'done in {elapsed:.0f} s. Outputs:')
