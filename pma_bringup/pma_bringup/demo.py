@@ -279,7 +279,8 @@ def record_bag(clients: ServiceClients, path: Path | None,
 
 
 def move_to(spin, client, length_m: float) -> str:
-    """One MoveToLength goal, as `ros2 action send_goal` would send it; a one-line summary."""
+    """One MoveToLength goal (the fields `ros2 action send_goal` would send); a one-line
+    summary."""
     from pma_interfaces.action import MoveToLength
 
     handle = _send_goal(spin, client, MoveToLength.Goal(
