@@ -27,7 +27,7 @@ from rosbags.highlevel import AnyReader
 from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
-from support.procs import INSTALL
+from support.procs import INSTALL, ROOT
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -138,6 +138,29 @@ def test_tare_wants_a_vented_muscle_and_vent_gives_one(rig):
     assert rig['probe'].fresh_state().gauge_setpoint_pa == 0.0
     assert 'tared: ADC' in ok(pma('tare'))
     assert 'tared: ADC' in ok(pma('tare', '--vent'))
+
+
+def test_vent_vents_when_a_goal_server_never_answers_the_cancel(rig, procs, tmp_path):
+    """A cancel whose answer never comes (lost to a new client, or a hung node) is reported,
+    and the 0 Pa setpoint is sent all the same: before, `pma vent` ended with exit 3 there
+    and vented nothing. A rig of its own, in a namespace where the move server is silent."""
+    ns = ['-r', '__ns:=/silent']
+    port = tmp_path / 'pma'
+    procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+                   name='silent_fake').wait_for_line('device at', 20)
+    driver = procs.ros2_run('pma_driver', 'driver_node', name='silent_driver',
+                            ros_args=[*ns, '-p', f'port:={port}'])
+    silent = procs.python(ROOT / 'tests' / 'helpers' / 'silent_cancel_server.py',
+                          '--ros-args', *ns, name='silent_cancel_server')
+    silent.wait_for_line('silent_cancel_server: ready', 20)
+    driver.wait_for_line('active: publishing', 30)
+    ok(pma('set', '120kPa', '--wait', namespace='silent'))
+    result = pma('vent', namespace='silent')
+    out = ok(result)
+    assert ('/silent/pma/move_to_length did not answer the cancel within 5 s; venting all '
+            'the same') in result.stderr, result.stderr
+    assert 'setpoint 0 kPa taken' in out
+    silent.wait_for_line('cancel request 2 taken', 5)         # resent while unanswered
 
 
 def test_length_answers_what_the_service_answers(rig):

@@ -31,6 +31,7 @@ ROSOUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 ABSENT_AFTER_S = 4.0        # a node not in the graph by then (which shows others) is not running
 REST_PA = 25_000.0          # below this a vented muscle may be tared (the device's own bound)
 SETTLE_WAIT_S = 30.0        # `pma set --wait`: inflating takes longer than a node's answer
+CANCEL_ANSWER_S = 5.0       # `pma vent`: a goal server's answer to cancelling all its goals
 
 
 # -- setpoints -----------------------------------------------------------------------------
@@ -182,17 +183,23 @@ def set_pressure(session: Session, gauge_pa: float, wait: bool, tolerance_pa: fl
     return OK
 
 
-def cancel_all_goals(session: Session, action: str, timeout_s: float = 1.0) -> int:
+def cancel_all_goals(session: Session, action: str, timeout_s: float = 1.0) -> int | None:
     """Cancel every goal of an action (zero id and stamp: all, by the action protocol).
 
-    Returns how many goals were cancelling; 0 when no server answers (none running).
+    Returns how many goals were cancelling; 0 when no server is there (none running); None
+    when the server did not answer within CANCEL_ANSWER_S. Cancelling all twice is cancelling
+    all once, so the request is resent while unanswered (an answer to a new client can be
+    lost, pma_common.service).
     """
     client = session.node.create_client(CancelGoal, f'{action}/_action/cancel_goal')
     try:
         if not session.spin_until(client.service_is_ready, timeout_s):
             return 0
-        response = session.wait_future(client.call_async(CancelGoal.Request()), 5.0,
-                                       client.srv_name)
+        try:
+            response = session.answer(client, CancelGoal.Request(), CANCEL_ANSWER_S,
+                                      query=True)
+        except CliError:
+            return None
         return len(response.goals_canceling)
     finally:
         session.node.destroy_client(client)
@@ -256,13 +263,21 @@ def vent(session: Session, wait: bool, timeout_s: float) -> int:
     """Cancel any sweep or move, release a holding controller, then command 0 Pa."""
     setpoints = Setpoints(session)
     setpoints.wait_for_driver(timeout_s)
+    # What comes before the 0 Pa setpoint must not keep it from being sent: an unanswered
+    # cancel or release is reported, and the muscle vented all the same.
     cancelled = {action: cancel_all_goals(session, action)
                  for action in ('pma/sweep', 'pma/move_to_length')}
     for action, count in cancelled.items():
-        if count:
+        if count is None:
+            print(f'pma vent: warning: {session.resolve(action)} did not answer the cancel '
+                  f'within {CANCEL_ANSWER_S:g} s; venting all the same', file=sys.stderr)
+        elif count:
             print(f'cancelled {count} goal(s) of {session.resolve(action)}')
     session.spin_for(0.3)                       # the controller's state after the cancel
-    release_holding_controller(session, setpoints.control, timeout_s)
+    try:
+        release_holding_controller(session, setpoints.control, timeout_s)
+    except CliError as error:
+        print(f'pma vent: warning: {error}; venting all the same', file=sys.stderr)
     deadline = time.monotonic() + timeout_s
     while True:
         try:
