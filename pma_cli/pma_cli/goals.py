@@ -39,6 +39,7 @@ from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import ControlState, PmaState
 
 CANCEL_WAIT_S = 15.0
+CANCEL_SEND_S = 0.5    # a cancel sent on the way out is given this long to leave
 DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or FORC set
 # STATUS_UNKNOWN: the server holds no goal of that ID (pma_common.action: a rejection taken
 # for the duplicate of an accepted goal).
@@ -88,8 +89,16 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
                            f'{timeout_s:g} s): {hint}', NO_ANSWER)
         if before is not None:
             before()
-        handle = session.send_goal(client, goal, timeout_s, f'the {what} (goal acceptance)',
-                                   feedback_callback=lambda m: on_feedback(m.feedback))
+        try:
+            handle = session.send_goal(client, goal, timeout_s, f'the {what} (goal acceptance)',
+                                       feedback_callback=lambda m: on_feedback(m.feedback))
+        except Interrupted:
+            # send_goal has sent a cancel for the goal, which may run: a moment for it to
+            # leave before the node goes.
+            print(f'\ninterrupted before the {what} answered the goal; a cancel for it was '
+                  'sent', file=sys.stderr, flush=True)
+            session.spin_until(lambda: False, CANCEL_SEND_S, interruptible=False)
+            raise
         if not handle.accepted:
             raise CliError(f'the {what} rejected the goal')
         result_future = handle.get_result_async()

@@ -74,25 +74,34 @@ def send_goal(client, goal, timeout_s: float, wait: Wait, *,
     `wait(done, seconds)` waits until `done()` or the time is up and says which; `call(f,
     *args, **kwargs)` runs an ActionClient request where it must run (on the spinning thread:
     pma_common.background). The handle's `get_result_async` and `cancel_goal_async` work
-    whether the acceptance was heard or inferred from a rejected resend.
+    whether the acceptance was heard or inferred from a rejected resend. If `wait` raises
+    once the goal is sent, a cancel for it is sent and the exception goes on.
     """
     deadline = time.monotonic() + timeout_s
     if not results_answered(client, timeout_s, wait, call, resend_s):
         return None
     goal_id = new_goal_id()
     sent = []
-    while True:
-        sent.append(call(client.send_goal_async, goal, feedback_callback=feedback_callback,
-                         goal_uuid=goal_id))
-        remaining = deadline - time.monotonic()
-        if wait(lambda: any(future.done() for future in sent),
-                max(0.0, min(resend_s, remaining))):
-            answers = [future.result() for future in sent if future.done()]
-            accepted = [handle for handle in answers if handle.accepted]
-            if accepted:
-                return accepted[0]
-            if sent[0].done():
-                return sent[0].result()      # the first request rejected: a real rejection
-            return ClientGoalHandle(client, goal_id, _GoalAnswer(True, answers[0].stamp))
-        if time.monotonic() >= deadline:
-            return None
+    try:
+        while True:
+            sent.append(call(client.send_goal_async, goal, feedback_callback=feedback_callback,
+                             goal_uuid=goal_id))
+            remaining = deadline - time.monotonic()
+            if wait(lambda: any(future.done() for future in sent),
+                    max(0.0, min(resend_s, remaining))):
+                answers = [future.result() for future in sent if future.done()]
+                accepted = [handle for handle in answers if handle.accepted]
+                if accepted:
+                    return accepted[0]
+                if sent[0].done():
+                    return sent[0].result()      # the first request rejected: a real one
+                return ClientGoalHandle(client, goal_id, _GoalAnswer(True, answers[0].stamp))
+            if time.monotonic() >= deadline:
+                return None
+    except BaseException:
+        # `wait` raised (a stop signal) before the answer came: the server may run the goal
+        # all the same, so it is cancelled by its ID (the answer is not awaited) before the
+        # stop goes on.
+        if sent:
+            call(ClientGoalHandle(client, goal_id, _GoalAnswer(True, Time())).cancel_goal_async)
+        raise

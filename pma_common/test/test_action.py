@@ -11,7 +11,7 @@ import threading
 
 import pytest
 from action_msgs.msg import GoalStatus
-from rclpy.action import ActionClient, ActionServer, GoalResponse
+from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
@@ -45,17 +45,27 @@ class LosesFirstGoalAnswer(ActionClient):
 
 
 class Server:
-    """A Sweep server that counts goal callbacks and executions; `answer(n)` decides the
-    n-th goal callback (from 1): 'accept', 'reject', 'late' (accept after 3 resend periods)
-    or 'never'."""
+    """A Sweep server that counts goal callbacks, executions and cancelled goals; `answer(n)`
+    decides the n-th goal callback (from 1): 'accept', 'reject', 'late' (accept after 3
+    resend periods) or 'never'. A goal runs until cancelled if `until_cancelled`."""
 
     def __init__(self, node: Node):
         self.node = node
         self.goal_calls = 0
         self.executions = 0
+        self.cancelled = 0
+        self.until_cancelled = False
         self.answer = lambda n: 'accept'
         ActionServer(node, Sweep, 'pma/sweep', execute_callback=self._execute,
-                     goal_callback=self._on_goal, callback_group=ReentrantCallbackGroup())
+                     goal_callback=self._on_goal,
+                     cancel_callback=lambda _: CancelResponse.ACCEPT,
+                     callback_group=ReentrantCallbackGroup())
+
+    async def _pause(self, seconds: float) -> None:
+        later = Future()
+        timer = self.node.create_timer(seconds, lambda: later.done() or later.set_result(None))
+        await later
+        timer.cancel()
 
     async def _on_goal(self, _goal) -> GoalResponse:
         self.goal_calls += 1
@@ -63,14 +73,17 @@ class Server:
         if answer == 'never':
             await Future()
         if answer == 'late':
-            later = Future()
-            timer = self.node.create_timer(3 * RESEND_S, lambda: later.set_result(None))
-            await later
-            timer.cancel()
+            await self._pause(3 * RESEND_S)
         return GoalResponse.REJECT if answer == 'reject' else GoalResponse.ACCEPT
 
-    def _execute(self, goal_handle) -> Sweep.Result:
+    async def _execute(self, goal_handle) -> Sweep.Result:
         self.executions += 1
+        while self.until_cancelled:
+            if goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+                self.cancelled += 1
+                return Sweep.Result(message='cancelled')
+            await self._pause(0.05)
         goal_handle.publish_feedback(Sweep.Feedback(progress=1.0))
         goal_handle.succeed()
         return Sweep.Result(success=True, message=f'execution {self.executions}')
@@ -156,6 +169,30 @@ def test_a_server_that_never_answers_the_goal_gives_none(rig):
     assert send_goal(client, Sweep.Goal(), 1.0, poll, call=spin.call, resend_s=RESEND_S) is None
     # No goal was created, so each resend reached the goal callback; none was answered.
     assert server.goal_calls >= 2 and server.executions == 0
+
+
+def test_a_stop_while_the_answer_is_awaited_cancels_the_goal_by_its_id(rig):
+    """Ctrl-C at `pma sweep` before the acceptance is heard: the sweep may be running, so it
+    is cancelled (by the goal ID, the only name the client has for it)."""
+    server, spin = rig
+    server.until_cancelled = True
+    client = ready(spin, LosesFirstGoalAnswer)
+    waits = []
+
+    class Stop(Exception):  # noqa: N818  (a stop, not an error)
+        pass
+
+    def wait(done, seconds):
+        waits.append(seconds)
+        if len(waits) == 2:             # the goal's first wait (the first is the result query's)
+            assert poll(lambda: server.executions == 1, 5)   # running; its answer was lost
+            raise Stop
+        return poll(done, seconds)
+
+    with pytest.raises(Stop):
+        send_goal(client, Sweep.Goal(), 10, wait, call=spin.call, resend_s=RESEND_S)
+    assert poll(lambda: server.cancelled == 1, 5), 'the goal was not cancelled'
+    assert client.sent == 1
 
 
 def test_no_result_answer_without_a_server_is_false(context):
