@@ -21,6 +21,7 @@ goal's result then says STATUS_UNKNOWN.
 
 from __future__ import annotations
 
+import contextlib
 import time
 import uuid
 from collections.abc import Callable
@@ -103,5 +104,7 @@ def send_goal(client, goal, timeout_s: float, wait: Wait, *,
         # all the same, so it is cancelled by its ID (the answer is not awaited) before the
         # stop goes on.
         if sent:
-            call(ClientGoalHandle(client, goal_id, _GoalAnswer(True, Time())).cancel_goal_async)
+            with contextlib.suppress(Exception):     # the first exception is the one to tell
+                call(ClientGoalHandle(client, goal_id,
+                                      _GoalAnswer(True, Time())).cancel_goal_async)
         raise
