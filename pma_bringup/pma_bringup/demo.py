@@ -194,7 +194,8 @@ def _send_goal(spin, client, goal, timeout: float, what: str, *, feedback_callba
     handle = send_goal(client, goal, timeout, poll, feedback_callback=feedback_callback,
                        call=spin.call)
     if handle is None:
-        raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what}')
+        raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what} (a cancel '
+                           'for the goal was sent, as it may run all the same)')
     return handle
 
 

@@ -19,6 +19,7 @@ from rclpy.action import ActionClient
 from pma_cli import quantities as q
 from pma_cli.commands import CONTROL_TOPIC, holds_target, release_holding_controller
 from pma_cli.session import (
+    CANCEL_SEND_S,
     FAILED,
     INTERRUPTED,
     NO_ANSWER,
@@ -39,7 +40,6 @@ from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import ControlState, PmaState
 
 CANCEL_WAIT_S = 15.0
-CANCEL_SEND_S = 0.5    # a cancel sent on the way out is given this long to leave
 DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or FORC set
 # STATUS_UNKNOWN: the server holds no goal of that ID (pma_common.action: a rejection taken
 # for the duplicate of an accepted goal).

@@ -29,6 +29,7 @@ NO_ANSWER = 3       # nobody answered: the node is not running, or in another na
 INTERRUPTED = 130   # stopped by Ctrl-C (or SIGTERM/SIGHUP) before it finished; goals cancelled
 
 SPIN_S = 0.05
+CANCEL_SEND_S = 0.5    # a cancel sent on the way out (send_goal) is given this long to leave
 
 
 class Interrupted(Exception):  # noqa: N818  (a stop, not an error)
@@ -110,7 +111,9 @@ class Session:
         handle = send_goal(client, goal, timeout_s, self.spin_until,
                            feedback_callback=feedback_callback)
         if handle is None:
-            raise CliError(f'no answer from {what} within {timeout_s:g} s', NO_ANSWER)
+            self.spin_until(lambda: False, CANCEL_SEND_S, interruptible=False)
+            raise CliError(f'no answer from {what} within {timeout_s:g} s; a cancel for the '
+                           'goal was sent, as it may run all the same', NO_ANSWER)
         return handle
 
     def wait_for_service(self, client, timeout_s: float, hint: str) -> None:

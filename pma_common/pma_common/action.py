@@ -70,13 +70,14 @@ def send_goal(client, goal, timeout_s: float, wait: Wait, *,
               call: Callable[..., Any] = _direct,
               resend_s: float = RESEND_QUERY_S) -> ClientGoalHandle | None:
     """`goal`'s handle from the server of `client` (an ActionClient whose server is ready),
-    or None if the server did not answer within `timeout_s`.
+    or None if the server did not answer within `timeout_s` (a cancel for the goal is sent
+    then: it may run all the same).
 
     `wait(done, seconds)` waits until `done()` or the time is up and says which; `call(f,
     *args, **kwargs)` runs an ActionClient request where it must run (on the spinning thread:
     pma_common.background). The handle's `get_result_async` and `cancel_goal_async` work
     whether the acceptance was heard or inferred from a rejected resend. If `wait` raises
-    once the goal is sent, a cancel for it is sent and the exception goes on.
+    (a stop signal), a cancel for the goal is sent and the exception goes on.
     """
     deadline = time.monotonic() + timeout_s
     if not results_answered(client, timeout_s, wait, call, resend_s):
@@ -98,13 +99,16 @@ def send_goal(client, goal, timeout_s: float, wait: Wait, *,
                     return sent[0].result()      # the first request rejected: a real one
                 return ClientGoalHandle(client, goal_id, _GoalAnswer(True, answers[0].stamp))
             if time.monotonic() >= deadline:
+                _cancel(client, goal_id, call)
                 return None
     except BaseException:
-        # `wait` raised (a stop signal) before the answer came: the server may run the goal
-        # all the same, so it is cancelled by its ID (the answer is not awaited) before the
-        # stop goes on.
-        if sent:
-            with contextlib.suppress(Exception):     # the first exception is the one to tell
-                call(ClientGoalHandle(client, goal_id,
-                                      _GoalAnswer(True, Time())).cancel_goal_async)
+        _cancel(client, goal_id, call)
         raise
+
+
+def _cancel(client, goal_id: UUID, call: Callable[..., Any]) -> None:
+    """Cancel a goal given up on before its answer came (a stop signal, the timeout): the
+    server may run it all the same. The cancel's answer is not awaited; a failure to send it
+    does not hide what stopped the wait."""
+    with contextlib.suppress(Exception):
+        call(ClientGoalHandle(client, goal_id, _GoalAnswer(True, Time())).cancel_goal_async)

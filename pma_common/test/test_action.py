@@ -24,13 +24,14 @@ from pma_interfaces.action import Sweep
 RESEND_S = 0.3
 
 
-class LosesFirstGoalAnswer(ActionClient):
-    """An ActionClient that never hears the first answer to a goal request, and counts the
-    goal requests it sends."""
+class LosesGoalAnswers(ActionClient):
+    """An ActionClient that never hears the first `lose` answers to its goal requests (1 by
+    default), and counts the goal requests it sends."""
 
-    def __init__(self, *args, **kwargs):
+    def __init__(self, *args, lose: int = 1, **kwargs):
         super().__init__(*args, **kwargs)
         self.sent = 0
+        self.lose = lose
         self.lost = 0
 
     def send_goal_async(self, *args, **kwargs):
@@ -38,7 +39,7 @@ class LosesFirstGoalAnswer(ActionClient):
         return super().send_goal_async(*args, **kwargs)
 
     async def execute(self, taken_data):
-        if 'goal' in taken_data and not self.lost:
+        if 'goal' in taken_data and self.lost < self.lose:
             self.lost += 1
             del taken_data['goal']
         await super().execute(taken_data)
@@ -116,7 +117,7 @@ def result_of(spin: BackgroundSpin, handle):
 
 def test_a_goal_whose_answer_is_lost_is_sent_again_under_its_id_and_runs_once(rig):
     server, spin = rig
-    client = ready(spin, LosesFirstGoalAnswer)
+    client = ready(spin, LosesGoalAnswers)
     feedback = []
     handle = send_goal(client, Sweep.Goal(), 10, poll, call=spin.call, resend_s=RESEND_S,
                        feedback_callback=lambda m: feedback.append(m.feedback.progress))
@@ -132,8 +133,8 @@ def test_a_goal_whose_answer_is_lost_is_sent_again_under_its_id_and_runs_once(ri
 
 def test_an_answered_goal_is_sent_once(rig):
     server, spin = rig
-    client = ready(spin, LosesFirstGoalAnswer)
-    client.lost = 1                                        # loses nothing
+    client = ready(spin, LosesGoalAnswers)
+    client.lose = 0
     handle = send_goal(client, Sweep.Goal(), 10, poll, call=spin.call, resend_s=RESEND_S)
     assert handle.accepted and client.sent == 1 and server.goal_calls == 1
     assert result_of(spin, handle).result.message == 'execution 1'
@@ -171,12 +172,23 @@ def test_a_server_that_never_answers_the_goal_gives_none(rig):
     assert server.goal_calls >= 2 and server.executions == 0
 
 
+def test_a_goal_whose_answers_are_all_lost_is_cancelled_when_given_up(rig):
+    """None after the timeout, and the goal, which runs, cancelled by its ID."""
+    server, spin = rig
+    server.until_cancelled = True
+    client = ready(spin, LosesGoalAnswers)
+    client.lose = 1000
+    assert send_goal(client, Sweep.Goal(), 1.0, poll, call=spin.call, resend_s=RESEND_S) is None
+    assert client.sent >= 3 and server.executions == 1
+    assert poll(lambda: server.cancelled == 1, 5), 'the goal was not cancelled'
+
+
 def test_a_stop_while_the_answer_is_awaited_cancels_the_goal_by_its_id(rig):
     """Ctrl-C at `pma sweep` before the acceptance is heard: the sweep may be running, so it
     is cancelled (by the goal ID, the only name the client has for it)."""
     server, spin = rig
     server.until_cancelled = True
-    client = ready(spin, LosesFirstGoalAnswer)
+    client = ready(spin, LosesGoalAnswers)
     waits = []
 
     class Stop(Exception):  # noqa: N818  (a stop, not an error)

@@ -48,7 +48,8 @@ class SpinningNode:
         handle = send_goal(client, goal, timeout, poll, feedback_callback=feedback_callback,
                            call=self.in_executor)
         if handle is None:
-            raise TimeoutError(f'no answer to the goal within {timeout} s')
+            raise TimeoutError(f'no answer to the goal within {timeout} s (a cancel for it '
+                               'was sent)')
         return handle
 
     def collect(self, msg_type, topic: str, qos=10):
