@@ -244,7 +244,12 @@ def test_publishes_plausible_state_pressure_and_range(rig, probe):
     assert ranged.field_of_view == pytest.approx(0.26, abs=0.05)
     diag = probe.wait_diag(lambda d: d.level == DiagnosticStatus.OK, 5.0, 'diagnostics OK')
     assert diag.hardware_id.endswith('ttyPMA')
-    assert float(values(diag)['sample rate [Hz]']) == pytest.approx(20.0, rel=0.25)
+    # The rate is what was published in the last diagnostics period, in wall-clock time. The
+    # emulated AVR runs slower than real time while the machine is busy (one period at 12 Hz
+    # seen in CI, at the suite's busiest start), so a period at ~20 Hz is waited for.
+    probe.wait_diag(lambda d: d.level == DiagnosticStatus.OK and float(
+        values(d).get('sample rate [Hz]', 'nan')) == pytest.approx(20.0, rel=0.25), 10.0,
+        'diagnostics OK with a sample rate of ~20 Hz')
 
 
 # The device holds a setpoint within its deadband (5 kPa) plus what the pressure moves in one
