@@ -403,10 +403,12 @@ def test_a_streamed_sine_is_followed_and_ends_at_rest(rig, probe):
     with probe.lock:
         states = [m for _, m in probe.states[start:]]
     # The device took a new setpoint about every 50 ms: 81 were sent, a few may be skipped
-    # (a late answer) but none pile up; the samples (20 Hz) see nearly every one of them.
+    # (a late answer) but none pile up; the samples (20 Hz) see nearly every one of them. The
+    # peak (230 kPa) may be one of those skipped: then its neighbours, 247 Pa below, are seen.
     setpoints = [m.gauge_setpoint_pa for m in states]
     changes = len(list(itertools.groupby(setpoints)))
-    assert 50 < changes <= 83 and max(setpoints) == 230_000.0, changes
+    assert 50 < changes <= 83, changes
+    assert max(setpoints) in (230_000.0, 229_753.0), max(setpoints)
     streamed = [m for m in states if m.gauge_setpoint_pa > 0]
     errors = sorted(abs(m.gauge_pressure_pa - m.gauge_setpoint_pa) for m in streamed[25:])
     assert errors[len(errors) // 2] < 12_000, errors[len(errors) // 2]   # the median
