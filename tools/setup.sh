@@ -70,19 +70,26 @@ fi
 # shellcheck disable=SC1091
 . "${ROOT}/tools/env.sh"
 build_stamp="${WS}/install/.pma-build-stamp"
-changed=1
-if [ -f "${build_stamp}" ] && [ -f "${WS}/install/setup.bash" ]; then
-    # Python sources are symlinked into install/ (symlink install), so only what
-    # colcon copies or generates needs a rebuild.
-    newer="$(find -L "${WS}/src" "${ROOT}/requirements" "${WS}/colcon_defaults.yaml" \
+# The files a rebuild is needed for: Python sources are symlinked into install/ (symlink
+# install), so only what colcon copies or generates. Files, not directories: a test that
+# imports a launch file makes launch/__pycache__, which changed launch/'s own time and set
+# off a rebuild in the middle of `make test` (its executables missing for a moment). A file
+# added or removed changes the listing kept in the stamp.
+watched() {
+    find -L "${WS}/src" "${ROOT}/requirements" "${WS}/colcon_defaults.yaml" \
         \( -name build -o -name __pycache__ -o -name '*.egg-info' -o -name .pytest_cache -o -name .hypothesis \) -prune -o \
         \( -name package.xml -o -name setup.py -o -name setup.cfg -o -name CMakeLists.txt \
            -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.txt' \
            -o -path '*/launch*' -o -path '*/config*' -o -path '*/resource*' -o -path '*/firmware*' \
            -o -path '*/foxglove/*' \
-           -o -name colcon_defaults.yaml \) \
-        -newer "${build_stamp}" -print -quit)"
-    [ -z "${newer}" ] && changed=0
+           -o -name colcon_defaults.yaml \) -type f "$@"
+}
+listing="$(watched -print | LC_ALL=C sort | sha256sum | cut -c1-16)"
+changed=1
+if [ -f "${build_stamp}" ] && [ -f "${WS}/install/setup.bash" ] \
+        && [ "$(cat "${build_stamp}")" = "${listing}" ] \
+        && [ -z "$(watched -newer "${build_stamp}" -print -quit)" ]; then
+    changed=0
 fi
 if [ "${changed}" = 1 ]; then
     # One build at a time in this workspace (parallel shells, test runners).
@@ -106,7 +113,7 @@ if [ "${changed}" = 1 ]; then
             die "colcon build failed; full output in ros2_ws/log/pma-last-build.txt"
         fi
     fi
-    touch "${build_stamp}"
+    echo "${listing}" > "${build_stamp}"
     say "workspace built"
 else
     say "workspace up to date"
