@@ -12,8 +12,16 @@ import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 ROOT = Path(__file__).resolve().parent
+
+# The in_process tests run at nice 19 beside the process tests (tools/test.sh) and can wait
+# seconds for the CPU: Hypothesis's wall-clock checks (a deadline per example, the too_slow
+# health check on generating data) would measure that wait, not the code (CI: a protocol
+# property test failed with "only generated 6 valid inputs after 1.19 seconds").
+settings.register_profile('pma', deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile('pma')
 sys.path.insert(0, str(ROOT / 'tests'))
 
 from support.domains import another_domain, worker_domains  # noqa: E402

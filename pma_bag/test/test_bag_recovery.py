@@ -43,7 +43,7 @@ def seqs(reader: BagReader) -> list[int]:
 
 
 @settings(max_examples=25, deadline=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(steps=st.lists(st.integers(min_value=-3_000_000, max_value=3_000_000), min_size=1,
                       max_size=300),
        chunk_size=st.sampled_from([64, 1024, 1 << 20]))
