@@ -160,8 +160,8 @@ def run_sweep(spin, client, label: str, goal, timeout: float):
                   f'{feedback.gauge_setpoint_pa / 1e3:5.0f} kPa  {feedback.sample_count} samples',
                   end='' if interactive else '\n', flush=True)
 
-    handle = _send_goal(spin, client, goal, 20, 'the sweep goal to be accepted',
-                        feedback_callback=on_feedback)
+    handle = spin.send_goal(client, goal, 20, 'the sweep goal to be accepted',
+                            feedback_callback=on_feedback)
     if not handle.accepted:
         raise RuntimeError(f'{label}: the driver rejected the sweep goal (see driver_node.log)')
     result_future = spin.call(handle.get_result_async)
@@ -184,19 +184,6 @@ def _wait(future, timeout: float, what: str) -> None:
 
     if not poll(future.done, timeout):
         raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what}')
-
-
-def _send_goal(spin, client, goal, timeout: float, what: str, *, feedback_callback=None):
-    """The goal's handle, sent again under its ID while unanswered (pma_common.action)."""
-    from pma_common.action import send_goal
-    from pma_common.service import poll
-
-    handle = send_goal(client, goal, timeout, poll, feedback_callback=feedback_callback,
-                       call=spin.call)
-    if handle is None:
-        raise RuntimeError(f'timed out after {timeout:.0f} s waiting for {what} (a cancel '
-                           'for the goal was sent, as it may run all the same)')
-    return handle
 
 
 class ServiceClients:
@@ -284,7 +271,7 @@ def move_to(spin, client, length_m: float) -> str:
     summary."""
     from pma_interfaces.action import MoveToLength
 
-    handle = _send_goal(spin, client, MoveToLength.Goal(
+    handle = spin.send_goal(client, MoveToLength.Goal(
         length_m=length_m, tolerance_m=0.002, settle_s=1.0, timeout_s=20.0), 10,
         'move_to_length accepted')
     done = spin.call(handle.get_result_async)
@@ -521,7 +508,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         say('interrupted: stopping every process')
         return 130
-    except RuntimeError as error:
+    except (RuntimeError, TimeoutError) as error:
         say(f'FAILED: {error}')
         say(f'logs: {logs}')
         return 1

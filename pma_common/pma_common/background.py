@@ -77,6 +77,20 @@ class BackgroundSpin:
             raise outcome['error']
         return outcome['value']
 
+    def send_goal(self, client, goal, timeout: float, what: str = 'the goal', *,
+                  feedback_callback: Callable[[Any], None] | None = None):
+        """`goal`'s handle from `client`'s server (ready), sent again under its goal ID while
+        unanswered so it runs once (pma_common.action); TimeoutError if none came in time."""
+        from pma_common.action import send_goal
+        from pma_common.service import poll
+
+        handle = send_goal(client, goal, timeout, poll, feedback_callback=feedback_callback,
+                           call=self.call)
+        if handle is None:
+            raise TimeoutError(f'timed out after {timeout:g} s waiting for {what} (a cancel '
+                               'for the goal was sent, as it may run all the same)')
+        return handle
+
     def close(self, timeout: float = 2.0) -> None:
         """Stop spinning; the node may be destroyed after this (the caller's to do)."""
         self._closing.set()

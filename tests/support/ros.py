@@ -13,7 +13,6 @@ from collections.abc import Callable
 import rclpy
 from rclpy.node import Node
 
-from pma_common.action import send_goal
 from pma_common.background import BackgroundSpin
 from pma_common.service import ask, poll
 
@@ -43,14 +42,8 @@ class SpinningNode:
         self._clients: dict[str, object] = {}
 
     def send_goal(self, client, goal, *, timeout: float = 10.0, feedback_callback=None):
-        """The handle of `goal`, sent as the product's tools send one (pma_common.action:
-        sent again under its goal ID while unanswered, so it runs once)."""
-        handle = send_goal(client, goal, timeout, poll, feedback_callback=feedback_callback,
-                           call=self.in_executor)
-        if handle is None:
-            raise TimeoutError(f'no answer to the goal within {timeout} s (a cancel for it '
-                               'was sent)')
-        return handle
+        """The handle of `goal`, sent as the product's tools send one (BackgroundSpin)."""
+        return self._spin.send_goal(client, goal, timeout, feedback_callback=feedback_callback)
 
     def collect(self, msg_type, topic: str, qos=10):
         """(list that every message on `topic` is appended to, the subscription)."""
