@@ -224,7 +224,9 @@ def release_controller(session: Session, control: ControlState, timeout_s: float
         goal = MoveToLength.Goal(length_m=control.target_length_m)
         handle = session.send_goal(client, goal, timeout_s, 'the length controller')
         result = handle.get_result_async()
-        session.wait_future(handle.cancel_goal_async(), timeout_s, 'the length controller')
+        # The goal's end is its result, whose answers send_goal has seen reach us; the
+        # cancel's own answer comes on another service and can be lost (pma_common.service).
+        handle.cancel_goal_async()
         session.wait_future(result, timeout_s, 'the length controller')
         return True
     finally:
