@@ -43,6 +43,7 @@ from support.muscle_families import (
     held_out_fit_errors_m,
     oracle_error_near_m,
     oracle_score,
+    predict,
     rate_dependent,
     return_point_oracle,
     score,
@@ -132,6 +133,21 @@ def test_the_oracle_refuses_a_muscle_whose_state_depends_on_time():
         return_point_oracle(Scenario('creep'))
     with pytest.raises(ValueError, match='without drift'):
         return_point_oracle(Scenario('narrow', drift_start_s=60.0))
+
+
+def test_the_noise_free_pressure_diagnosis_feeds_the_models_the_true_pressure():
+    # bench_memory_families --noise-free-pressure: how much of a miss the pressure reading's
+    # noise makes. At a hold the true pressure does not move, so neither may the switch's
+    # prediction (it learns nothing); read from the sensor, it follows the noise.
+    measured = Scenario('narrow', 'random', seed=1, duration_s=60.0, rate_hz=20.0)
+    noise_free = Scenario('narrow', 'random', seed=1, duration_s=60.0, rate_hz=20.0,
+                          noise_free_pressure=True)
+    run = simulate(noise_free)
+    held = np.flatnonzero(np.diff(run.pressure_pa) == 0.0) + 1   # same pressure as before
+    assert held.size > 50
+    for scenario, moves in ((noise_free, False), (measured, True)):
+        steps = np.abs(np.diff(predict(scenario, PAPER)))[held - 1]
+        assert (np.max(steps) > 1e-4) == moves, scenario.label
 
 
 def test_a_held_out_duhem_variant_is_named_by_its_approach_scales():

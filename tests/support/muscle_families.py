@@ -101,13 +101,17 @@ class Scenario:
     duration_s: float = 180.0
     drift_start_s: float | None = None   # None: no drift
     rate_hz: float = DEFAULT_RATE_HZ
+    # A diagnosis, not a rig: the models read the true pressure instead of the sensor's
+    # (what a noise-free pressure reading would leave of their errors).
+    noise_free_pressure: bool = False
 
     @property
     def label(self) -> str:
         drift = f', drift from {self.drift_start_s:.0f} s' if self.drift_start_s is not None \
             else ''
         rate = '' if self.rate_hz == DEFAULT_RATE_HZ else f', {self.rate_hz:g} Hz'
-        return f'{self.family}/{self.kind}/seed {self.seed}{drift}{rate}'
+        noise_free = ', noise-free pressure' if self.noise_free_pressure else ''
+        return f'{self.family}/{self.kind}/seed {self.seed}{drift}{rate}{noise_free}'
 
     @property
     def drift(self) -> families.DriftSpec | None:
@@ -342,7 +346,8 @@ def return_point_oracle(scenario: Scenario) -> np.ndarray:
 def predict(scenario: Scenario, config: Config, form: str = 'sigmoid') -> np.ndarray:
     """What the model would publish for every sample of the scenario (online)."""
     run = simulate(scenario)
-    return run_online(config.build(form), run.measured_pressure_pa, run.measured_length_m,
+    pressure_pa = run.pressure_pa if scenario.noise_free_pressure else run.measured_pressure_pa
+    return run_online(config.build(form), pressure_pa, run.measured_length_m,
                       run.time_s)
 
 
