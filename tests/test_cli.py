@@ -27,7 +27,7 @@ from rosbags.highlevel import AnyReader
 from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
-from support.procs import INSTALL, ROOT
+from support.procs import INSTALL, ROOT, popen_in_own_group
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -285,9 +285,9 @@ def test_sweep_profiles_from_flags_stream_their_setpoints_and_a_wrong_flag_is_re
 
 
 def test_ctrl_c_cancels_the_sweep_and_the_driver_vents(rig):
-    proc = subprocess.Popen([str(PMA), 'sweep', '--max', '300kPa', '--step', '100kPa',
-                             '--hold', '3s', '--namespace', NS], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    proc = popen_in_own_group([str(PMA), 'sweep', '--max', '300kPa', '--step', '100kPa',
+                               '--hold', '3s', '--namespace', NS], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
     try:
         probe = rig['probe']
         wait_until(lambda: probe.states[-1].gauge_setpoint_pa >= 100_000.0, 30,
@@ -366,8 +366,8 @@ def test_watch_prints_one_line_per_sample_and_ctrl_c_is_interrupted(rig):
     assert len(model_cells) == 60
     assert all(cell == '-' or math.isfinite(float(cell)) for cell in model_cells), model_cells
     assert model_cells[-1] != '-', model_cells
-    proc = subprocess.Popen([str(PMA), 'watch', '--namespace', NS], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = popen_in_own_group([str(PMA), 'watch', '--namespace', NS],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     killer = threading.Timer(30, proc.kill)             # should the lines never come
     killer.start()
     try:
@@ -402,8 +402,8 @@ class Typist:
     """`pma calibrate` at a terminal: reads its prompts, types what the instruments show."""
 
     def __init__(self, argv: list[str], cwd: Path):
-        self.proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, cwd=cwd, start_new_session=True)
+        self.proc = popen_in_own_group(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                       stderr=subprocess.STDOUT, cwd=cwd)
         self.output = ''
         self._read = 0                  # what was answered: prompts after it are new
         self._cond = threading.Condition()

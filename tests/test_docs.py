@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from support.procs import ROOT
+from support.procs import ROOT, popen_in_own_group
 
 pytestmark = pytest.mark.integration
 
@@ -77,9 +77,8 @@ def script(selected: list[Block]) -> str:
 
 def run_script(text: str, cwd: Path, timeout_s: float) -> tuple[int, str]:
     """bash -c TEXT in its own process group; every process left in it ends with it."""
-    proc = subprocess.Popen(['bash', '-c', text], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True,
-                            start_new_session=True)
+    proc = popen_in_own_group(['bash', '-c', text], cwd=cwd, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
     try:
         out, _ = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:

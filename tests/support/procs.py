@@ -2,10 +2,16 @@
 
 `ros2 run PKG EXE` executes `install/PKG/lib/PKG/EXE`; tests do exactly that, each
 process in its own process group so SIGINT reaches it like a Ctrl-C would.
+
+In its own group, a process does not get the Ctrl-C typed at `make test`: its test ends it.
+A second Ctrl-C can cut that teardown short, so every group started here is remembered and
+killed when the test process ends (`kill_leftovers`): no node outlives the test run.
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import os
 import signal
 import subprocess
@@ -18,6 +24,35 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 WORKSPACE = ROOT / 'ros2_ws'
 INSTALL = WORKSPACE / 'install'
+
+
+_GROUPS: set[int] = set()     # the leaders' pids of the process groups started here
+
+
+def popen_in_own_group(argv: list[str], **kwargs) -> subprocess.Popen:
+    """subprocess.Popen in a session of its own (signals reach it only as a test sends
+    them), remembered for kill_leftovers."""
+    popen = subprocess.Popen(argv, start_new_session=True, **kwargs)
+    _GROUPS.add(popen.pid)
+    return popen
+
+
+def kill_group(pid: int) -> None:
+    """SIGKILL the process group `pid` leads (gone already: nothing to do)."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(pid, signal.SIGKILL)
+
+
+@atexit.register
+def kill_leftovers() -> None:
+    """SIGKILL every group started here that still runs, with SIGINT held off meanwhile: a
+    test process ends here after a teardown cut short too."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        while _GROUPS:
+            kill_group(_GROUPS.pop())
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def executable(package: str, name: str) -> Path:
@@ -109,10 +144,8 @@ class Proc:
             except subprocess.TimeoutExpired:
                 continue
         # Members of the group that outlived the leader (none expected) go too.
-        try:
-            os.killpg(self.popen.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+        kill_group(self.popen.pid)
+        _GROUPS.discard(self.popen.pid)
         self._reader.join(2)
         return self.popen.returncode
 
@@ -159,9 +192,9 @@ class ProcessGroup:
         full_env['PYTHONFAULTHANDLER'] = '1'    # SIGABRT prints every thread's stack (hangs)
         if env:
             full_env.update(env)
-        popen = subprocess.Popen(
+        popen = popen_in_own_group(
             argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            env=full_env, cwd=cwd, start_new_session=True)
+            env=full_env, cwd=cwd)
         proc = Proc(name, popen, self.log_dir / f'{len(self.procs):02d}-{name}.log')
         self.procs.append(proc)
         return proc
@@ -178,5 +211,12 @@ class ProcessGroup:
         return self.start([sys.executable, str(script), *args], **kwargs)
 
     def stop_all(self) -> None:
-        for proc in reversed(self.procs):
-            proc.stop()
+        """Each process stopped as Ctrl-C would (Proc.stop), the last started first. Cut short
+        (a second Ctrl-C at `make test`), the rest are killed at once."""
+        try:
+            for proc in reversed(self.procs):
+                proc.stop()
+        except BaseException:
+            for proc in self.procs:
+                kill_group(proc.popen.pid)
+            raise
