@@ -20,6 +20,7 @@ import os
 import random
 import signal
 import subprocess
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -36,7 +37,15 @@ from pma_driver import protocol
 from pma_interfaces.msg import PmaState
 from support import firmware
 from support.domains import another_domain
-from support.procs import Proc, ProcessGroup, children_of, running
+from support.procs import (
+    ROOT,
+    Proc,
+    ProcessGroup,
+    children_of,
+    kill_group,
+    popen_in_own_group,
+    running,
+)
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -307,3 +316,31 @@ def test_process_group_helper_sends_what_launch_sends(tmp_path):
     send(proc, [(0.0, signal.SIGINT, True), (0.02, signal.SIGINT, False)])
     assert proc.popen.wait(10) != 0
     group.stop_all()
+
+
+def test_a_second_ctrl_c_in_a_teardown_leaves_no_process_behind(tmp_path):
+    """`make test` stopped by a second Ctrl-C (as impatient users do) while a test's processes
+    are being stopped: they are in process groups of their own, where the terminal's Ctrl-C
+    does not reach, so the test process must kill them (support.procs)."""
+    pids_file = tmp_path / 'pids'
+    run = popen_in_own_group(
+        [sys.executable, '-m', 'pytest', '-q', '-p', 'no:xdist',
+         str(ROOT / 'tests' / 'helpers' / 'teardown_cut_short.py')],
+        cwd=ROOT, env={**os.environ, 'PMA_PIDS_FILE': str(pids_file)},
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    pids = []
+    try:
+        wait_until(pids_file.exists, 60, 'the inner test to start its processes')
+        pids = [int(pid) for pid in pids_file.read_text().split()]
+        os.killpg(run.pid, signal.SIGINT)             # Ctrl-C: the test ends, its teardown
+        time.sleep(1.0)                               # waits on the stubborn second process
+        os.killpg(run.pid, signal.SIGINT)             # and a second Ctrl-C cuts that short
+        out, _ = run.communicate(timeout=30)
+        assert 'KeyboardInterrupt' in out, out
+        wait_until(lambda: not any(running(pid) for pid in pids), 5,
+                   f'the stubborn processes {pids} to be gone; pytest said:\n{out}')
+    finally:
+        for pid in pids:
+            kill_group(pid)
+        kill_group(run.pid)
+
