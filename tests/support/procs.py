@@ -26,14 +26,14 @@ WORKSPACE = ROOT / 'ros2_ws'
 INSTALL = WORKSPACE / 'install'
 
 
-_GROUPS: set[int] = set()     # the leaders' pids of the process groups started here
+_GROUPS: dict[int, subprocess.Popen] = {}   # the process groups started here, by leader
 
 
 def popen_in_own_group(argv: list[str], **kwargs) -> subprocess.Popen:
     """subprocess.Popen in a session of its own (signals reach it only as a test sends
     them), remembered for kill_leftovers."""
     popen = subprocess.Popen(argv, start_new_session=True, **kwargs)
-    _GROUPS.add(popen.pid)
+    _GROUPS[popen.pid] = popen
     return popen
 
 
@@ -43,6 +43,16 @@ def kill_group(pid: int) -> None:
         os.killpg(pid, signal.SIGKILL)
 
 
+def kill_own_group(popen: subprocess.Popen) -> None:
+    """SIGKILL the group `popen` leads while it is still ours: its leader not yet reaped, or
+    reaped and its pid not taken since. Linux gives no new process a pid still in use as a
+    group's ID, so a group whose leader's pid is free holds only what the leader started;
+    a taken pid means the group ended and the number came round again (pid_max is 32768
+    here, and a long run starts thousands of processes)."""
+    if popen.poll() is None or not Path(f'/proc/{popen.pid}').exists():
+        kill_group(popen.pid)
+
+
 @atexit.register
 def kill_leftovers() -> None:
     """SIGKILL every group started here that still runs, with SIGINT held off meanwhile: a
@@ -50,7 +60,7 @@ def kill_leftovers() -> None:
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         while _GROUPS:
-            kill_group(_GROUPS.pop())
+            kill_own_group(_GROUPS.popitem()[1])
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
@@ -145,7 +155,7 @@ class Proc:
                 continue
         # Members of the group that outlived the leader (none expected) go too.
         kill_group(self.popen.pid)
-        _GROUPS.discard(self.popen.pid)
+        _GROUPS.pop(self.popen.pid, None)
         self._reader.join(2)
         return self.popen.returncode
 
@@ -218,5 +228,5 @@ class ProcessGroup:
                 proc.stop()
         except BaseException:
             for proc in self.procs:
-                kill_group(proc.popen.pid)
+                kill_own_group(proc.popen)
             raise
