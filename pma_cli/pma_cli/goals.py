@@ -19,7 +19,6 @@ from rclpy.action import ActionClient
 from pma_cli import quantities as q
 from pma_cli.commands import CONTROL_TOPIC, holds_target, release_holding_controller
 from pma_cli.session import (
-    CANCEL_SEND_S,
     FAILED,
     INTERRUPTED,
     NO_ANSWER,
@@ -93,11 +92,8 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
             handle = session.send_goal(client, goal, timeout_s, f'the {what} (goal acceptance)',
                                        feedback_callback=lambda m: on_feedback(m.feedback))
         except Interrupted:
-            # send_goal has sent a cancel for the goal, which may run: a moment for it to
-            # leave before the node goes.
             print(f'\ninterrupted before the {what} answered the goal; a cancel for it was '
                   'sent', file=sys.stderr, flush=True)
-            session.spin_until(lambda: False, CANCEL_SEND_S, interruptible=False)
             raise
         if not handle.accepted:
             raise CliError(f'the {what} rejected the goal')

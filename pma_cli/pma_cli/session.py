@@ -107,9 +107,15 @@ class Session:
 
     def send_goal(self, client, goal, timeout_s: float, what: str, feedback_callback=None):
         """The goal's handle from `client`'s server (ready); sent again under its goal ID
-        while unanswered, so it runs once (pma_common.action)."""
-        handle = send_goal(client, goal, timeout_s, self.spin_until,
-                           feedback_callback=feedback_callback)
+        while unanswered, so it runs once (pma_common.action). Given up on (no answer, or
+        Interrupted), the goal was cancelled by its ID; the cancel gets CANCEL_SEND_S to
+        leave before the node goes."""
+        try:
+            handle = send_goal(client, goal, timeout_s, self.spin_until,
+                               feedback_callback=feedback_callback)
+        except Interrupted:
+            self.spin_until(lambda: False, CANCEL_SEND_S, interruptible=False)
+            raise
         if handle is None:
             self.spin_until(lambda: False, CANCEL_SEND_S, interruptible=False)
             raise CliError(f'no answer from {what} within {timeout_s:g} s; a cancel for the '

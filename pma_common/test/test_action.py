@@ -25,13 +25,13 @@ RESEND_S = 0.3
 
 
 class LosesGoalAnswers(ActionClient):
-    """An ActionClient that never hears the first `lose` answers to its goal requests (1 by
-    default), and counts the goal requests it sends."""
+    """An ActionClient that never hears the first `lose` answers to its goal requests (1
+    unless a test sets it), and counts the goal requests it sends."""
 
-    def __init__(self, *args, lose: int = 1, **kwargs):
+    def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.sent = 0
-        self.lose = lose
+        self.lose = 1
         self.lost = 0
 
     def send_goal_async(self, *args, **kwargs):
