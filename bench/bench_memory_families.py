@@ -1,7 +1,8 @@
 """The model on every simulated muscle family: minor-loop errors and the issue's criteria.
 
 Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid hill]
-[--rate-hz 20] [--against-switch --seeds 1 2 3 4 5 6 7 8 [--jobs 2] [--noise-free-pressure]]
+[--rate-hz 20] [--against-switch --seeds 1 2 3 4 5 6 7 8 [--jobs 2] [--noise-free-pressure]
+[--kinds sines damped]]
 (OMP_NUM_THREADS=1; about 11 minutes a branch form on one core, five muscles). Prints the
 table of docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of
 stroke) and checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
@@ -25,7 +26,10 @@ on two cores, where the full table takes hours) and says, for each run, when the
 errs most and how much the oracle errs at that moment: a miss where the oracle misses too
 is the price of return-point memory, not of what the model has learned. With
 --noise-free-pressure both read the true pressure instead of the sensor's: what is left of
-a miss without the pressure reading's noise (a diagnosis; no rig has that reading).
+a miss without the pressure reading's noise (a diagnosis; no rig has that reading). With
+--kinds it runs other paths: `sines` and `damped` are smooth (no holds, slowing into every
+reversal; pma_driver.sim.paths.smooth_path), a way of driving the rig the defaults were not
+chosen on.
 The figures are model errors (not speeds), so no in-run baseline is needed; the reference
 is the paper's switch on the same samples.
 """
@@ -46,6 +50,7 @@ import numpy as np
 from pma_driver.sim.families import FAMILY_NAMES
 from support.muscle_families import (
     ALL_CONFIGS,
+    ALL_PATH_KINDS,
     DEFAULT_RATE_HZ,
     IDENTIFY,
     LEARNED_RULES,
@@ -141,12 +146,12 @@ def _against_switch_run(form: str, scenario: Scenario) -> tuple[float, float, fl
 
 
 def against_switch(form: str, seeds: list[int], duration_s: float, families, *,
-                   rate_hz: float, jobs: int,
-                   noise_free_pressure: bool = False) -> tuple[list[str], bool]:
+                   rate_hz: float, jobs: int, noise_free_pressure: bool = False,
+                   kinds=PATH_KINDS) -> tuple[list[str], bool]:
     """The two criteria against the paper's switch on many seeds, in parallel."""
     scenarios = [Scenario(family, kind, seed, duration_s, rate_hz=rate_hz,
                           noise_free_pressure=noise_free_pressure)
-                 for family in families for kind in PATH_KINDS for seed in seeds]
+                 for family in families for kind in kinds for seed in seeds]
     with ProcessPoolExecutor(jobs) as pool:
         results = list(pool.map(_against_switch_run, [form] * len(scenarios), scenarios))
     lines = [f'\n### against the switch, {form} branches ({MIXED.label}, learning on; seeds '
@@ -232,11 +237,16 @@ def main() -> int:
                         help='with --against-switch: the mix and the switch read the true '
                              'pressure instead of the sensor\'s (how much of their errors '
                              'the pressure reading\'s noise makes)')
+    parser.add_argument('--kinds', nargs='+', choices=ALL_PATH_KINDS, default=list(PATH_KINDS),
+                        help='with --against-switch: the paths (default: the tables\' '
+                             'nested and random ramps; sines and damped are smooth)')
     parser.add_argument('--jobs', type=int, default=os.cpu_count() or 1,
                         help='processes for --against-switch (default: one per core)')
     args = parser.parse_args()
     if args.noise_free_pressure and not args.against_switch:
         parser.error('--noise-free-pressure needs --against-switch')
+    if args.kinds != list(PATH_KINDS) and not args.against_switch:
+        parser.error('--kinds needs --against-switch')
     start = time.monotonic()
     print(f'# Minor loops on every muscle family (paths of {args.duration:.0f} s at '
           f'{args.rate_hz:g} Hz, '
@@ -251,7 +261,8 @@ def main() -> int:
         if args.against_switch:
             lines, passed = against_switch(form, args.seeds, args.duration, args.families,
                                            rate_hz=args.rate_hz, jobs=args.jobs,
-                                           noise_free_pressure=args.noise_free_pressure)
+                                           noise_free_pressure=args.noise_free_pressure,
+                                           kinds=args.kinds)
             print('\n'.join(lines), flush=True)
             verdicts.append(f'{form}: criteria against the switch '
                             f'{"met" if passed else "NOT met"}')

@@ -20,6 +20,7 @@ from pma_driver import protocol
 from pma_driver.calibration import PressureCalibration
 from pma_driver.sim.device import DeviceConfig, SimDevice
 from pma_driver.sim.families import FAMILY_NAMES, CreepParams, muscle_family
+from pma_driver.sim.paths import SMOOTH_KINDS
 from pma_driver.sweep import plan_sweep
 from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
@@ -278,6 +279,20 @@ def test_at_the_drivers_default_20_hz_the_default_meets_the_switch_criteria(fami
         ours, paper = score(scenario, MIXED), score(scenario, PAPER)
         assert ours.rmse_m <= 0.9 * paper.rmse_m, kind
         assert ours.max_m <= 0.7 * paper.max_m, kind
+
+
+@pytest.mark.parametrize('family', [*FAMILY_NAMES, BOUC_WEN])
+def test_on_smooth_paths_the_default_meets_the_switch_criteria(family):
+    # Paths the defaults were not chosen on: no holds, slowing into every reversal, where the
+    # pressure reading's noise makes small false turns (pma_driver.sim.paths.smooth_path).
+    # Seeds 1-8, sigmoid: 80 of 80 runs meet both at 50 Hz, 79 of 80 at 20 Hz
+    # (docs/model.md §3.1). Seed 1's largest max: 0.51x the switch's (narrow, sines).
+    for kind in SMOOTH_KINDS:
+        scenario = Scenario(family, kind)
+        ours, paper = score(scenario, MIXED), score(scenario, PAPER)
+        assert ours.rmse_m <= 0.9 * paper.rmse_m, kind
+        assert ours.max_m <= 0.7 * paper.max_m, kind
+        assert ours.rmse_pct <= 1.5, kind
 
 
 @pytest.mark.parametrize('family', ['narrow', 'creep'])

@@ -5,6 +5,7 @@ written by `python -m pma_driver.sim.fit_families --write`); these tests check t
 numbers, they do not refit.
 """
 
+import itertools
 import re
 
 import numpy as np
@@ -190,6 +191,28 @@ def test_paths_visit_their_turning_points_and_the_sensors_are_the_rigs():
     inside = sum(min(a, b) < c < max(a, b) for a, b, c in zip(nested, nested[1:], nested[2:],
                                                               strict=False))
     assert inside > len(nested) / 2
+
+
+@pytest.mark.parametrize('kind', paths.SMOOTH_KINDS)
+def test_smooth_paths_start_at_rest_reverse_at_their_extrema_and_keep_to_the_valves_pace(kind):
+    path = paths.smooth_path(kind, 120, seed=3, rate_hz=20)
+    pressure = path.pressure_pa
+    assert pressure.size == 2400 and pressure[0] == 0.0
+    assert 0.0 <= pressure.min() and pressure.max() <= paths.TOP_PA
+    assert np.max(np.abs(np.diff(pressure))) * 20 <= paths.MAX_SLEW_PA_PER_S + 1e-6
+    assert np.count_nonzero(np.diff(pressure) == 0.0) < 5   # no holds
+    reversals = np.round(path.reversal_times_s * 20).astype(int)
+    assert reversals.size > 30
+    steps = np.diff(pressure)
+    for index in reversals:   # the pressure arrives at an extremum and turns back there
+        arriving = steps[index - 1]
+        leaving = steps[index:][steps[index:] != 0.0][0]
+        assert arriving != 0.0 and np.sign(leaving) == -np.sign(arriving)
+    for start, end in itertools.pairwise(reversals):   # no turn in between
+        between = steps[start:end]
+        assert np.all(between <= 0.0) or np.all(between >= 0.0)
+    with pytest.raises(ValueError, match='sines, damped'):
+        paths.smooth_path('square')
 
 
 def test_fake_arduino_runs_the_chosen_family(procs):

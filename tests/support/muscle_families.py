@@ -3,10 +3,11 @@
 Shared by tests/test_minor_loops.py, tests/test_drift_adaptation.py and
 bench/bench_memory_families.py (which prints the table in docs/model.md). ROS-free.
 
-A scenario is a family, a reversal-rich pressure path (`nested` or `random`, from
-pma_driver.sim.paths) and a seed; the muscle sees the true pressure, the model the sensors'
-readings (noisy 10-bit pressure, HC-SR04 length), sample by sample, online. Scores are the
-error against the true length from the third reversal on, in % of the stroke of Table 1.
+A scenario is a family, a reversal-rich pressure path (`nested` or `random` ramps and holds,
+or the smooth `sines` or `damped`, from pma_driver.sim.paths) and a seed; the muscle sees
+the true pressure, the model the sensors' readings (noisy 10-bit pressure, HC-SR04 length),
+sample by sample, online. Scores are the error against the true length from the third
+reversal on, in % of the stroke of Table 1.
 Every model starts from the shipped defaults: branches fitted to Table 1, no memory data.
 
 Besides the simulator's families, one held out of everything the defaults were chosen on:
@@ -48,7 +49,8 @@ SCORED_FROM_REVERSAL = 3     # "after the first three reversals"
 # Samples per second of the scenarios: the firmware's maximum; driver_node asks for 20 Hz by
 # default.
 DEFAULT_RATE_HZ = 50.0
-PATH_KINDS = ('nested', 'random')
+PATH_KINDS = ('nested', 'random')   # ramps and holds: the tables' paths
+ALL_PATH_KINDS = (*PATH_KINDS, *paths.SMOOTH_KINDS)   # and smooth ones (paths.smooth_path)
 FORMS = ('sigmoid', 'hill')
 
 
@@ -290,9 +292,13 @@ def family_argument(text: str) -> str:
 
 @functools.lru_cache(maxsize=64)
 def simulate(scenario: Scenario) -> paths.Run:
-    turns = (paths.nested_turns if scenario.kind == 'nested' else paths.random_turns)(
-        scenario.duration_s, seed=scenario.seed)
-    path = paths.ramp_path(turns, rate_hz=scenario.rate_hz, seed=scenario.seed)
+    if scenario.kind in paths.SMOOTH_KINDS:
+        path = paths.smooth_path(scenario.kind, scenario.duration_s, seed=scenario.seed,
+                                 rate_hz=scenario.rate_hz)
+    else:
+        turns = (paths.nested_turns if scenario.kind == 'nested' else paths.random_turns)(
+            scenario.duration_s, seed=scenario.seed)
+        path = paths.ramp_path(turns, rate_hz=scenario.rate_hz, seed=scenario.seed)
     return paths.simulate(muscle_for(scenario.family, scenario.drift), path,
                           seed=scenario.seed)
 

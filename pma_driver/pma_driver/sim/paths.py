@@ -8,7 +8,10 @@ device's 4-conversion pressure reading) converted back as the driver converts th
 
 - `nested_turns`: groups of loops that close inside each other (a deep turning-point stack),
   each group wiped out by an excursion to 0 Pa or the top;
-- `random_turns`: turning points drawn uniformly, so loops nest, cross and wipe each other out.
+- `random_turns`: turning points drawn uniformly, so loops nest, cross and wipe each other out;
+- `smooth_path`: no ramps and no holds, the other way a rig is driven: a sum of sines
+  (`sines`) or a decaying sine restarted at full swing (`damped`), slowing down into every
+  reversal, at most as fast as the ramps.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from pma_driver.sim.device import DeviceConfig, Rig, SimDevice
 from pma_driver.sim.families import Muscle
 
 TOP_PA = 500_000.0
+MAX_SLEW_PA_PER_S = 250e3   # the ramps' fastest: what the valves reach
+SMOOTH_KINDS = ('sines', 'damped')
 
 
 @dataclass(frozen=True)
@@ -38,7 +43,7 @@ class PressurePath:
     reversal_times_s: np.ndarray
 
 
-def ramp_path(turns_pa, rate_hz: float = 50.0, slew_pa_per_s=(80e3, 250e3),
+def ramp_path(turns_pa, rate_hz: float = 50.0, slew_pa_per_s=(80e3, MAX_SLEW_PA_PER_S),
               hold_s=(0.3, 1.5), seed: int = 0) -> PressurePath:
     """Straight ramps between the turning points, each at a random slew rate within
     `slew_pa_per_s`, and a hold of random length within `hold_s` at every turning point."""
@@ -91,6 +96,48 @@ def random_turns(duration_s: float = 180.0, seed: int = 0, top_pa: float = TOP_P
         elapsed += abs(turn - turns[-1]) / mean_slew_pa_per_s + mean_hold_s
         turns.append(float(turn))
     return [*turns, 0.0]
+
+
+def smooth_path(kind: str, duration_s: float = 180.0, seed: int = 0, rate_hz: float = 50.0,
+                *, top_pa: float = TOP_PA,
+                max_slew_pa_per_s: float = MAX_SLEW_PA_PER_S) -> PressurePath:
+    """A smooth reversal-rich path: `sines` (three sines of random periods and phases,
+    0.02-0.98 of `top_pa`) or `damped` (a sine about a random centre whose swing decays over
+    3-6 periods, restarted at full swing every 12 periods).
+
+    Drawn in a time of its own after a ramp up from 0 Pa, then slowed so that its fastest
+    change is `max_slew_pa_per_s` (never sped up). The reversals are the true pressure's
+    extrema.
+    """
+    if kind not in SMOOTH_KINDS:
+        raise ValueError(f'{kind!r}: a smooth path is one of {", ".join(SMOOTH_KINDS)}')
+    rng = np.random.default_rng(seed)
+    own_dt = 1e-3
+    own_time = np.arange(0.0, duration_s, own_dt)
+    if kind == 'sines':
+        pressure = np.zeros_like(own_time)
+        for _ in range(3):
+            pressure += rng.uniform(0.5, 1.0) * np.sin(
+                2.0 * np.pi * own_time / rng.uniform(1.5, 12.0) + rng.uniform(0.0, 2.0 * np.pi))
+        pressure = top_pa * (0.5 + 0.48 * pressure / np.max(np.abs(pressure)))
+    else:
+        period = rng.uniform(2.5, 5.0)
+        phase = own_time % (12.0 * period)
+        centre = rng.uniform(0.3, 0.6) * top_pa
+        swing = min(centre, 0.98 * top_pa - centre)
+        pressure = centre + swing * np.exp(-phase / (rng.uniform(3.0, 6.0) * period)) * np.sin(
+            2.0 * np.pi * phase / period)
+    lead_in = np.arange(0.0, pressure[0], max_slew_pa_per_s * own_dt)   # from rest, 0 Pa
+    pressure = np.concatenate((lead_in, pressure))[:own_time.size]
+    stretch = max(1.0, float(np.max(np.abs(np.diff(pressure)))) / own_dt / max_slew_pa_per_s)
+    time_s = np.arange(round(duration_s * rate_hz)) / rate_hz
+    pressure = np.clip(np.interp(time_s / stretch, own_time, pressure), 0.0, top_pa)
+    direction = np.sign(np.diff(pressure))
+    moving = np.flatnonzero(direction)
+    changed = np.flatnonzero(direction[moving[1:]] != direction[moving[:-1]])
+    turns = moving[changed] + 1   # where the pressure arrives at each extremum
+    return PressurePath(time_s, pressure, tuple(float(p) for p in pressure[turns]),
+                        time_s[turns])
 
 
 @dataclass(frozen=True)
