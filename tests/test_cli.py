@@ -27,7 +27,7 @@ from rosbags.highlevel import AnyReader
 from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
-from support.procs import INSTALL, ROOT, popen_in_own_group
+from support.procs import INSTALL, ROOT, kill_own_group, popen_in_own_group
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -297,8 +297,7 @@ def test_ctrl_c_cancels_the_sweep_and_the_driver_vents(rig):
         proc.send_signal(signal.SIGINT)                      # impatient: a second one
         out, _ = proc.communicate(timeout=30)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+        kill_own_group(proc)
     assert proc.returncode == 130, out
     assert 'cancelling the driver goal' in out and 'sweep cancelled' in out and 'vented' in out
     assert 'Traceback' not in out
@@ -377,8 +376,7 @@ def test_watch_prints_one_line_per_sample_and_ctrl_c_is_interrupted(rig):
         _, err = proc.communicate(timeout=20)
     finally:
         killer.cancel()
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+        kill_own_group(proc)
     assert proc.returncode == 130, err
     assert 'pma watch: ' in err and 'Traceback' not in err
 
@@ -436,8 +434,7 @@ class Typist:
         try:
             self.proc.wait(timeout)
         finally:
-            if self.proc.poll() is None:
-                os.killpg(self.proc.pid, signal.SIGKILL)
+            kill_own_group(self.proc)
         self._reader.join(5)
         return self.proc.returncode, self.output
 
