@@ -303,7 +303,8 @@ def main() -> int:
     parser.add_argument('--families', nargs='+', type=family_argument,
                         help='only these simulated muscles (default: the scored ones; '
                              'held-out ones too: duhem:RISING:FALLING, gpi[:BULGE], '
-                             'creep:INNER:SHARE:TAU; see bench_memory_families.py --help)')
+                             'friction[:WIDEST], creep:INNER:SHARE:TAU; see '
+                             'bench_memory_families.py --help)')
     parser.add_argument('--device-seeds', nargs='+', type=int, default=DEVICE_SEEDS,
                         metavar='N', help='simulated device seeds (sensor noise, valve timing)')
     parser.add_argument('--publish', type=float, help=argparse.SUPPRESS)

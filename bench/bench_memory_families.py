@@ -227,6 +227,8 @@ def main() -> int:
                              'approach scales, fitted to Table 1 (asymmetric is duhem:15:100); '
                              'gpi[:BULGE] a generalized Prandtl-Ishlinskii muscle, asymmetric '
                              'with return-point memory (tests/support/generalized_play.py); '
+                             'friction[:WIDEST] braid friction growing with the pressure, a '
+                             'late sharp onset (tests/support/friction_muscle.py); '
                              'creep:INNER:SHARE:TAU narrow, wide or asymmetric with a share of '
                              'every length change lagged by TAU seconds (creep is '
                              'creep:narrow:0.25:0.6)')

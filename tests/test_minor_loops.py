@@ -25,9 +25,11 @@ from pma_driver.sweep import plan_sweep
 from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
 from pma_model.params import default_params
+from support.friction_muscle import DEFAULT_WIDEST_BAND
 from support.generalized_play import DEFAULT_BULGE
 from support.muscle_families import (
     BOUC_WEN,
+    FRICTION,
     GENERALIZED_PLAY,
     LEARNED_RULES,
     MIXED,
@@ -40,6 +42,7 @@ from support.muscle_families import (
     bouc_wen_fit,
     creep_variant,
     duhem_variant_scales_pa,
+    friction_widest_band,
     generalized_play_bulge,
     held_out_fit_errors_m,
     oracle_error_near_m,
@@ -85,33 +88,22 @@ def test_the_default_memory_beats_the_papers_switch_in_rmse(family):
         assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind
 
 
-@pytest.mark.parametrize('family', [name for name in FAMILY_NAMES if name != 'asymmetric'])
+@pytest.mark.parametrize('family', FAMILY_NAMES)
 def test_the_default_memorys_max_error_is_at_most_0_7_of_the_switch(family):
-    # The muscles with return-point memory; the Duhem muscle (asymmetric) in the next test.
+    # On the Duhem muscle (asymmetric) too since the knot at 75 kPa (2026-11-29): nested
+    # 0.68x, random 0.59x (nested/seed 1 erred 0.70x before, at 25.7 s, early, while its
+    # falling share was being learned). Its minor loops do not close: after a nest of small
+    # loops inside a long fall it is millimetres longer than before the nest, and a model
+    # with return-point memory (which the issue requires) comes back to its own length.
+    # Over seeds 1-8 at 50 Hz the mix misses on 2 of its 16 runs (random/seeds 3 and 4),
+    # both where even the muscle itself made to keep return-point memory errs over 0.7x the
+    # switch's max (the oracle tests below; docs/model.md §3.1).
     ours, paper = scores(family, MIXED), scores(family, PAPER)
     for kind in PATH_KINDS:
         assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
 
 
-@pytest.mark.parametrize(('kind', 'seed', 'bound'), [('random', 1, 0.7), ('random', 2, 0.7),
-                                                    ('nested', 1, 0.72)])
-def test_on_the_duhem_muscle_the_max_error_stays_near_the_criterion_where_it_misses(
-        kind, seed, bound):
-    # The Duhem muscle's minor loops do not close: after a nest of small loops inside a long
-    # fall it is millimetres longer than before the nest, and a model with return-point
-    # memory (which the issue requires) comes back to its own length. The mix's local offset
-    # carries that gap until the pressure moves on: random/seed 2 errs 0.62x the switch's
-    # max (0.71x without it, at t = 179.6 s); over seeds 1-8 the mix misses on 3 of 16 runs,
-    # and even the muscle itself made to keep return-point memory misses on 6 (the oracle
-    # tests below; docs/model.md §3.1). Nested/seed 1 errs 0.70x early, at 25.7 s, while its
-    # falling share is still being learned (0.76x without the local offset). How far from
-    # the criterion, then:
-    scenario = Scenario('asymmetric', kind, seed=seed)
-    ours, paper = score(scenario, MIXED), score(scenario, PAPER)
-    assert ours.max_m <= bound * paper.max_m
-
-
-@pytest.mark.parametrize('family', ['narrow', 'wide', GENERALIZED_PLAY])
+@pytest.mark.parametrize('family', ['narrow', 'wide', GENERALIZED_PLAY, FRICTION])
 def test_the_return_point_oracle_is_the_muscle_itself_where_loops_close(family):
     # A yardstick for the muscles without the property only if exact on those with it.
     for kind in PATH_KINDS:
@@ -200,13 +192,16 @@ def test_the_moonshot_minor_loop_rmse_within_1_5_percent_of_stroke(family):
         assert result.rmse_pct <= 1.5, kind
 
 
-def test_a_held_out_generalized_play_muscle_is_named_by_its_bulge():
-    assert generalized_play_bulge(GENERALIZED_PLAY) == DEFAULT_BULGE
-    assert generalized_play_bulge('gpi:2') == 2.0
-    assert generalized_play_bulge('wide') is None
-    for bad in ('gpi:x', 'gpi:-1', 'gpi:11'):
-        with pytest.raises(ValueError, match='gpi'):
-            generalized_play_bulge(bad)
+@pytest.mark.parametrize(('parse', 'name', 'default', 'other', 'bad'), [
+    (generalized_play_bulge, GENERALIZED_PLAY, DEFAULT_BULGE, 2.0, ('x', '-1', '11')),
+    (friction_widest_band, FRICTION, DEFAULT_WIDEST_BAND, 0.4, ('x', '0', '1'))])
+def test_a_held_out_muscle_is_named_by_its_number(parse, name, default, other, bad):
+    assert parse(name) == default
+    assert parse(f'{name}:{other:g}') == other
+    assert parse('wide') is None
+    for text in bad:
+        with pytest.raises(ValueError, match=name):
+            parse(f'{name}:{text}')
 
 
 def test_on_a_held_out_asymmetric_muscle_with_return_point_memory_the_default_meets_the_criteria():
@@ -222,6 +217,23 @@ def test_on_a_held_out_asymmetric_muscle_with_return_point_memory_the_default_me
         assert ours[kind].rmse_m <= 0.9 * paper[kind].rmse_m, kind
         assert ours[kind].max_m <= 0.7 * paper[kind].max_m, kind
         assert ours[kind].rmse_pct <= 1.5, kind
+
+
+def test_on_a_held_out_muscle_with_a_late_sharp_onset_the_default_meets_the_switch_criteria():
+    # support.friction_muscle: braid friction growing with the pressure. Fitted to Table 1 it
+    # leaves its dead zone at 69 kPa with a kink, between Table 1's points at 50 and 100
+    # kPa, where a correction following the sigmoid's shape from knot to knot missed it by
+    # millimetres: at the driver's 20 Hz, seed 1, nested, 0.77x the switch's max before the
+    # knot at 75 kPa (CORRECTION_KNOTS_PA), 0.67x with it (random: 0.67x, 0.51x). Seeds 1-8
+    # at 20 Hz: 4 of 16 runs missed before, none with it (docs/model.md §5, "The knots").
+    errors = held_out_fit_errors_m(FRICTION)
+    assert np.sqrt(np.mean(errors ** 2)) < 0.0012   # Table 1 within the HC-SR04's accuracy
+    for kind in PATH_KINDS:
+        scenario = Scenario(FRICTION, kind, seed=1, rate_hz=20.0)
+        ours, paper = score(scenario, MIXED), score(scenario, PAPER)
+        assert ours.rmse_m <= 0.9 * paper.rmse_m, kind
+        assert ours.max_m <= 0.7 * paper.max_m, kind
+        assert ours.rmse_pct <= 1.5, kind
 
 
 SLOW_CREEP = 'creep:wide:0.3:1.5'   # the wide muscle, 30 % of each change lagged by 1.5 s

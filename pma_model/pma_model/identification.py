@@ -12,18 +12,18 @@ its state (docs/model.md, "Online identification"):
   is within 0..1: a continuous memory parameter between the two rules, whose regret
   against the best fixed pair grows only logarithmically. It learns only where the shapes
   differ: after reversals.
-- the branch shape: a correction delta(P) given at knots every 50 kPa (CORRECTION_KNOTS_PA),
-  added inside both branches (CorrectedBranch) so every memory rule uses it and keeps its
-  continuity and return-point memory. Between knots it follows the branch's own length, so it
-  can flatten the sigmoid's dead zone and still invert in closed form. It is learned as a
-  mean for both branches plus a difference (increasing minus decreasing, half added to each):
-  the paper's two sigmoids miss a muscle in different places (on the simulated families the
-  two branches' misfits differ by up to 3.4 mm at a knot), which a mean cannot follow. The
-  knots learn through the exact derivative of the length (HysteresisModel.length_gradient):
-  on a scanning curve the length is pinned to turning points that came from earlier curves,
-  often of the other branch, so a residual there says something about both. The difference
-  has a tighter prior (DIFFERENCE_PRIOR_M; a loose one trades off against the play shares:
-  docs/model.md §5).
+- the branch shape: a correction delta(P) given at knots every 50 kPa and at 75 kPa
+  (CORRECTION_KNOTS_PA), added inside both branches (CorrectedBranch) so every memory rule
+  uses it and keeps its continuity and return-point memory. Between knots it follows the
+  branch's own length, so it can flatten the sigmoid's dead zone and still invert in closed
+  form. It is learned as a mean for both branches plus a difference (increasing minus
+  decreasing, half added to each): the paper's two sigmoids miss a muscle in different
+  places (on the simulated families the two branches' misfits differ by up to 3.4 mm at a
+  knot), which a mean cannot follow. The knots learn through the exact derivative of the
+  length (HysteresisModel.length_gradient): on a scanning curve the length is pinned to
+  turning points that came from earlier curves, often of the other branch, so a residual
+  there says something about both. The difference has a tighter prior (DIFFERENCE_PRIOR_M; a
+  loose one trades off against the play shares: docs/model.md §5).
 - creep: length = static + sum_j k_j (lag_j(static) - static), the model's static length
   through first-order lags of CREEP_TIME_CONSTANTS_S: a share of each change arriving late,
   which vanishes in a hold (so the inverse, a steady-state answer, ignores it; a controller
@@ -48,6 +48,7 @@ function of the pressure history and the learned numbers.
 
 from __future__ import annotations
 
+import bisect
 import functools
 import math
 from collections.abc import Callable
@@ -61,7 +62,16 @@ from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
 from pma_model.detector import BRANCH_AUTO, DEFAULT_DEADBAND_PA
 from pma_model.memory import MID_DEPTH, HysteresisModel, InverseResult, play_share_at
 
-CORRECTION_KNOTS_PA = tuple(float(p) for p in np.linspace(0.0, 500_000.0, 11))
+# Every 50 kPa (Table 1's pressures) and 75 kPa: between 50 and 100 kPa the muscle leaves its
+# dead zone (Table 1: flat to 50 kPa, then 9-15 mm of its 59 mm stroke by 100 kPa), where the
+# slope changes most and where the onset lies differs from muscle to muscle; a correction that
+# follows the sigmoid's own shape across that interval misses a sharp onset by millimetres
+# (docs/model.md §5, "The knots").
+CORRECTION_KNOTS_PA = (0.0, 50_000.0, 75_000.0, *(float(p) for p in range(100_000, 500_001,
+                                                                            50_000)))
+# The knots of files written before 2026-11-29 (every 50 kPa): params.py refines their
+# corrections onto CORRECTION_KNOTS_PA (refine_corrections), so a saved model still loads.
+LEGACY_CORRECTION_KNOTS_PA = tuple(float(p) for p in range(0, 500_001, 50_000))
 CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
 MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
 MAX_DIFFERENCE_M = 2 * MAX_CORRECTION_M   # each branch's own correction stays within the above
@@ -244,13 +254,11 @@ def _checked_vector(name: str, values, size: int, limit: float) -> tuple[float, 
 
 def _knot_position(p_pa: float) -> tuple[int, bool]:
     """(interval k, inside) for a pressure: knots k and k + 1 bracket it when inside."""
-    position = (p_pa - CORRECTION_KNOTS_PA[0]) / _KNOT_STEP_PA
-    last = len(CORRECTION_KNOTS_PA) - 1
-    if position <= 0.0:
+    if p_pa <= CORRECTION_KNOTS_PA[0]:
         return 0, False
-    if position >= last:
-        return last, False
-    return int(position), True
+    if p_pa >= CORRECTION_KNOTS_PA[-1]:
+        return len(CORRECTION_KNOTS_PA) - 1, False
+    return bisect.bisect_right(CORRECTION_KNOTS_PA, p_pa) - 1, True
 
 
 def _knot_share(p_pa: float, base_length_m: float, at_knots) -> tuple[int, float]:
@@ -264,7 +272,6 @@ def _knot_share(p_pa: float, base_length_m: float, at_knots) -> tuple[int, float
     return k, ((at_knots[k] - base_length_m) / drop if drop > 0.0 else 0.0)
 
 
-_KNOT_STEP_PA = CORRECTION_KNOTS_PA[1] - CORRECTION_KNOTS_PA[0]
 _MAX_KNOWN_LENGTHS = 256     # single-pressure lengths a CorrectedBranch keeps
 
 
@@ -304,6 +311,9 @@ class CorrectedBranch(Branch):
         # it), and a commit's replay asks for each turning pressure three times; a commit
         # makes new branches, so this never goes stale.
         object.__setattr__(self, '_known_lengths', {})
+        if len(self.offsets_m) != len(CORRECTION_KNOTS_PA):
+            raise ValueError(f'a branch correction needs {len(CORRECTION_KNOTS_PA)} values '
+                             f'(one per knot), got {len(self.offsets_m)}')
 
     def correction_at(self, p_pa: float, base_length_m: float) -> float:
         """delta at one pressure, given the base length there."""
@@ -385,6 +395,35 @@ def monotone_correction(offsets, caps) -> tuple[float, ...]:
     for k in range(1, len(values)):
         values[k] = min(values[k], values[k - 1] + rises[k - 1])
     return tuple(values)
+
+
+def refine_corrections(mean_m, difference_m, increasing: Branch, decreasing: Branch
+                       ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """A correction's mean and difference given at LEGACY_CORRECTION_KNOTS_PA, on
+    CORRECTION_KNOTS_PA.
+
+    Between knots each branch's correction follows its base's own length (CorrectedBranch),
+    so a knot inserted with the value the correction already had there leaves both corrected
+    branches as they were: a model saved before the knot was added loads unchanged.
+    """
+    legacy = np.array(LEGACY_CORRECTION_KNOTS_PA)
+    mean, difference = np.asarray(mean_m, dtype=float), np.asarray(difference_m, dtype=float)
+    refined = []
+    for sign, base in ((1.0, increasing), (-1.0, decreasing)):
+        offsets = mean + sign * 0.5 * difference
+        at_legacy = np.asarray(base.length(legacy), dtype=float)
+        values = []
+        for p_pa, length_m in zip(CORRECTION_KNOTS_PA,
+                                  np.asarray(base.length(np.array(CORRECTION_KNOTS_PA))),
+                                  strict=True):
+            k = min(int(np.searchsorted(legacy, p_pa, side='right')) - 1, legacy.size - 2)
+            drop = at_legacy[k] - at_legacy[k + 1]
+            share = (at_legacy[k] - length_m) / drop if drop > 0.0 else 0.0
+            values.append(offsets[k] + (offsets[k + 1] - offsets[k]) * share)
+        refined.append(np.array(values))
+    increasing_m, decreasing_m = refined
+    return (tuple(float(v) for v in 0.5 * (increasing_m + decreasing_m)),
+            tuple(float(v) for v in increasing_m - decreasing_m))
 
 
 def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:

@@ -35,7 +35,12 @@ from pma_model.branches import (
 )
 from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.forecaster import MIX_MEMORY, MIX_RULES, RuleMix
-from pma_model.identification import IdentificationSettings, OnlineModel
+from pma_model.identification import (
+    LEGACY_CORRECTION_KNOTS_PA,
+    IdentificationSettings,
+    OnlineModel,
+    refine_corrections,
+)
 from pma_model.memory import MEMORY_MODES, HysteresisModel
 
 BRANCH_FORM_NAMES = ('sigmoid', 'hill')
@@ -179,14 +184,6 @@ class ModelParams:
             raise ParamsError(f'unknown parameter(s) {unknown}; known: {sorted(merged)}')
         for name, value in values.items():
             merged[name] = _coerce(name, value, merged[name])
-        groups = {}
-        for group, settings in (('adaptation', AdaptationSettings),
-                                ('identification', IdentificationSettings)):
-            values = {item.name: merged[f'{group}.{item.name}'] for item in fields(settings)}
-            try:
-                groups[group] = settings(**values)
-            except ValueError as error:
-                raise ParamsError(f'{group}.{error}') from None
         pairs = {}
         for direction in DIRECTIONS:
             forms = {}
@@ -199,6 +196,17 @@ class ModelParams:
                 except ValueError as error:
                     raise ParamsError(f'{prefix}{error}') from None
             pairs[direction] = BranchParams(**forms)
+        if merged['branch_form'] in BRANCH_FORM_NAMES:
+            _refine_legacy_corrections(merged, pairs['increasing'].of_form(merged['branch_form']),
+                                       pairs['decreasing'].of_form(merged['branch_form']))
+        groups = {}
+        for group, settings in (('adaptation', AdaptationSettings),
+                                ('identification', IdentificationSettings)):
+            values = {item.name: merged[f'{group}.{item.name}'] for item in fields(settings)}
+            try:
+                groups[group] = settings(**values)
+            except ValueError as error:
+                raise ParamsError(f'{group}.{error}') from None
         return cls(branch_form=merged['branch_form'], memory=merged['memory'],
                    deadband_pa=merged['deadband_pa'],
                    max_gauge_pressure_pa=merged['max_gauge_pressure_pa'], **groups, **pairs)
@@ -367,6 +375,23 @@ def _coerce(name: str, value, template):
     if not math.isfinite(value):
         raise ParamsError(f'{name} must be finite, got {value!r}')
     return float(value)
+
+
+# The learned corrections (mean, difference) of the model and of the mix's play rule.
+_CORRECTION_PAIRS = (('identification.branch_correction_m', 'identification.branch_difference_m'),
+                     ('identification.play_rule_correction_m',
+                      'identification.play_rule_difference_m'))
+
+
+def _refine_legacy_corrections(merged: dict, increasing: Branch, decreasing: Branch) -> None:
+    """Corrections saved at the knots before 75 kPa was added (11 values), in place on
+    today's knots, unchanged in effect (identification.refine_corrections)."""
+    legacy = len(LEGACY_CORRECTION_KNOTS_PA)
+    for mean_name, difference_name in _CORRECTION_PAIRS:
+        if len(merged[mean_name]) == legacy and len(merged[difference_name]) == legacy:
+            merged[mean_name], merged[difference_name] = (
+                list(values) for values in refine_corrections(
+                    merged[mean_name], merged[difference_name], increasing, decreasing))
 
 
 def _flatten(nested: dict, prefix: str = '') -> dict:

@@ -496,7 +496,8 @@ def format_table(report: dict) -> str:
                          f"{values['play_share_slope_rising']:+.2f}), falling "
                          f"{values['play_share_falling']:.2f} "
                          f"({values['play_share_slope_falling']:+.2f}); branch correction cm "
-                         f"at 0, 50, ... 500 kPa: {_cm(values['branch_correction_m'])} "
+                         "at 0, 50, 75, 100, 150, ... 500 kPa: "
+                         f"{_cm(values['branch_correction_m'])} "
                          f"(increasing minus decreasing: {_cm(values['branch_difference_m'])}); "
                          "creep gains "
                          + ', '.join(f'{v:.3f}' for v in values['creep_gains']))

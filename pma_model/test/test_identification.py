@@ -18,12 +18,14 @@ from hypothesis import strategies as st
 from pma_model import identification
 from pma_model.identification import (
     CORRECTION_KNOTS_PA,
+    LEGACY_CORRECTION_KNOTS_PA,
     CorrectedBranch,
     IdentificationSettings,
     OnlineModel,
     correction_caps,
     knot_sensitivity,
     monotone_correction,
+    refine_corrections,
     run_online,
     virgin_knot_weights,
 )
@@ -116,7 +118,8 @@ def test_the_length_gradient_is_the_derivative_through_every_turning_point(memor
 
 
 @settings(max_examples=50, deadline=None)
-@given(values=st.lists(st.floats(-0.005, 0.005), min_size=11, max_size=11),
+@given(values=st.lists(st.floats(-0.005, 0.005), min_size=len(CORRECTION_KNOTS_PA),
+                       max_size=len(CORRECTION_KNOTS_PA)),
        form=st.sampled_from(['sigmoid', 'hill']), fraction=st.floats(0.0, 1.0))
 def test_corrected_branches_stay_monotone_and_invert_in_closed_form(values, form, fraction):
     branches = replace(default_params(), branch_form=form).branches()
@@ -136,6 +139,32 @@ def test_corrected_branches_stay_monotone_and_invert_in_closed_form(values, form
         if np.any(np.isclose(lengths, target, atol=1e-9) & (np.gradient(lengths) == 0.0)):
             continue   # a flat stretch: any pressure on it is right
         assert float(corrected.length(pressure)) == pytest.approx(target, abs=1e-9)
+
+
+@pytest.mark.parametrize('form', ['sigmoid', 'hill'])
+def test_a_correction_saved_on_the_legacy_knots_is_refined_without_moving_either_branch(form):
+    # Files written before the 75 kPa knot carry 11 values. Within each of their intervals a
+    # branch's correction was linear in the base branch's own length; the refined vectors
+    # must give both corrected branches exactly as that was, everywhere.
+    increasing, decreasing = replace(default_params(), branch_form=form).branches()
+    legacy = np.array(LEGACY_CORRECTION_KNOTS_PA)
+    rng = np.random.default_rng(11)
+    mean = 0.002 * np.sin(np.pi * legacy / 500e3) + rng.normal(0.0, 0.0005, legacy.size)
+    difference = rng.normal(0.0, 0.001, legacy.size)
+    refined = refine_corrections(mean, difference, increasing, decreasing)
+    assert all(len(values) == len(CORRECTION_KNOTS_PA) for values in refined)
+    grid = np.linspace(0.0, 550e3, 1101)
+    for sign, base in ((1.0, increasing), (-1.0, decreasing)):
+        saved = mean + sign * 0.5 * difference
+        at_legacy, lengths = base.length(legacy), base.length(grid)
+        k = np.clip(np.searchsorted(legacy, grid, side='right') - 1, 0, legacy.size - 2)
+        share = np.clip((at_legacy[k] - lengths) / (at_legacy[k] - at_legacy[k + 1]), 0.0, 1.0)
+        as_saved = lengths + saved[k] + (saved[k + 1] - saved[k]) * share
+        offsets = np.array(refined[0]) + sign * 0.5 * np.array(refined[1])
+        assert np.allclose(CorrectedBranch(base, tuple(offsets)).length(grid), as_saved,
+                           rtol=0.0, atol=1e-12)
+    with pytest.raises(ValueError, match='12 values'):
+        CorrectedBranch(increasing, tuple(mean))
 
 
 def test_a_corrected_branch_remembers_lengths_without_changing_them():
@@ -158,7 +187,7 @@ def test_the_correction_can_make_the_sigmoid_flat_in_the_dead_zone():
     caps = correction_caps(increasing)
     fall = increasing.length(0.0) - increasing.length(50e3)
     assert caps[0] == pytest.approx(fall)
-    flat = monotone_correction([0.0, 0.01] + [0.0] * 9, caps)
+    flat = monotone_correction([0.0, 0.01] + [0.0] * (len(CORRECTION_KNOTS_PA) - 2), caps)
     corrected = CorrectedBranch(increasing, flat)
     assert np.ptp(corrected.length(np.linspace(0, 50e3, 11))) < 1e-12
     assert corrected.pressure(float(corrected.length(0.0))) == 0.0   # the least pressure
@@ -277,11 +306,12 @@ def test_it_learns_where_the_two_branches_miss_differently():
     assert np.corrcoef(learned.branch_difference_m, wanted)[0, 1] > 0.9
     mean, difference = (np.array(v) for v in (learned.branch_correction_m,
                                              learned.branch_difference_m))
-    # The increasing branch is learned at every knot (measured: within 0.32 mm, at 100 kPa;
-    # 0.11 mm before the virgin term, which takes a share of the first loading, and this
-    # path sees that branch at 50-100 kPa mostly then; 0.29 mm with the regressor used
-    # before 2026-11-26, and a 2.6x larger prediction error).
-    assert np.abs(mean + 0.5 * difference - truth_offsets[0]).max() < 4e-4
+    # The increasing branch is learned at every knot (measured: within 0.54 mm, at 50 kPa;
+    # 0.32 mm at 100 kPa before the knot at 75 kPa, which shares the few samples this path
+    # has of that branch at 50-100 kPa; 0.11 mm before the virgin term, which takes a share
+    # of the first loading, when this path sees that branch at 50-100 kPa mostly; 0.29 mm
+    # with the regressor used before 2026-11-26, and a 2.6x larger prediction error).
+    assert np.abs(mean + 0.5 * difference - truth_offsets[0]).max() < 6e-4
     # The decreasing one up to what no sample shows: every falling curve of this path is
     # that branch rescaled between two turning points (the last one heading for 0 Pa), which
     # an error affine in the branch's own length does not change. Modulo that, it is learned
@@ -439,8 +469,9 @@ def test_a_restart_saves_the_same_numbers_again_to_the_last_bit():
     # counted as meeting it, 16 of these 100 drifted by an ulp on every restart.
     rng = np.random.default_rng(0)
     for _ in range(100):
-        params = online(branch_correction_m=tuple(rng.uniform(-0.004, 0.004, 11)),
-                        branch_difference_m=tuple(rng.uniform(-0.004, 0.004, 11)))
+        knots = len(CORRECTION_KNOTS_PA)
+        params = online(branch_correction_m=tuple(rng.uniform(-0.004, 0.004, knots)),
+                        branch_difference_m=tuple(rng.uniform(-0.004, 0.004, knots)))
         saved = params.build_online().learned()
         again = replace(params, identification=saved).build_online().learned()
         assert (again.branch_correction_m, again.branch_difference_m) == \
@@ -464,7 +495,8 @@ def test_bad_samples_neither_predict_nor_teach():
 def test_settings_are_validated_and_named_in_params():
     with pytest.raises(ValueError, match=r'play_share_rising must be within 0\.\.1'):
         IdentificationSettings(play_share_rising=1.5)
-    with pytest.raises(ValueError, match='branch_correction_m must have 11 values'):
+    knots = len(CORRECTION_KNOTS_PA)
+    with pytest.raises(ValueError, match=f'branch_correction_m must have {knots} values'):
         IdentificationSettings(branch_correction_m=(0.0,) * 3)
     with pytest.raises(ParamsError, match=r'identification\.creep_gains values must be'):
         ModelParams.from_ros_parameters({'identification.creep_gains': [0.0, 3.0]})
@@ -533,12 +565,17 @@ def test_a_noisy_hold_neither_moves_the_prediction_nor_teaches_nonsense():
         # noise (a /tmp script, 2026-11-27) the shares moved by at most 0.30, toward the
         # truth's 0.5 or away from it, with or without the virgin term (an earlier form of
         # this test asked for "toward" and met it on this seed by luck: seeds 6 and 7 moved
-        # away by 0.2 and 0.3). Nonsense runs to 0 or 1. The correction stays about where
-        # it was. Knots next to the held one, barely seen, wander with the noise: over this
+        # away by 0.2 and 0.3). With the knot at 75 kPa (2026-11-29) this short path leaves
+        # the shares elsewhere before the hold (the rising one 0.14-0.85 over seeds 0-7 and
+        # 11, against 0.29-0.81), and the hold moves them by up to 0.60 (seed 2: 0.25 ->
+        # 0.85; this seed: 0.14 -> 0.50), but to where it did before: 0.18-0.85 after it,
+        # against 0.20-0.86. Nonsense runs to 0 or 1. The correction stays about where it
+        # was. Knots next to the held one, barely seen, wander with the noise: over this
         # hold and seeds 0-7 of the same test the mean correction moved at most 1.06 mm at a
         # knot (0.72 mm before the branch difference was learned too); nonsense moves several.
         for name in ('play_share_rising', 'play_share_falling'):
-            assert abs(getattr(after, name) - getattr(before, name)) < 0.35
+            assert 0.1 < getattr(after, name) < 0.9, name
+            assert abs(getattr(after, name) - getattr(before, name)) < 0.65, name
         for name in ('branch_correction_m', 'branch_difference_m'):
             assert np.max(np.abs(np.subtract(getattr(after, name),
                                              getattr(before, name)))) < 1.5e-3, name

@@ -444,8 +444,13 @@ def test_relearn_keeps_the_history_and_moves_the_length_a_little():
 def test_identify_inverse_round_trip_with_any_shares_and_a_learned_correction(
         turns, fraction, rising, shares, bump):
     # shares: (rising, falling) mid-loop and (rising, falling) slope across the loop
-    correction = tuple(bump * math.sin(k) for k in range(11))
-    from pma_model.identification import correction_caps, monotone_correction
+    from pma_model.identification import (
+        CORRECTION_KNOTS_PA,
+        correction_caps,
+        monotone_correction,
+    )
+
+    correction = tuple(bump * math.sin(k) for k in range(len(CORRECTION_KNOTS_PA)))
 
     params = default_params()
     caps = np.minimum(*(correction_caps(branch) for branch in params.branches()))

@@ -15,7 +15,12 @@ import yaml
 from test_refit import PAPER_TABLE, run_refit
 from test_samples import write_sample_log
 
-from pma_model.identification import CorrectedBranch, correction_caps, monotone_correction
+from pma_model.identification import (
+    CORRECTION_KNOTS_PA,
+    CorrectedBranch,
+    correction_caps,
+    monotone_correction,
+)
 from pma_model.memory import HysteresisModel
 from pma_model.params import ModelParams, default_params
 
@@ -27,7 +32,7 @@ def recorded_minor_loops(tmp_path, memory: str, **rule):
     branches = default_params().branches()
     caps = np.minimum(*(correction_caps(branch) for branch in branches))
     correction = monotone_correction(
-        [0.002 * np.sin(np.pi * k / 10) for k in range(11)], caps)
+        [0.002 * np.sin(np.pi * p / 500e3) for p in CORRECTION_KNOTS_PA], caps)
     truth = HysteresisModel(*(CorrectedBranch(b, correction) for b in branches),
                             memory=memory, **rule)
     rng = np.random.default_rng(8)

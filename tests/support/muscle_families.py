@@ -42,7 +42,7 @@ from pma_model.boucwen import BoucWenModel, fit_bouc_wen
 from pma_model.forecaster import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel, run_online
 from pma_model.params import ModelParams, default_params, paper_table1
-from support import generalized_play
+from support import friction_muscle, generalized_play
 
 STROKE_M = paper_table1().stroke_m   # Table 1: 30.06 - 24.20 cm
 SCORED_FROM_REVERSAL = 3     # "after the first three reversals"
@@ -190,36 +190,58 @@ def _duhem_variant_fit(rising_scale_pa: float, falling_scale_pa: float) -> famil
 
 
 def held_out_fit_errors_m(family: str) -> np.ndarray | None:
-    """A held-out Duhem variant's or generalized play muscle's major loop minus Table 1 (22
-    values): how well it matches. None for the other families (their fits are documented in
-    docs/simulated-rig.md and bouc_wen_fit)."""
+    """A held-out Duhem variant's, generalized play or friction muscle's major loop minus
+    Table 1 (22 values): how well it matches. None for the other families (their fits are
+    documented in docs/simulated-rig.md and bouc_wen_fit)."""
     scales = duhem_variant_scales_pa(family)
     if scales is not None:
         return fit_families.duhem_loop_errors_m(_duhem_variant_fit(*scales))
     bulge = generalized_play_bulge(family)
     if bulge is not None:
         return generalized_play.loop_errors_m(generalized_play.fit(bulge))
+    widest = friction_widest_band(family)
+    if widest is not None:
+        return friction_muscle.loop_errors_m(friction_muscle.fit(widest))
     return None
 
 
 GENERALIZED_PLAY = 'gpi'   # 'gpi' or 'gpi:BULGE': support.generalized_play, held out
 
 
+def _named_number(family: str, name: str, default: float, valid, usage: str) -> float | None:
+    """'NAME' -> default, 'NAME:X' -> X when valid(X) (else ValueError with `usage`); None
+    for a family of another name."""
+    prefix, _, text = family.partition(':')
+    if prefix != name:
+        return None
+    if not text:
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not valid(value):
+        raise ValueError(f'{family!r}: {usage}')
+    return value
+
+
 def generalized_play_bulge(family: str) -> float | None:
     """'gpi' -> the default bulge, 'gpi:2' -> 2.0; None for any other family name."""
-    name, _, bulge = family.partition(':')
-    if name != GENERALIZED_PLAY:
-        return None
-    if not bulge:
-        return generalized_play.DEFAULT_BULGE
-    try:
-        value = float(bulge)
-    except ValueError:
-        value = -1.0
-    if not 0.0 <= value <= 10.0:
-        raise ValueError(f'{family!r}: a generalized play muscle is gpi or gpi:BULGE, '
-                         'BULGE within 0..10')
-    return value
+    return _named_number(family, GENERALIZED_PLAY, generalized_play.DEFAULT_BULGE,
+                         lambda value: 0.0 <= value <= 10.0,
+                         'a generalized play muscle is gpi or gpi:BULGE, BULGE within 0..10')
+
+
+FRICTION = 'friction'   # 'friction' or 'friction:WIDEST': support.friction_muscle, held out
+
+
+def friction_widest_band(family: str) -> float | None:
+    """'friction' -> the default widest band, 'friction:0.4' -> 0.4; None for any other
+    family name."""
+    return _named_number(family, FRICTION, friction_muscle.DEFAULT_WIDEST_BAND,
+                         lambda value: 0.0 < value < 1.0,
+                         'a friction muscle is friction or friction:WIDEST, WIDEST within '
+                         "0..1 (the widest fibre's band, a share of the pressure)")
 
 
 CREEP_VARIANT = 'creep'   # 'creep:wide:0.3:1.5': a rate-independent family creeping, held out
@@ -251,8 +273,8 @@ def creep_variant(family: str) -> tuple[str, families.CreepParams] | None:
 
 
 def _held_out_muscle(family: str) -> families.Muscle | None:
-    """A fresh held-out variant named by `family` (creep, generalized play, Duhem); None for
-    the simulator's families and Bouc-Wen."""
+    """A fresh held-out variant named by `family` (creep, generalized play, friction, Duhem);
+    None for the simulator's families and Bouc-Wen."""
     creeping = creep_variant(family)
     if creeping is not None:
         inner, params = creeping
@@ -260,6 +282,9 @@ def _held_out_muscle(family: str) -> families.Muscle | None:
     bulge = generalized_play_bulge(family)
     if bulge is not None:
         return generalized_play.GeneralizedPlayMuscle(generalized_play.fit(bulge))
+    widest = friction_widest_band(family)
+    if widest is not None:
+        return friction_muscle.FrictionMuscle(friction_muscle.fit(widest))
     scales = duhem_variant_scales_pa(family)
     if scales is not None:
         return families.DuhemMuscle(_duhem_variant_fit(*scales))
@@ -281,13 +306,14 @@ def family_argument(text: str) -> str:
     """argparse type of the benches' --families: a scored family or a held-out one."""
     try:
         if text in SCORED_FAMILIES or duhem_variant_scales_pa(text) is not None or \
-                generalized_play_bulge(text) is not None or creep_variant(text) is not None:
+                generalized_play_bulge(text) is not None or creep_variant(text) is not None \
+                or friction_widest_band(text) is not None:
             return text
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
     raise argparse.ArgumentTypeError(f'{text!r}: choose from {", ".join(SCORED_FAMILIES)}, '
-                                     'duhem:RISING:FALLING, gpi[:BULGE] or '
-                                     'creep:INNER:SHARE:TAU')
+                                     'duhem:RISING:FALLING, gpi[:BULGE], '
+                                     'friction[:WIDEST] or creep:INNER:SHARE:TAU')
 
 
 @functools.lru_cache(maxsize=64)
