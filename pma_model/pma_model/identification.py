@@ -252,24 +252,32 @@ def _checked_vector(name: str, values, size: int, limit: float) -> tuple[float, 
 
 # --- the branch correction ------------------------------------------------------------------
 
-def _knot_position(p_pa: float) -> tuple[int, bool]:
+def _knot_position(p_pa: float, knots=CORRECTION_KNOTS_PA) -> tuple[int, bool]:
     """(interval k, inside) for a pressure: knots k and k + 1 bracket it when inside."""
-    if p_pa <= CORRECTION_KNOTS_PA[0]:
+    if p_pa <= knots[0]:
         return 0, False
-    if p_pa >= CORRECTION_KNOTS_PA[-1]:
-        return len(CORRECTION_KNOTS_PA) - 1, False
-    return bisect.bisect_right(CORRECTION_KNOTS_PA, p_pa) - 1, True
+    if p_pa >= knots[-1]:
+        return len(knots) - 1, False
+    return bisect.bisect_right(knots, p_pa) - 1, True
 
 
-def _knot_share(p_pa: float, base_length_m: float, at_knots) -> tuple[int, float]:
+def _knot_share(p_pa: float, base_length_m: float, at_knots,
+                knots=CORRECTION_KNOTS_PA) -> tuple[int, float]:
     """(k, share): the correction at p_pa is d_k + (d_{k+1} - d_k) * share, interpolated
     along the base branch's own length (`at_knots`: its lengths at the knots); share is 0
     beyond the knots and on an interval where the base does not fall."""
-    k, inside = _knot_position(p_pa)
+    k, inside = _knot_position(p_pa, knots)
     if not inside:
         return k, 0.0
     drop = at_knots[k] - at_knots[k + 1]
     return k, ((at_knots[k] - base_length_m) / drop if drop > 0.0 else 0.0)
+
+
+def _interpolated(offsets, k: int, share: float) -> float:
+    """The correction d_k + (d_{k+1} - d_k) * share (`_knot_share`'s k and share)."""
+    if share == 0.0:
+        return offsets[k]
+    return offsets[k] + (offsets[k + 1] - offsets[k]) * share
 
 
 _MAX_KNOWN_LENGTHS = 256     # single-pressure lengths a CorrectedBranch keeps
@@ -317,10 +325,8 @@ class CorrectedBranch(Branch):
 
     def correction_at(self, p_pa: float, base_length_m: float) -> float:
         """delta at one pressure, given the base length there."""
-        k, share = _knot_share(p_pa, base_length_m, self._base_at_knots)
-        if share == 0.0:
-            return self.offsets_m[k]
-        return self.offsets_m[k] + (self.offsets_m[k + 1] - self.offsets_m[k]) * share
+        return _interpolated(self.offsets_m,
+                             *_knot_share(p_pa, base_length_m, self._base_at_knots))
 
     def length(self, p_pa):
         if isinstance(p_pa, float):   # the online path: one sample, no numpy round trip
@@ -406,21 +412,16 @@ def refine_corrections(mean_m, difference_m, increasing: Branch, decreasing: Bra
     so a knot inserted with the value the correction already had there leaves both corrected
     branches as they were: a model saved before the knot was added loads unchanged.
     """
-    legacy = np.array(LEGACY_CORRECTION_KNOTS_PA)
     mean, difference = np.asarray(mean_m, dtype=float), np.asarray(difference_m, dtype=float)
     refined = []
     for sign, base in ((1.0, increasing), (-1.0, decreasing)):
         offsets = mean + sign * 0.5 * difference
-        at_legacy = np.asarray(base.length(legacy), dtype=float)
-        values = []
-        for p_pa, length_m in zip(CORRECTION_KNOTS_PA,
-                                  np.asarray(base.length(np.array(CORRECTION_KNOTS_PA))),
-                                  strict=True):
-            k = min(int(np.searchsorted(legacy, p_pa, side='right')) - 1, legacy.size - 2)
-            drop = at_legacy[k] - at_legacy[k + 1]
-            share = (at_legacy[k] - length_m) / drop if drop > 0.0 else 0.0
-            values.append(offsets[k] + (offsets[k + 1] - offsets[k]) * share)
-        refined.append(np.array(values))
+        at_legacy = base.length(np.array(LEGACY_CORRECTION_KNOTS_PA))
+        lengths = base.length(np.array(CORRECTION_KNOTS_PA))
+        refined.append(np.array([
+            _interpolated(offsets, *_knot_share(p_pa, length_m, at_legacy,
+                                                LEGACY_CORRECTION_KNOTS_PA))
+            for p_pa, length_m in zip(CORRECTION_KNOTS_PA, lengths, strict=True)]))
     increasing_m, decreasing_m = refined
     return (tuple(float(v) for v in 0.5 * (increasing_m + decreasing_m)),
             tuple(float(v) for v in increasing_m - decreasing_m))
