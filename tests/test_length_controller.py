@@ -9,7 +9,6 @@ send_goal` and `ros2 topic pub -r 50` would, and reads the measured length from 
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import numpy as np
@@ -20,57 +19,15 @@ from rclpy.action import ActionClient
 from std_msgs.msg import Float64
 
 from pma_driver.fake_arduino import TruthLog
-from pma_interfaces.action import MoveToLength, Sweep
-from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+from pma_interfaces.action import Sweep
+from pma_interfaces.msg import ControlState, LengthSetpoint
 from pma_model.params import paper_table1
-from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_until
+from support.control_probe import ControlProbe
+from support.ros import shutdown, wait_for_action_server, wait_until
 
 pytestmark = pytest.mark.integration
 
 STROKE_M = paper_table1().stroke_m
-
-
-class Probe:
-    def __init__(self):
-        self.spinning = SpinningNode('control_test_probe')
-        node = self.spinning.node
-        self.lock = threading.Lock()
-        self.states: list[tuple[float, PmaState]] = []
-        self.control: list[ControlState] = []
-        node.create_subscription(PmaState, 'pma/state', self._on_state, 1000)
-        node.create_subscription(ControlState, 'pma/control_state', self._on_control, 1000)
-        self.setpoints = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
-        self.move = ActionClient(node, MoveToLength, 'pma/move_to_length')
-
-    def _on_state(self, msg: PmaState) -> None:
-        with self.lock:
-            self.states.append((time.monotonic(), msg))
-
-    def _on_control(self, msg: ControlState) -> None:
-        with self.lock:
-            self.control.append(msg)
-
-    def lengths_since(self, since: float) -> np.ndarray:
-        with self.lock:
-            return np.array([s.length_m for t, s in self.states if t >= since])
-
-    def send_goal(self, length_m: float, timeout_s: float = 20.0, **fields):
-        assert self.move.wait_for_server(20), 'no pma/move_to_length server'
-        goal = MoveToLength.Goal(length_m=length_m, timeout_s=timeout_s, **fields)
-        handle = self.spinning.send_goal(self.move, goal)
-        assert handle.accepted
-        return handle
-
-    @staticmethod
-    def _wait(future, timeout: float):
-        wait_until(future.done, timeout, 'the action server')
-        return future.result()
-
-    def result(self, handle, timeout: float = 40.0):
-        return self._wait(self.spinning.in_executor(handle.get_result_async), timeout).result
-
-    def close(self):
-        self.spinning.close()
 
 
 @pytest.fixture(scope='module')
@@ -85,7 +42,7 @@ def rig(module_procs, tmp_path_factory):
     controller = module_procs.ros2_run('pma_control', 'length_controller')
     driver.wait_for_line('active: publishing', 30)
     controller.wait_for_line('length_controller ready', 30)
-    probe = Probe()
+    probe = ControlProbe()
     wait_until(lambda: len(probe.states) > 20 and len(probe.control) > 5, 20,
                'pma/state and pma/control_state')
     yield {'driver': driver, 'controller': controller, 'probe': probe, 'port': port,
@@ -99,7 +56,7 @@ def test_move_to_length_settles_and_holds(rig):
     handle = probe.send_goal(0.265, tolerance_m=0.002, settle_s=1.0)
     result = probe.result(handle)
     assert result.success, result.message
-    assert abs(result.final_length_m - 0.265) <= 0.002
+    assert abs(result.estimated_length_m - 0.265) <= 0.002
     assert 0.0 < result.settle_time_s < 15.0
     wait_until(lambda: rig['probe'].control[-1].mode == ControlState.MODE_HOLD, 5,
                'MODE_HOLD after the goal (it read MODE_STREAM, a stream nobody sent)')

@@ -165,6 +165,8 @@ def control_line(status: NodeStatus | None, control: ControlState | None) -> str
                             ControlState.MODE_HOLD):
             parts.append(f'target {q.cm(control.target_length_m)}, command '
                          f'{q.kpa(control.gauge_pressure_command_pa)}')
+        elif control.message and control.message not in parts[0]:
+            parts.append(control.message)      # why it let go (a fault, a release, a cancel)
     return 'control   ' + ' | '.join(parts)
 
 

@@ -31,6 +31,7 @@ lengths is refused with the range.
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass, fields
 
@@ -294,3 +295,32 @@ class LengthController:
         self._command_pa = command
         return ControlOutput(command, feedforward, feedback, setpoint, estimate, model_m,
                              self._bias_m, low, high, rate_limited)
+
+
+class RecentMean:
+    """The mean of the valid readings of the last `window_s`: the sensor's length, filtered.
+
+    The HC-SR04 reads in 3 mm steps with ~1.5 mm noise, so one reading says little; a goal's
+    result reports the mean over its settle window, as its action file promises.
+    """
+
+    def __init__(self, window_s: float):
+        self.window_s = window_s
+        self._readings: collections.deque[tuple[float, float]] = collections.deque()
+
+    def add(self, t_s: float, value: float) -> None:
+        """A reading at `t_s` (monotonic seconds); a NaN (no echo) is left out."""
+        if math.isfinite(value):
+            self._readings.append((t_s, value))
+        self._forget_before(t_s - self.window_s)
+
+    def mean(self, now_s: float) -> float:
+        """NaN when no valid reading came within the window."""
+        self._forget_before(now_s - self.window_s)
+        if not self._readings:
+            return math.nan
+        return math.fsum(value for _, value in self._readings) / len(self._readings)
+
+    def _forget_before(self, t_s: float) -> None:
+        while self._readings and self._readings[0][0] < t_s:
+            self._readings.popleft()

@@ -7,17 +7,21 @@ action or the `pma/length_setpoint` stream; the latest one wins. The hysteresis 
 one model_node runs: its latched `pma/model_params` is followed (a refit that model_node
 loads reaches the controller too); without model_node the shipped defaults are used.
 
-Faults (each logged, on /diagnostics and in pma/control_state):
-- no usable sample for `stale_timeout_s` (driver stopped or inactive, link lost, echo lost
-  in 'fb' mode): the running goal aborts, nothing more is published, the last command stays
-  with the driver (the driver vents on its own if its link is lost);
-- a NaN pressure: the sample is skipped (a NaN length alone is not a fault: the estimate
-  carries on from the model);
-- a new goal or stream setpoint preempts the running goal (it aborts, saying so);
-- another command source releases the target (a pressure setpoint from another node, or a
-  device setpoint that is not the controller's for OTHER_SOURCE_S, e.g. a sweep): the last
-  command wins, as between goals, and the two never fight over the valve;
-- cancelling a goal leaves the pressure where it is; so does stopping the node.
+The controller lets go of its target (a running goal aborts, a held length is no longer
+held) whenever the muscle is taken out of its hands, and then commands nothing until a new
+goal, or a stream that starts again, asks (docs/control.md has the table):
+- no usable sample for `stale_timeout_s` (the driver stopped, crashed, restarted or was
+  deactivated, its link lost; echo lost in 'fb' mode): a fault until samples come again;
+- the device vented by itself (its OVERPRESSURE or HEARTBEAT_LOST bit rose) or restarted
+  (its clock went back);
+- another command source (a pressure setpoint from another node, or a device setpoint that
+  is not the controller's for OTHER_SOURCE_S, e.g. a sweep): the last command wins, and the
+  two never fight over the valve;
+- a cancel (the pressure stays where it is; so it does when the node stops).
+A re-armed target after any of these would re-pressurise a muscle someone may be handling:
+so a stream that kept sending through it must go quiet for STREAM_REARM_QUIET_S first.
+A NaN pressure skips the sample; a NaN length alone is no fault (the estimate carries on
+from the model). A new goal or stream setpoint preempts the running goal (it aborts).
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from pma_control.controller import (
     ControllerSettings,
     ControlOutput,
     LengthController,
+    RecentMean,
 )
 from pma_interfaces.action import MoveToLength
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
@@ -62,6 +67,13 @@ OWN_COMMANDS_S = 2.0
 # The device's setpoint is none of those for this long: something else commands it (a sweep
 # runs, whose setpoints the driver takes instead of the controller's).
 OTHER_SOURCE_S = 1.0
+# After the target was let go, a stream that is still sending takes the muscle again only once
+# it has been quiet this long: a trajectory sender restarted, not one that never noticed.
+STREAM_REARM_QUIET_S = 0.5
+# Status bits with which the device says it vented by itself.
+DEVICE_VENT_BITS = PmaState.STATUS_OVERPRESSURE | PmaState.STATUS_HEARTBEAT_LOST
+# The shortest window a goal's result averages the measured length over [s].
+MIN_MEASURED_WINDOW_S = 0.5
 
 # ControllerSettings field -> (description, low, high)
 SETTING_DESCRIPTIONS = {
@@ -132,8 +144,16 @@ class LengthControllerNode(Node):
         self._last_state: PmaState | None = None
         self._last_output: ControlOutput | None = None
         self._fault = ''
+        # Why the target was last let go, and whether a fault did it ('' / False: it was
+        # not, or a new target came since); the last one stays for /diagnostics.
+        self._let_go_reason, self._let_go_by_fault = '', False
+        self._last_let_go = '-'
+        self._last_stream_at: float | None = None      # monotonic time of the last message
+        self._last_status = 0
+        self._last_device_time_s: float | None = None
+        self._measured = RecentMean(DEFAULT_SETTLE_S)
         self._stats = {'steps': 0, 'nan_pressure': 0, 'nan_length': 0, 'faults': 0,
-                       'released to another source': 0}
+                       'released to another source': 0, 'holds ended by a fault': 0}
         self._sent: collections.deque[tuple[float, int]] = collections.deque()  # (t, Pa)
         self._sent_counts: collections.Counter[int] = collections.Counter()
         self._device_differs_since: float | None = None
@@ -206,17 +226,21 @@ class LengthControllerNode(Node):
     # -- the loop ----------------------------------------------------------------------
 
     def _on_state(self, state: PmaState) -> None:
+        self._check_device(state)
         if not math.isfinite(state.gauge_pressure_pa):
             self._stats['nan_pressure'] += 1
             return
         self._stats['steps'] += 1
+        now = time.monotonic()
+        self._measured.add(now, state.length_m)
         length_ok = math.isfinite(state.length_m)
         if not length_ok:
             self._stats['nan_length'] += 1
         if length_ok or self._controller.settings.mode != 'fb':   # 'fb' is blind without echo
-            self._last_sample_at = time.monotonic()
+            self._last_sample_at = now
             if self._fault:
-                self.get_logger().info('samples again: the fault is cleared')
+                self.get_logger().info('samples again: the fault is cleared; nothing is '
+                                       'commanded until a new goal or stream')
                 self._fault = ''
         self._check_device_setpoint(state.gauge_setpoint_pa)
         t_s = state.header.stamp.sec + state.header.stamp.nanosec * 1e-9
@@ -225,6 +249,43 @@ class LengthControllerNode(Node):
         if self._controller.target_m is not None and not self._fault:
             self._command(float(output.command_pa))
         self._state_pub.publish(self._control_state(state, output))
+
+    # -- the muscle taken out of the controller's hands ---------------------------------
+
+    def _check_device(self, state: PmaState) -> None:
+        """Let go when the device vented by itself or restarted: what the controller would
+        command next assumes a muscle that is no longer there."""
+        rose = state.status & DEVICE_VENT_BITS & ~self._last_status
+        went_back = (self._last_device_time_s is not None
+                     and state.device_time_s < self._last_device_time_s)
+        self._last_status, self._last_device_time_s = state.status, state.device_time_s
+        if self._controller.target_m is None:
+            return
+        if rose:
+            names = [name for bit, name in ((PmaState.STATUS_OVERPRESSURE, 'overpressure'),
+                                            (PmaState.STATUS_HEARTBEAT_LOST, 'heartbeat lost'))
+                     if rose & bit]
+            self._let_go(f'the device vented by itself ({", ".join(names)})', fault=True)
+        elif went_back:
+            self._let_go('the device restarted (its clock went back)', fault=True)
+
+    def _let_go(self, reason: str, *, fault: bool) -> None:
+        """Stop steering: the target goes, a running goal aborts with the reason, and nothing
+        is commanded until a new goal or stream (STREAM_REARM_QUIET_S) asks."""
+        self._controller.clear_target()
+        self._device_differs_since = None
+        self._let_go_reason, self._let_go_by_fault = reason, fault
+        self._last_let_go = f'{reason} (at {self.get_clock().now().nanoseconds / 1e9:.3f} s)'
+        if fault:
+            self._stats['holds ended by a fault'] += 1
+            self.get_logger().warning(f'hold ended: {reason}; nothing is commanded until a '
+                                      'new goal or stream')
+        if self._goal is not None:
+            self._end_goal(self._goal, False, reason, 'abort')
+
+    def _armed(self) -> None:
+        """A new target was taken (goal or stream): the last let-go is history."""
+        self._let_go_reason, self._let_go_by_fault = '', False
 
     # -- other command sources ---------------------------------------------------------
 
@@ -276,12 +337,9 @@ class LengthControllerNode(Node):
 
     def _release(self, reason: str) -> None:
         """Give the valve up to whoever commands it now: the target goes, a goal aborts."""
-        self._controller.clear_target()
-        self._device_differs_since = None
         self._stats['released to another source'] += 1
         self.get_logger().warning(f'released the target: {reason}')
-        if self._goal is not None:
-            self._end_goal(self._goal, False, f'released: {reason}', 'abort')
+        self._let_go(f'released: {reason}', fault=False)
 
     def _control_state(self, state: PmaState, output: ControlOutput) -> ControlState:
         msg = ControlState()
@@ -291,6 +349,8 @@ class LengthControllerNode(Node):
             msg.mode, msg.message = ControlState.MODE_FAULT, self._fault
         elif target is None:
             msg.mode = ControlState.MODE_IDLE
+            if self._let_go_reason:
+                msg.message = f'hold ended: {self._let_go_reason}'
         elif self._goal is not None:
             msg.mode = ControlState.MODE_GOAL
         else:
@@ -324,18 +384,29 @@ class LengthControllerNode(Node):
             return
         age = 'none yet' if last is None else f'{time.monotonic() - last:.1f} s old'
         self._fault = (f'no usable pma/state sample for {timeout:g} s (latest: {age}): is the '
-                       'driver running and active? Holding the last command')
+                       'driver running and active?')
         self._stats['faults'] += 1
         self.get_logger().error(self._fault)
+        self._let_go(self._fault, fault=True)
 
     # -- targets -----------------------------------------------------------------------
 
     def _on_setpoint(self, msg: LengthSetpoint) -> None:
-        reason = self._controller.set_target(msg.length_m)
+        now = time.monotonic()
+        continued = (self._last_stream_at is not None
+                     and now - self._last_stream_at < STREAM_REARM_QUIET_S)
+        self._last_stream_at = now
+        reason = self._fault
+        if not reason and self._controller.target_m is None and self._let_go_reason \
+                and continued:
+            reason = (f'the hold ended ({self._let_go_reason}); a stream takes the muscle '
+                      f'again after {STREAM_REARM_QUIET_S:g} s without a message, or send a goal')
+        reason = reason or self._controller.set_target(msg.length_m)
         if reason:
             self.get_logger().warning(f'refused pma/length_setpoint: {reason}',
                                       throttle_duration_sec=2.0)
             return
+        self._armed()
         self._streamed = True
         if self._goal is not None:
             self._end_goal(self._goal, False, 'preempted by pma/length_setpoint', 'abort')
@@ -367,29 +438,26 @@ class LengthControllerNode(Node):
             return
         if self._goal is not None:
             self._end_goal(self._goal, False, 'preempted by a new goal', 'abort')
+        self._armed()
         self._goal, self._streamed = goal_handle, False
         self._goal_started = time.monotonic()
         self._inside_since = None
+        self._measured.window_s = max(settle_s, MIN_MEASURED_WINDOW_S)
 
     def _follow_goal(self, goal_handle) -> None:
         request = goal_handle.request
         now = time.monotonic()
         elapsed = now - self._goal_started
         if goal_handle.is_cancel_requested:
-            self._controller.clear_target()
             self._end_goal(goal_handle, False, 'canceled; the pressure stays where it is',
                            'canceled')
-            return
-        if self._fault:
-            self._controller.clear_target()
-            self._end_goal(goal_handle, False, f'aborted: {self._fault}', 'abort')
+            self._let_go('the goal was canceled', fault=False)
             return
         output = self._last_output
         if output is None:
             if elapsed > self.get_parameter('stale_timeout_s').value:
-                self._controller.clear_target()
-                self._end_goal(goal_handle, False, 'no pma/state sample yet: is the driver '
-                               'running and active?', 'abort')
+                self._let_go('no pma/state sample yet: is the driver running and active?',
+                             fault=True)
             return
         tolerance, settle_s, timeout_s = goal_limits(request)
         error = request.length_m - output.estimated_length_m
@@ -419,7 +487,8 @@ class LengthControllerNode(Node):
         output = self._last_output
         result = MoveToLength.Result(
             success=success, message=message, settle_time_s=settle_time_s,
-            final_length_m=output.estimated_length_m if output is not None else math.nan)
+            measured_length_m=self._measured.mean(time.monotonic()),
+            estimated_length_m=output.estimated_length_m if output is not None else math.nan)
 
         def report(handle):
             getattr(handle, {'succeed': 'succeed', 'abort': 'abort',
@@ -442,6 +511,9 @@ class LengthControllerNode(Node):
                                   hardware_id='controller')
         if fault:
             status.level, status.message = DiagnosticStatus.ERROR, fault
+        elif target is None and self._let_go_by_fault:
+            status.level = DiagnosticStatus.WARN
+            status.message = f'idle: the hold ended: {self._let_go_reason}'
         elif target is None:
             status.level, status.message = DiagnosticStatus.OK, 'idle (no target)'
         else:
@@ -451,6 +523,7 @@ class LengthControllerNode(Node):
             status.message = f'start-up parameters refused, kept the defaults: ' \
                              f'{self._startup_problem}; {status.message}'
         values = {'mode': settings.mode, 'target [m]': '-' if target is None else f'{target:.5f}',
+                  'last hold ended': self._last_let_go,
                   **{key: str(value) for key, value in stats.items()}}
         if output is not None:
             values.update({'estimated length [m]': f'{output.estimated_length_m:.5f}',
