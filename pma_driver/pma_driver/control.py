@@ -58,9 +58,15 @@ class DeviceControl:
         # the newest goes when the device has answered. A stream of setpoints (a controller
         # at the sample rate, `ros2 topic pub -r 1000`) then never overruns the firmware's
         # serial buffer: the real image lost commands from ~28 sent back to back.
+        # `_set_state` guards the two fields and is never held while waiting: the link thread
+        # settles them at an answer without `lock`, which a tare holds until that thread
+        # brings TARE's answer. Only `command_setpoint`, holding `lock`, makes `_next_set`
+        # a setpoint, and only while a SET is in flight.
+        self._set_state = threading.Lock()
         self._set_in_flight = False
         self._next_set: int | None = None
-        self.setpoints_coalesced = 0
+        self.setpoints_sent = 0                  # SETs sent for pma/pressure_setpoint
+        self.setpoints_coalesced = 0             # ... replaced by a newer one while waiting
 
     # -- state ---------------------------------------------------------------------------
 
@@ -135,44 +141,66 @@ class DeviceControl:
         with self.lock:
             kind, reason = self.setpoint_refusal(gauge_pa)
             if not reason:
-                if self._set_in_flight:
-                    if self._next_set is not None:
-                        self.setpoints_coalesced += 1
-                    self._next_set = round(gauge_pa)
-                else:
+                with self._set_state:
+                    waits = self._set_in_flight
+                    if waits:
+                        if self._next_set is not None:
+                            self.setpoints_coalesced += 1
+                        self._next_set = round(gauge_pa)
+                    self._set_in_flight = True
+                if not waits:
                     self._send_set(round(gauge_pa))
         return kind, reason
 
     def _send_set(self, gauge_pa: int) -> None:
-        self._set_in_flight = True
-        if not self.send(Command.SET, gauge_pa, on_answer=self._on_set_answered):
-            self._set_in_flight = False
+        """Send a setpoint's SET; `lock` is held and a SET marked in flight, this one."""
+        if self.send(Command.SET, gauge_pa, on_answer=self._on_set_answered):
+            self.setpoints_sent += 1
+        else:
+            with self._set_state:
+                self._set_in_flight = False
 
     def _on_set_answered(self) -> None:
-        """The device answered a SET (or never will): the waiting one may go, if still allowed.
+        """The device answered a SET (or never will): the waiting one goes, if still allowed.
 
         Runs on the link thread, which must never wait long for the lock: a tare holds it
-        while the link thread brings TARE's answer. Then the waiting setpoint is dropped.
+        until this thread brings TARE's answer, a sweep while its SET is answered. So when
+        the lock stays busy, the waiting setpoint goes from a thread of its own once the
+        lock is free. It was once dropped instead: a setpoint callback that held the lock
+        (briefly, but paused by a busy machine) for 50 ms lost the stream's newest setpoint.
         """
-        if not self.lock.acquire(timeout=0.05):
-            # Whoever holds the lock is not commanding setpoints (tare, deactivation).
-            self._set_in_flight, waiting, self._next_set = False, self._next_set, None
-            if waiting is not None:
-                self.on_event(logging.WARNING, f'setpoint {waiting} Pa dropped: the device '
-                              'is busy with another command')
-            return
-        try:
-            self._set_in_flight = False
+        with self._set_state:
+            if self._next_set is None:
+                self._set_in_flight = False
+                return
+        # Still marked in flight: setpoints coming meanwhile wait behind the waiting one.
+        if self.lock.acquire(timeout=0.05):
+            try:
+                self._send_waiting()
+            finally:
+                self.lock.release()
+        else:
+            threading.Thread(target=self._send_waiting_when_free, daemon=True,
+                             name='pma-setpoint').start()
+
+    def _send_waiting_when_free(self) -> None:
+        with self.lock:
+            self._send_waiting()
+
+    def _send_waiting(self) -> None:
+        """Send the newest waiting setpoint, if still allowed; `lock` is held."""
+        with self._set_state:
             waiting, self._next_set = self._next_set, None
-            if waiting is None:
+            if waiting is None:              # cannot happen: only this answer's path takes it
+                self._set_in_flight = False
                 return
-            _, reason = self.setpoint_refusal(float(waiting))
-            if reason:       # deactivated, a sweep took over, the ceiling fell meanwhile
-                self.on_event(logging.WARNING, f'setpoint {waiting} Pa dropped: {reason}')
-                return
-            self._send_set(waiting)
-        finally:
-            self.lock.release()
+        _, reason = self.setpoint_refusal(float(waiting))
+        if reason:       # deactivated, a sweep took over, the ceiling fell meanwhile
+            with self._set_state:
+                self._set_in_flight = False
+            self.on_event(logging.WARNING, f'setpoint {waiting} Pa dropped: {reason}')
+            return
+        self._send_set(waiting)
 
     def send(self, command: Command, *args: int,
              on_answer: Callable[[], None] | None = None) -> bool:

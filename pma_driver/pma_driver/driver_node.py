@@ -382,7 +382,9 @@ class PmaDriver(Node):
                 'state subscribers': str(pubs[0].get_subscription_count() if pubs else 0),
                 'samples while inactive': str(self._unpublished),
                 'sweep running': 'yes' if self._control.sweep_running else 'no',
+                # SETs sent for pma/pressure_setpoint, one in flight at a time, and the
                 # setpoints replaced by a newer one while a SET awaited its answer
+                'setpoints sent': str(self._control.setpoints_sent),
                 'setpoints coalesced': str(self._control.setpoints_coalesced),
                 'last fault': (f'{self._last_fault[0]} at {self._last_fault[1]} s'
                                if self._last_fault[0] else '-'),

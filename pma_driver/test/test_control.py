@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import threading
+import time
 
 import pytest
 from sim_link import SimClock, SimLink
@@ -76,6 +78,7 @@ def test_a_burst_of_setpoints_keeps_one_set_in_flight_and_the_newest_wins(contro
     sent = link.commands('SET')[before:]
     assert sent == [(100_000,), (129_000,)]          # then only the newest
     assert control.setpoints_coalesced == 28
+    assert control.setpoints_sent == 2
     assert link.device.setpoint_pa == 129_000
 
 
@@ -88,3 +91,77 @@ def test_a_waiting_setpoint_does_not_overtake_a_deactivation(control):
     SimClock(link).sleep(0.1)
     assert link.commands('SET')[-1] == (100_000,)     # 150 kPa was never sent
     assert link.device.setpoint_pa == 0
+
+
+class LockHolder:
+    """Another thread that holds `control.lock` until told, then does `then` and lets go:
+    a setpoint callback paused by the scheduler while it holds the lock, a tare, a sweep."""
+
+    def __init__(self, control: DeviceControl, then=lambda: None):
+        self.held, self.release = threading.Event(), threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(control, then), daemon=True)
+        self._thread.start()
+        assert self.held.wait(5)
+
+    def _run(self, control, then) -> None:
+        with control.lock:
+            self.held.set()
+            self.release.wait(5)
+            then()
+
+    def let_go(self) -> None:
+        self.release.set()
+        self._thread.join(5)
+
+
+def wait_for(predicate, what: str) -> None:
+    deadline = time.monotonic() + 5.0
+    while not predicate():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.005)
+
+
+@pytest.mark.parametrize('newer', [None, 175_000.0])
+def test_a_waiting_setpoint_is_sent_once_the_lock_is_free_not_dropped(control, newer):
+    """At a SET's answer the lock was busy for more than 50 ms (a setpoint callback paused by
+    a busy machine while it held it, a tare, a sweep's SET): the waiting setpoint, the
+    stream's newest, was dropped and the device kept the one before. Now it goes as soon as
+    the lock is free; a newer one that came meanwhile goes instead (`newer`)."""
+    link = control.link
+    events: list[str] = []
+    control.on_event = lambda _level, message: events.append(message)
+    link.reply_delay_ms = 5
+    control.command_setpoint(100_000.0)
+    control.command_setpoint(150_000.0)               # waits for the first SET's answer
+    holder = LockHolder(control, then=lambda: newer and control.command_setpoint(newer))
+    SimClock(link).sleep(0.01)                        # the answer, while the lock is held
+    assert link.commands('SET')[-1] == (100_000,)     # nothing sent past the holder
+    holder.let_go()
+    last = round(newer or 150_000.0)
+    wait_for(lambda: link.commands('SET')[-1] == (last,), f'SET {last} sent')
+    SimClock(link).sleep(0.1)
+    assert link.commands('SET')[-2:] == [(100_000,), (last,)]
+    assert link.device.setpoint_pa == last
+    assert (control.setpoints_sent, control.setpoints_coalesced) == (2, 1 if newer else 0)
+    assert events == []
+    control.command_setpoint(120_000.0)               # nothing left in flight: sent at once
+    assert link.commands('SET')[-1] == (120_000,)
+
+
+def test_a_waiting_setpoint_refused_once_the_lock_is_free_leaves_nothing_in_flight(control):
+    link = control.link
+    events: list[str] = []
+    control.on_event = lambda _level, message: events.append(message)
+    link.reply_delay_ms = 5
+    control.command_setpoint(100_000.0)
+    control.command_setpoint(150_000.0)
+    holder = LockHolder(control, then=lambda: setattr(control, 'max_gauge_pressure_pa',
+                                                      120_000.0))
+    SimClock(link).sleep(0.01)
+    holder.let_go()                                   # the ceiling fell under 150 kPa
+    wait_for(lambda: events, 'the waiting setpoint refused')
+    assert events == ['setpoint 150000 Pa dropped: setpoint 150000 Pa is above '
+                      'max_gauge_pressure_pa 120000 Pa']
+    assert link.commands('SET')[-1] == (100_000,)
+    control.command_setpoint(110_000.0)               # sent at once: nothing stuck in flight
+    assert link.commands('SET')[-1] == (110_000,)
