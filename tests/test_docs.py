@@ -145,6 +145,36 @@ def test_every_documented_pma_line_parses_even_where_it_is_not_run():
             pytest.fail(f'{document}: `{line}` does not parse (pma {argv[0]} --help)')
 
 
+STRAY_PARAMETER = re.compile(r'(?<!\S)-p\s+[\w.]+:=')
+
+
+def logical_lines(text: str) -> list[str]:
+    """Shell lines with their backslash continuations joined."""
+    return re.sub(r'\\\n', ' ', text).splitlines()
+
+
+def stray_parameters(text: str) -> list[str]:
+    """Lines of a shell block that pass a ROS parameter (`-p name:=value`, comments too)
+    with no --ros-args before it: rcl ignores it and the node runs on its default."""
+    return [line for line in logical_lines(text)
+            for match in STRAY_PARAMETER.finditer(line)
+            if '--ros-args' not in line[:match.start()]]
+
+
+def test_no_document_passes_a_parameter_without_ros_args():
+    documents = ('README.md', *sorted(str(p.relative_to(ROOT))
+                                      for p in (ROOT / 'docs').glob('*.md')))
+    found = [(document, block.line, line) for document in documents
+             for block in blocks(document) if block.lang in ('bash', 'sh', 'shell', '')
+             for line in stray_parameters(block.text)]
+    assert not found, f'-p without --ros-args (ignored by the node): {found}'
+    # The check itself: what the README said, and what it says now.
+    assert stray_parameters('pma run pma_bringup foxglove_live  # -p host:=0.0.0.0 for the lab')
+    assert stray_parameters('foxglove_live \\\n  -p host:=0.0.0.0')
+    assert not stray_parameters('foxglove_live --ros-args -p port:=8766 \\\n'
+                                '    -p topics:="[a]"')
+
+
 def test_a_failing_documented_command_fails_the_run(tmp_path):
     block = Block('x.md', 1, 'bash', 'true\nfalse\necho never', None)
     code, out = run_script(script([block]), tmp_path, 20)

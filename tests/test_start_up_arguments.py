@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import pytest
 
+from support.procs import executable as procs_executable
+
 pytestmark = pytest.mark.integration
 
 EXECUTABLES = [('pma_driver', 'driver_node'), ('pma_model', 'model_node'),
@@ -37,3 +39,29 @@ def test_a_missing_params_file_and_a_bad_remap_say_which(procs, tmp_path):
     assert 'Error opening YAML file' in missing.wait_for_line('model_node: cannot start: ')
     assert "Couldn't parse remap rule: '-r foo'" in \
         remap.wait_for_line('length_controller: cannot start: ')
+
+
+NODES_WITHOUT_OWN_ARGUMENTS = [e for e in EXECUTABLES if e[1] != 'record']
+
+
+@pytest.mark.parametrize('package, exe', NODES_WITHOUT_OWN_ARGUMENTS,
+                         ids=[exe for _, exe in NODES_WITHOUT_OWN_ARGUMENTS])
+def test_a_parameter_without_ros_args_is_refused_not_ignored(procs, tmp_path, package, exe):
+    """`foxglove_live -p host:=0.0.0.0` (as the README once said) ran on its defaults: rcl
+    ignores what is not after --ros-args, and the server stayed on localhost."""
+    proc = procs.start([str(procs_executable(package, exe)), '-p', 'host:=0.0.0.0'],
+                       name=exe, cwd=tmp_path)
+    assert proc.popen.wait(20) == 2
+    line = proc.wait_for_line(f'{exe}: unexpected argument')
+    assert "'-p host:=0.0.0.0'" in line
+    assert f'`{exe} --ros-args -p host:=0.0.0.0`' in line
+    assert 'Traceback' not in proc.output
+
+
+def test_the_recorder_refuses_a_parameter_without_ros_args_too(procs, tmp_path):
+    """The recorder parses arguments of its own; a stray -p is one it does not know."""
+    proc = procs.start([str(procs_executable('pma_bag', 'record')), '-p', 'topics:=[a]'],
+                       name='record', cwd=tmp_path)
+    assert proc.popen.wait(20) == 2
+    assert 'Traceback' not in proc.output
+    assert not list(tmp_path.glob('pma_bag_*'))

@@ -45,14 +45,53 @@ SPIN_PERIOD_S = 0.1   # how soon a stop request is seen while nothing else happe
 HANDOVER_CHECK_S = 0.1   # how often a pool-executor waiting for a free worker checks for shutdown
 
 
+def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(the program's own arguments, argv for rclpy.init): only `--ros-args ... [--]`
+    sections go to ROS.
+
+    rclpy.utilities.remove_ros_args would also swallow a bare `a:=b` outside them (it takes
+    it for a legacy remap rule): a program's `--remap /a:=/b`, or the `port:=...` of a
+    `-p port:=...` written without --ros-args. So the split is done here.
+    """
+    ours, ros, inside = [], argv[:1], False
+    for arg in argv[1:]:
+        if arg == '--ros-args':
+            inside = True
+            ros.append(arg)
+        elif inside and arg == '--':
+            inside = False
+        elif inside:
+            ros.append(arg)
+        else:
+            ours.append(arg)
+    return ours, ros
+
+
+def refuse_stray_arguments(argv: list[str]) -> None:
+    """End a node that takes only ROS arguments when it is given others: rcl would ignore
+    `driver_node -p port:=/dev/pma0` (no --ros-args) without a word, and the node would run
+    on its defaults."""
+    stray, _ = split_ros_args(argv)
+    if stray:
+        program = Path(argv[0]).name
+        example = ' '.join(stray) if stray[0] in ('-p', '-r') else '-p NAME:=VALUE'
+        exit_before_start(program, f'unexpected argument(s) {" ".join(stray)!r}: this node '
+                          f'takes only ROS arguments, after --ros-args (`{program} --ros-args '
+                          f'{example}`); nothing was started')
+
+
 @contextmanager
-def ros_context(args: list[str] | None = None) -> Iterator[StopRequest]:
+def ros_context(args: list[str] | None = None, *,
+                own_arguments: bool = False) -> Iterator[StopRequest]:
     """rclpy initialised without its signal handlers; shut down on the way out.
 
     Arguments rcl cannot start with (a params file that is missing or not YAML, a malformed
     --ros-args rule) end the process with exit code 2 and rcl's reason on one line, as a bad
-    parameter does, not with a traceback from rclpy.init.
+    parameter does, not with a traceback from rclpy.init. So do arguments outside --ros-args,
+    unless the program parses `own_arguments` itself.
     """
+    if not own_arguments:
+        refuse_stray_arguments(sys.argv if args is None else args)
     stop = stop_request()
     try:
         init_without_signal_handlers(args)

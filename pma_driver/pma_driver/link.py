@@ -76,6 +76,11 @@ def describe_open_error(port: str, error: BaseException, reconnect_period_s: flo
                 f'replugging')
     if code == errno.EBUSY:
         return f'cannot open {port}: busy (another program has it open?)'
+    if code in (errno.EAGAIN, errno.EWOULDBLOCK):
+        return (f'cannot open {port}: another process holds it (a second driver_node on the '
+                f'same port?). The port is opened exclusively, so two drivers never command '
+                f'one muscle; `fuser {port}` names the holder. Retrying every '
+                f'{reconnect_period_s:g} s')
     return f'cannot open {port}: {error}'
 
 
@@ -292,7 +297,10 @@ class SerialLink:
 
     def _open_port(self) -> serial.Serial:
         try:
-            port = serial.Serial(self.port, self.baud, timeout=0.05, write_timeout=0.5)
+            # exclusive: an advisory lock (flock), so a second driver is refused, not fed
+            # half of the device's lines.
+            port = serial.Serial(self.port, self.baud, timeout=0.05, write_timeout=0.5,
+                                 exclusive=True)
         except (*PORT_ERRORS, ValueError) as error:
             message = describe_open_error(self.port, error, self.reconnect_period_s)
             with self._lock:

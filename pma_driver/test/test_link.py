@@ -430,3 +430,18 @@ def test_a_device_restart_resets_the_sequence_accounting(device, make_link):
     wait_until(lambda: link.stats().samples == 20, 3.0, 'every sample decoded')
     sequence = link.stats().sequence
     assert (sequence.lost, sequence.gaps, sequence.duplicates, sequence.restarts) == (0, 0, 0, 0)
+
+
+def test_a_second_link_on_the_same_port_is_refused_while_the_first_holds_it(device, make_link):
+    """Two drivers on one port used to both run, each reading half of the device's lines
+    (the first then reported 1 Hz and lost samples); the second is now refused, and takes the
+    port once the first lets go."""
+    first = make_link(device.link_path)
+    first.open()
+    with pytest.raises(PortOpenError) as error:
+        make_link(device.link_path).open()
+    message = str(error.value)
+    assert f'cannot open {device.link_path}: another process holds it' in message
+    assert 'second driver_node' in message and 'fuser' in message
+    first.stop()
+    make_link(device.link_path).open()
