@@ -23,6 +23,7 @@ import pytest
 import yaml
 from rclpy.qos import qos_profile_sensor_data
 from rosbags.highlevel import AnyReader
+from std_msgs.msg import Float64
 
 from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.msg import ControlState, PmaState
@@ -126,6 +127,60 @@ def test_set_is_confirmed_by_the_device_and_a_refusal_says_why(rig):
     assert probe.fresh_state().gauge_setpoint_pa == 150_000.0      # nothing reached the device
     bad = pma('set', '150cm')
     assert bad.returncode == 2 and "'cm' is not a unit of pressure" in bad.stderr
+
+
+def test_set_refuses_above_the_drivers_ceiling_and_other_scripts_digits_unpublished(
+        procs, tmp_path):
+    # A driver of its own, its ceiling lowered: `pma set` read it and refuses in the driver's
+    # words, before publishing (it published 350 kPa for every subscriber to see, and took
+    # `٣٠٠` for 300 Pa and `２００kPa` for 200 kPa).
+    namespace = 'low_ceiling'
+    port = tmp_path / 'pma'
+    procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed', '6'
+                   ).wait_for_line('device at', 20)
+    procs.ros2_run('pma_driver', 'driver_node', ros_args=[
+        '-r', f'__ns:=/{namespace}', '-p', f'port:={port}',
+        '-p', 'max_gauge_pressure_pa:=300000.0']).wait_for_line('active: publishing', 30)
+    listener = SpinningNode('setpoint_listener')
+    try:
+        sent, _ = listener.collect(Float64, f'/{namespace}/pma/pressure_setpoint')
+        above = pma('set', '350kPa', namespace=namespace)
+        assert above.returncode == 1, above
+        assert above.stderr == (
+            'pma set: refused 350.0 kPa: setpoint 350000 Pa is above max_gauge_pressure_pa '
+            f'300000 Pa (the parameter of /{namespace}/driver_node); nothing was sent\n')
+        for text in ('٣٠٠', '２００kPa'):
+            other = pma('set', text, namespace=namespace)
+            assert other.returncode == 2 and 'use ASCII digits 0-9' in other.stderr, other
+        ok(pma('set', '250kPa', namespace=namespace))      # what is published is heard
+        wait_until(lambda: sent, 5, 'the 250 kPa setpoint')
+        time.sleep(0.5)                                 # anything else would be in
+        assert [message.data for message in sent] == [250_000.0]
+    finally:
+        listener.close()
+
+
+def test_set_without_a_driver_refuses_above_the_default_ceiling_without_waiting():
+    # No driver in this namespace: max_gauge_pressure_pa's default (500 kPa) applies, once
+    # the driver is not found (4 s), not after --timeout (it waited it out, exit 3).
+    listener = SpinningNode('setpoint_listener_no_driver')
+    try:
+        sent, _ = listener.collect(Float64, '/no_driver/pma/pressure_setpoint')
+        started = time.monotonic()
+        above = pma('set', '501kPa', '--timeout', '20s', namespace='no_driver')
+        took = time.monotonic() - started
+        assert above.returncode == 1, above
+        note, refusal = above.stderr.splitlines()
+        assert note.startswith('pma set: note: no answer from /no_driver/driver_node for its '
+                               'max_gauge_pressure_pa within ') and \
+            note.endswith('s; checking against its default, 500.0 kPa'), note
+        assert refusal == ('pma set: refused 501.0 kPa: setpoint 501000 Pa is above '
+                           "max_gauge_pressure_pa 500000 Pa (the parameter's default: "
+                           '/no_driver/driver_node did not answer); nothing was sent')
+        assert took < 12.0, took
+        assert sent == []
+    finally:
+        listener.close()
 
 
 def test_tare_wants_a_vented_muscle_and_vent_gives_one(rig):

@@ -21,6 +21,8 @@ from std_srvs.srv import Trigger
 from pma_cli import quantities as q
 from pma_cli.observe import BRANCHES, PARTICIPANT_ANNOUNCEMENT_S
 from pma_cli.session import NO_ANSWER, OK, CliError, Latest, Session
+from pma_driver.parameters import PARAMETERS, device_ceiling_pa
+from pma_driver.setpoint import setpoint_refusal
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
 
@@ -32,6 +34,9 @@ ABSENT_AFTER_S = 4.0        # a node not in the graph by then (which shows other
 REST_PA = 25_000.0          # below this a vented muscle may be tared (the device's own bound)
 SETTLE_WAIT_S = 30.0        # `pma set --wait`: inflating takes longer than a node's answer
 CANCEL_ANSWER_S = 5.0       # `pma vent`: a goal server's answer to cancelling all its goals
+CEILING = 'max_gauge_pressure_pa'   # the driver's ceiling, which `pma set` checks first
+# What the driver checks against when started without the parameter (its declared default).
+DEFAULT_CEILING_PA = device_ceiling_pa(PARAMETERS[CEILING][0], None)
 
 
 # -- setpoints -----------------------------------------------------------------------------
@@ -41,11 +46,17 @@ class Setpoints:
 
     A topic has no answer, so the device's own report is the confirmation (pma/state carries
     the setpoint the device regulates to) and the driver's log line on /rosout, `refused
-    setpoint: ...`, is the refusal with its reason.
+    setpoint: ...`, is the refusal with its reason. A setpoint the driver would refuse by its
+    value (negative, not finite, above `ceiling_pa`) is refused here instead, in the driver's
+    words (pma_driver.setpoint), and not published: every subscriber of the topic would see
+    it. `ceiling_pa` is inf until read_ceiling (or the caller) sets it.
     """
 
     def __init__(self, session: Session):
         self.session = session
+        self.ceiling_pa: float = math.inf
+        self.ceiling_from = ''          # where ceiling_pa came from, said beside a refusal
+        self.ceiling_read = False       # from the driver itself
         self.publisher = session.node.create_publisher(Float64, SETPOINT_TOPIC, 10)
         self.state = session.latest(PmaState, 'pma/state', keep=200)
         self.control = session.latest(ControlState, CONTROL_TOPIC)
@@ -74,8 +85,31 @@ class Setpoints:
             raise CliError(f'no driver takes setpoints on {topic} (waited {timeout_s:g} s): '
                            + self.session.where_hint('pma/state', DRIVER), NO_ANSWER)
 
+    def read_ceiling(self, timeout_s: float, absent_after_s: float | None = None) -> bool:
+        """Set `ceiling_pa` from the driver (driver_ceiling_pa); False, and nothing changed,
+        when it did not answer."""
+        ceiling = driver_ceiling_pa(self.session, timeout_s, absent_after_s)
+        if ceiling is None:
+            return False
+        self.ceiling_pa, self.ceiling_read = ceiling, True
+        self.ceiling_from = f'the parameter of {self.session.node_name(DRIVER)}'
+        return True
+
+    def use_default_ceiling(self, waited_s: float, verb: str) -> None:
+        """No driver answered: check against the parameter's default, and say so."""
+        driver = self.session.node_name(DRIVER)
+        self.ceiling_pa = DEFAULT_CEILING_PA
+        self.ceiling_from = f"the parameter's default: {driver} did not answer"
+        print(f'pma {verb}: note: no answer from {driver} for its {CEILING} within '
+              f'{waited_s:.1f} s; checking against its default, {q.kpa(DEFAULT_CEILING_PA)}',
+              file=sys.stderr, flush=True)
+
+    def check(self, gauge_pa: float) -> None:
+        check_setpoint(gauge_pa, self.ceiling_pa, self.ceiling_from)
+
     def command(self, gauge_pa: float, timeout_s: float) -> PmaState:
         """Send one setpoint; the first state that shows the device took it. CliError: why not."""
+        self.check(gauge_pa)
         target = round(gauge_pa)
         sent_at = time.monotonic()
         seen = self.state.count
@@ -151,6 +185,54 @@ class Setpoints:
         return self.state.message
 
 
+def driver_ceiling_pa(session: Session, timeout_s: float,
+                      absent_after_s: float | None = None) -> int | None:
+    """The driver's max_gauge_pressure_pa, whole Pa as the driver takes it; None when it did
+    not answer within `timeout_s`.
+
+    A query, resent while unanswered. With `absent_after_s`, gives up once that long after
+    the session started the driver is not in the graph (discovery has had time to find it:
+    ABSENT_AFTER_S). The device's own limit may be lower still: that the driver checks, and
+    refuses (DeviceControl.ceiling_pa).
+    """
+    driver = session.node_name(DRIVER)
+    client = session.node.create_client(GetParameters, f'{driver}/get_parameters')
+    deadline = time.monotonic() + timeout_s
+
+    def ready_or_absent() -> bool:
+        if client.service_is_ready():
+            return True
+        if absent_after_s is None or time.monotonic() - session.started < absent_after_s:
+            return False
+        return driver not in {f'{ns.rstrip("/")}/{name}' for name, ns
+                              in session.node.get_node_names_and_namespaces()}
+
+    try:
+        session.spin_until(ready_or_absent, timeout_s)
+        if not client.service_is_ready():
+            return None
+        try:
+            answer = session.answer(client, GetParameters.Request(names=[CEILING]),
+                                    max(deadline - time.monotonic(), 1.0), query=True)
+        except CliError:
+            return None
+        values = answer.values
+        if len(values) != 1 or values[0].type != ParameterType.PARAMETER_DOUBLE:
+            return None
+        return device_ceiling_pa(values[0].double_value, None)
+    finally:
+        session.node.destroy_client(client)
+
+
+def check_setpoint(gauge_pa: float, ceiling_pa: float, ceiling_from: str = '') -> None:
+    """CliError (exit 1) for a setpoint the driver would refuse by its value, in the driver's
+    own words (pma_driver.setpoint); `ceiling_from` says where the ceiling came from."""
+    kind, reason = setpoint_refusal(gauge_pa, ceiling_pa)
+    if reason:
+        source = f' ({ceiling_from})' if kind == 'too high' and ceiling_from else ''
+        raise CliError(f'refused {q.kpa(gauge_pa)}: {reason}{source}; nothing was sent')
+
+
 def ros_stamp(state: PmaState) -> float:
     return state.header.stamp.sec + 1e-9 * state.header.stamp.nanosec
 
@@ -163,12 +245,24 @@ def holds_target(control: ControlState | None) -> bool:
 
 def set_pressure(session: Session, gauge_pa: float, wait: bool, tolerance_pa: float,
                  timeout_s: float) -> int:
-    """Release a holding controller, command, and with `wait` wait up to SETTLE_WAIT_S (or the
-    timeout, if longer) for the pressure: `timeout_s` is how long a node may take to answer."""
-    if gauge_pa < 0:
-        raise CliError(f'{q.kpa(gauge_pa)} is negative: setpoints are gauge pressure, 0 or more')
+    """Check the pressure against the driver's ceiling, release a holding controller,
+    command, and with `wait` wait up to SETTLE_WAIT_S (or the timeout, if longer) for the
+    pressure: `timeout_s` is how long a node may take to answer.
+
+    Nothing is published that the driver would refuse by its value: a negative pressure at
+    once; one above its max_gauge_pressure_pa once that is read, or, when no driver is found
+    within ABSENT_AFTER_S, above the parameter's default, without waiting for one.
+    """
     setpoints = Setpoints(session)
+    setpoints.check(gauge_pa)                  # negative or not finite: no ceiling needed
+    short_s = min(timeout_s, ABSENT_AFTER_S)
+    if not setpoints.read_ceiling(timeout_s, absent_after_s=short_s):
+        setpoints.use_default_ceiling(time.monotonic() - session.started, 'set')
+    setpoints.check(gauge_pa)
     setpoints.wait_for_driver(timeout_s)
+    if not setpoints.ceiling_read:
+        setpoints.read_ceiling(timeout_s)      # a driver found late: its own ceiling
+        setpoints.check(gauge_pa)
     release_holding_controller(session, setpoints.control, timeout_s)
     state = setpoints.command(gauge_pa, timeout_s)
     print(f'setpoint {q.kpa(gauge_pa)} taken by the device (pressure now '
@@ -443,6 +537,7 @@ def typed_value(name: str, text: str, current_type: int):
     kind = q.unit_of_name(name)
     try:
         if current_type == ParameterType.PARAMETER_DOUBLE:
+            q.ascii_only(text)                 # float() takes every script's digits
             return q.parse(text, kind) if kind else float(text)
         if current_type == ParameterType.PARAMETER_INTEGER:
             return q.parse_count(text, *INT64)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import re
+import unicodedata
 
 from pma_model.units import M_PER_CM, PA_PER_KPA
 
@@ -25,11 +26,31 @@ KINDS = {'pressure': (PRESSURE_UNITS, 'Pa', '200kPa, 2bar, 29psi'),
          'time': (TIME_UNITS, 's', '5s, 500ms, 2min'),
          'frequency': (FREQUENCY_UNITS, 'Hz', '0.5Hz, 0.1hz')}
 
-_QUANTITY = re.compile(r'^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zA-Z]*)\s*$')
+# ASCII only (re.ASCII): a str pattern's \d and \s take every script's digits and spaces.
+_QUANTITY = re.compile(r'^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zA-Z]*)\s*$',
+                       re.ASCII)
 
 
 class QuantityError(ValueError):
     """Text that is not a quantity of the kind asked for; the message says what would be."""
+
+
+def ascii_only(text: str) -> None:
+    """Refuse text with any character outside ASCII, naming the first one.
+
+    Python's float() and int(), and a regex's \\d, take the decimal digits of every script:
+    `٣٠٠` (Arabic-Indic) would be 300 Pa and `２００kPa` (full-width) 200 kPa. A quantity is
+    typed in ASCII, so what is sent is what a reader of the command line sees.
+    """
+    for char in text:
+        if char.isascii():
+            continue
+        name = unicodedata.name(char, f'U+{ord(char):04X}')
+        if char.isdigit() or char.isnumeric():
+            raise QuantityError(f'{text!r}: {char!r} ({name}) is not an ASCII digit: use '
+                                'ASCII digits 0-9')
+        raise QuantityError(f'{text!r}: {char!r} ({name}) is not ASCII: type quantities in '
+                            'ASCII (digits 0-9, units such as kPa, cm, s)')
 
 
 def parse(text: str, kind: str, *, minimum: float | None = None, strict: bool = False) -> float:
@@ -38,6 +59,7 @@ def parse(text: str, kind: str, *, minimum: float | None = None, strict: bool = 
     `minimum` (exclusive when `strict`) bounds what `pma` uses itself: a timeout of -1 s is a
     typo, not a choice. What goes to a node is left to the node, which says why it refuses.
     """
+    ascii_only(text)
     units, si_unit, examples = KINDS[kind]
     match = _QUANTITY.match(text)
     if match is None:
@@ -84,6 +106,7 @@ def parse_count(text: str, minimum: int = 0, maximum: int | None = None) -> int:
     """A whole number from `minimum` to `maximum`. A count that goes into a message field must
     fit the field: a uint32 wraps 4294967298 round to 2 without a word, and refuses -1 with a
     traceback."""
+    ascii_only(text)
     try:
         value = int(text.strip())
     except ValueError:
@@ -96,6 +119,7 @@ def parse_count(text: str, minimum: int = 0, maximum: int | None = None) -> int:
 
 def parse_rate(text: str, kind: str = 'pressure') -> float:
     """`50kPa/s`, `3bar/min` as SI per second; a plain number is SI per second."""
+    ascii_only(text)
     amount, slash, per = text.partition('/')
     if not slash:
         match = _QUANTITY.match(text)
@@ -115,6 +139,7 @@ def parse_rate(text: str, kind: str = 'pressure') -> float:
 
 def parse_list(text: str, kind: str) -> list[float]:
     """`300kPa,150kPa` (commas or spaces) as SI values."""
+    ascii_only(text)
     parts = [part for part in re.split(r'[,\s]+', text.strip()) if part]
     if not parts:
         raise QuantityError(f'{text!r} has no {kind} in it')

@@ -149,6 +149,16 @@ def test_an_integer_parameter_value_must_fit_int64(text, kind, words):
     assert error.value.code == 2
 
 
+@pytest.mark.parametrize(('text', 'kind'), [
+    ('٢٠', ParameterType.PARAMETER_DOUBLE),            # float() took it: 20.0
+    ('２0', ParameterType.PARAMETER_INTEGER),          # int() took it: 20
+])
+def test_a_numeric_parameter_value_takes_ascii_digits_only(text, kind):
+    with pytest.raises(CliError, match='is not an ASCII digit: use ASCII digits 0-9') as error:
+        typed_value('sample_rate_hz', text, kind)
+    assert error.value.code == 2
+
+
 def test_the_largest_int64_is_a_parameter_value():
     assert typed_value('qos_depth', '9223372036854775807',
                        ParameterType.PARAMETER_INTEGER) == 2 ** 63 - 1

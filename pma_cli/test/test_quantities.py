@@ -1,6 +1,8 @@
 """Quantities typed the way people say them become SI, and SI prints the way people read it."""
 
 import math
+import re
+import unicodedata
 
 import pytest
 from hypothesis import given
@@ -151,3 +153,57 @@ def test_a_time_parameter_is_shown_with_its_digits(seconds, shown):
 ])
 def test_a_plain_number_that_reads_like_a_unit_left_out_gets_a_note(text, kind, note):
     assert q.unit_slip(text, kind) == note
+
+
+# -- ASCII only: float(), int() and a regex's \d take every script's decimal digits ----------
+
+@pytest.mark.parametrize(('text', 'kind', 'character'), [
+    ('٣٠٠', 'pressure', "'٣' (ARABIC-INDIC DIGIT THREE)"),         # was 300 Pa
+    ('２００kPa', 'pressure', "'２' (FULLWIDTH DIGIT TWO)"),           # was 200 kPa
+    ('26.٥cm', 'length', "'٥' (ARABIC-INDIC DIGIT FIVE)"),
+    ('५s', 'time', "'५' (DEVANAGARI DIGIT FIVE)"),
+    ('0.𝟏Hz', 'frequency', "'𝟏' (MATHEMATICAL BOLD DIGIT ONE)"),
+])
+def test_digits_of_other_scripts_are_refused_by_name(text, kind, character):
+    with pytest.raises(q.QuantityError) as error:
+        q.parse(text, kind)
+    assert str(error.value) == (f'{text!r}: {character} is not an ASCII digit: use ASCII '
+                                'digits 0-9')
+
+
+@pytest.mark.parametrize(('text', 'character'), [
+    ('26.5\u00a0cm', "'\\xa0' (NO-BREAK SPACE)"),          # \s took it
+    ('２00kPa', "'２' (FULLWIDTH DIGIT TWO)"),
+    ('200\u3000kPa', "'\\u3000' (IDEOGRAPHIC SPACE)"),
+])
+def test_any_character_outside_ascii_is_named(text, character):
+    with pytest.raises(q.QuantityError, match=re.escape(character)):
+        q.parse(text, 'length' if 'cm' in text else 'pressure')
+
+
+def test_counts_rates_and_lists_take_ascii_digits_only():
+    with pytest.raises(q.QuantityError, match=r"'٣' .* use ASCII digits 0-9"):
+        q.parse_count('٣', 1)                                     # int() took it: 3
+    with pytest.raises(q.QuantityError, match=r"'５' .* use ASCII digits 0-9"):
+        q.parse_rate('５0kPa/s')
+    with pytest.raises(q.QuantityError, match=r"'１' .* use ASCII digits 0-9"):
+        q.parse_list('300kPa,１50kPa', 'pressure')
+
+
+def other_script(number: int, digit: str) -> str:
+    """`number` written in the digits of `digit`'s script (Unicode keeps each script's ten
+    decimal digits in a row, 0 first)."""
+    zero = ord(digit) - unicodedata.decimal(digit)
+    return ''.join(chr(zero + int(d)) for d in str(number))
+
+
+@given(st.integers(min_value=0, max_value=10**9),
+       st.characters(categories=['Nd']).filter(lambda c: not c.isascii()))
+def test_a_number_in_any_other_scripts_digits_is_never_read(number, digit):
+    text = other_script(number, digit)
+    for parse in (lambda: q.parse(text, 'pressure'), lambda: q.parse(f'{text}kPa', 'pressure'),
+                  lambda: q.parse(f'1.{text}cm', 'length'), lambda: q.parse_count(text),
+                  lambda: q.parse_rate(f'{text}kPa/s'),
+                  lambda: q.parse_list(f'1kPa,{text}kPa', 'pressure')):
+        with pytest.raises(q.QuantityError, match='is not an ASCII digit: use ASCII digits 0-9'):
+            parse()

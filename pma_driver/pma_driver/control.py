@@ -18,6 +18,7 @@ from typing import Protocol
 from pma_driver.link import LinkError, LinkState, Reply
 from pma_driver.parameters import device_ceiling_pa
 from pma_driver.protocol import Ack, Command, Hello, Nak, Sample
+from pma_driver.setpoint import setpoint_refusal
 
 _log = logging.getLogger('pma_driver.control')
 
@@ -117,14 +118,9 @@ class DeviceControl:
 
     def setpoint_refusal(self, gauge_pa: float) -> tuple[str, str]:
         """(kind, reason) why this setpoint must not reach the device; ('', '') when it may."""
-        limit = self.ceiling_pa()
-        if not math.isfinite(gauge_pa):
-            return 'non-finite', f'setpoint {gauge_pa} is not a finite number'
-        if gauge_pa < 0:
-            return 'negative', f'setpoint {gauge_pa:.0f} Pa is negative (gauge pressure)'
-        if gauge_pa > limit:
-            return 'too high', (f'setpoint {gauge_pa:.0f} Pa is above max_gauge_pressure_pa '
-                                f'{limit} Pa')
+        kind, reason = setpoint_refusal(gauge_pa, self.ceiling_pa())     # `pma set`'s too
+        if reason:
+            return kind, reason
         kind, reason = self.not_commandable()
         if reason:
             return kind, reason
