@@ -160,15 +160,25 @@ def run_sweep(spin, client, label: str, goal, timeout: float):
                   f'{feedback.gauge_setpoint_pa / 1e3:5.0f} kPa  {feedback.sample_count} samples',
                   end='' if interactive else '\n', flush=True)
 
+    from pma_common.action import ServerWatch
+
+    # Feedback is a sign of life: the wait ends if the driver goes away (its result lost).
+    watch = ServerWatch(client, call=spin.call)
+
+    def on_message(message) -> None:
+        watch.alive()
+        on_feedback(message)
+
     handle = spin.send_goal(client, goal, 20, 'the sweep goal to be accepted',
-                            feedback_callback=on_feedback)
+                            feedback_callback=on_message)
     if not handle.accepted:
         raise RuntimeError(f'{label}: the driver rejected the sweep goal (see driver_node.log)')
-    result_future = spin.call(handle.get_result_async)
-    _wait(result_future, timeout, f'{label} to finish')
-    if interactive:
-        print(flush=True)
-    response = result_future.result()
+    try:
+        response = spin.wait_for_result(client, handle, timeout, f'{label} to finish',
+                                        server='driver_node (pma/sweep)', watch=watch)
+    finally:
+        if interactive:
+            print(flush=True)
     result = response.result
     if not result.success:
         # The status tells a run that failed (ABORTED, with the driver's reason) from a goal
@@ -266,21 +276,27 @@ def record_bag(clients: ServiceClients, path: Path | None,
     return future.result().message
 
 
+MOVE_TIMEOUT_S = 20.0   # each demo move's own timeout_s
+MOVE_LATE_S = 20.0      # how much later than that its result may come before the demo gives up
+
+
 def move_to(spin, client, length_m: float) -> str:
     """One MoveToLength goal (the fields `ros2 action send_goal` would send); a one-line
     summary."""
     from pma_interfaces.action import MoveToLength
 
     handle = spin.send_goal(client, MoveToLength.Goal(
-        length_m=length_m, tolerance_m=0.002, settle_s=1.0, timeout_s=20.0), 10,
+        length_m=length_m, tolerance_m=0.002, settle_s=1.0, timeout_s=MOVE_TIMEOUT_S), 10,
         'move_to_length accepted')
-    done = spin.call(handle.get_result_async)
-    _wait(done, 40, 'move_to_length result')
-    result = done.result().result
+    # The goal ends itself after its timeout_s; a server gone meanwhile ends the wait sooner.
+    result = spin.wait_for_result(client, handle, MOVE_TIMEOUT_S + MOVE_LATE_S,
+                                  'the move_to_length result',
+                                  server='length_controller (pma/move_to_length)').result
     if not result.success:
         raise RuntimeError(f'move_to_length {length_m} m: {result.message}')
     return (f'{length_m * 100:.1f} cm: settled in {result.settle_time_s:.2f} s, '
-            f'at {result.final_length_m * 100:.2f} cm')
+            f'measured {result.measured_length_m * 100:.2f} cm (estimated '
+            f'{result.estimated_length_m * 100:.2f} cm)')
 
 
 def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv: Path, *,

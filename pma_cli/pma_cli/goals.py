@@ -3,6 +3,19 @@
 A stop signal while the goal runs cancels the goal and waits for its result (the driver vents
 when a sweep is cancelled; a cancelled move leaves the pressure where it is), so the command
 ends only when the rig has ended the run too.
+
+No wait lasts for ever (issue 50; docs/cli.md, "Waits"):
+- the result is awaited while the server is there (pma_common.action.ServerWatch: in the
+  graph, and answering a liveness query or sending feedback); a server that left the graph
+  (2 s) or went silent (3 s) ends the wait with exit 3 and what was lost; a move is also
+  given up on GOAL_LATE_S after its own timeout_s, with a cancel;
+- after a Ctrl-C, the cancel is sent (again every CANCEL_RESEND_S while unanswered:
+  cancelling twice is cancelling once) and the result awaited, but a server that says
+  nothing within HEARD_AFTER_STOP_S of the Ctrl-C is taken for gone, one that answers but not
+  the cancel is given up on after CANCEL_ANSWER_S (both exit 3: the cancel could not be
+  confirmed), and a second Ctrl-C at least SAME_STOP_S after the first ends the wait at once
+  (exit 130). Two signals closer together are one Ctrl-C delivered twice (a terminal's and a
+  launcher's) and do not cut the wait for the driver's vent short.
 """
 
 from __future__ import annotations
@@ -19,6 +32,7 @@ from rclpy.action import ActionClient
 from pma_cli import quantities as q
 from pma_cli.commands import CONTROL_TOPIC, holds_target, release_holding_controller
 from pma_cli.session import (
+    CANCEL_SEND_S,
     FAILED,
     INTERRUPTED,
     NO_ANSWER,
@@ -28,6 +42,7 @@ from pma_cli.session import (
     Interrupted,
     Session,
 )
+from pma_common.action import ServerWatch
 from pma_driver.sweep import (
     STREAMED_PROFILES,
     SweepError,
@@ -38,8 +53,20 @@ from pma_driver.sweep import (
 from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import ControlState, PmaState
 
-CANCEL_WAIT_S = 15.0
+CANCEL_WAIT_S = 15.0         # a cancel answered: its goal's result (a sweep vents first)
+CANCEL_ANSWER_S = 3.0        # a server heard from, but not answering the cancel: given up
+CANCEL_RESEND_S = 0.5        # an unanswered cancel is sent again this often
+HEARD_AFTER_STOP_S = 1.0     # a server that says nothing this long after a Ctrl-C is gone
+SAME_STOP_S = 0.5            # signals closer than this to the first are one Ctrl-C
+GOAL_LATE_S = 5.0            # a move's result given up on this long after its timeout_s
+MOVE_DEFAULT_TIMEOUT_S = 30.0   # MoveToLength's timeout_s 0 (the action's definition)
 DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or FORC set
+# What a server gone during its goal leaves behind (the sentence after "its result is lost; ").
+MOVE_LOST = ('the muscle holds what it was last commanded (the driver keeps the last '
+             'setpoint; `pma vent` vents it)')
+SWEEP_LOST = ('a driver that stops vents the muscle, and the device vents by itself once no '
+              'host commands it (heartbeat_timeout_ms, 1 s by default); `pma status` shows '
+              'the rig')
 # STATUS_UNKNOWN: the server holds no goal of that ID (pma_common.action: a rejection taken
 # for the duplicate of an accepted goal).
 STATUS_WORDS = {GoalStatus.STATUS_SUCCEEDED: 'succeeded', GoalStatus.STATUS_ABORTED: 'aborted',
@@ -76,12 +103,23 @@ class Progress:
 
 
 def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, timeout_s: float,
-             what: str, hint: str, before: Callable[[], None] | None = None):
-    """(status, result) of one goal; a stop signal cancels it and its result is still awaited.
+             what: str, hint: str, lost: str, before: Callable[[], None] | None = None,
+             result_within_s: float | None = None, late: str = ''):
+    """(status, result, cancelled) of one goal; a stop signal cancels it and its result is
+    still awaited, as long as the server is there (module docstring).
 
-    `before` runs once the server is there, before the goal is sent.
+    `before` runs once the server is there, before the goal is sent. `lost` says what a
+    server gone during the goal leaves behind; `result_within_s` (from the acceptance), if
+    given, is how long the result may take (`late` says why), after which the goal is
+    cancelled and given up on.
     """
     client = ActionClient(session.node, action_type, name)
+    watch = ServerWatch(client)
+
+    def feedback(message) -> None:
+        watch.alive()
+        on_feedback(message.feedback)
+
     try:
         if not session.spin_until(client.server_is_ready, timeout_s):
             raise CliError(f'no {what} answers on {session.resolve(name)} (waited '
@@ -90,7 +128,7 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
             before()
         try:
             handle = session.send_goal(client, goal, timeout_s, f'the {what} (goal acceptance)',
-                                       feedback_callback=lambda m: on_feedback(m.feedback))
+                                       feedback_callback=feedback)
         except Interrupted:
             print(f'\ninterrupted before the {what} answered the goal; a cancel for it was '
                   'sent', file=sys.stderr, flush=True)
@@ -98,21 +136,96 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
         if not handle.accepted:
             raise CliError(f'the {what} rejected the goal')
         result_future = handle.get_result_async()
+        watch.alive()                             # the acceptance was just heard
+        deadline = None if result_within_s is None else time.monotonic() + result_within_s
+        ended = {}
+
+        def done_or_given_up() -> bool:
+            if result_future.done():
+                return True
+            how = watch.poll()
+            if how:
+                ended['gone'] = how
+            elif deadline is not None and time.monotonic() >= deadline:
+                ended['late'] = True
+            return bool(ended)
+
         try:
-            session.spin_until(result_future.done, None)
+            session.spin_until(done_or_given_up, None)
         except Interrupted:
             print(f'\ncancelling the {what} goal ...', file=sys.stderr, flush=True)
-            handle.cancel_goal_async()
-            # Later signals are only counted (pma_common.stop): wait for the real end.
-            if not session.spin_until(result_future.done, CANCEL_WAIT_S, interruptible=False):
-                raise CliError(f'the {what} did not confirm the cancel within '
-                               f'{CANCEL_WAIT_S:g} s', FAILED) from None
-            response = result_future.result()
+            response = _cancel_and_wait(session, handle, result_future, watch, what=what,
+                                        lost=lost)
             return response.status, response.result, True
+        if not result_future.done():
+            # Cancelled, so that a server that comes back does not run the goal unattended.
+            handle.cancel_goal_async()
+            session.spin_until(lambda: False, CANCEL_SEND_S, interruptible=False)
+            if 'gone' in ended:
+                raise CliError(f'the {what} {ended["gone"]} while the goal ran '
+                               f'({watch.detail}): its result is lost; {lost}', NO_ANSWER)
+            raise CliError(f'no result from the {what} within {late}: a cancel was sent, as the '
+                           'goal may run all the same', NO_ANSWER)
         response = result_future.result()
         return response.status, response.result, False
     finally:
         client.destroy()
+
+
+def _cancel_and_wait(session: Session, handle, result_future, watch: ServerWatch, *, what: str,
+                     lost: str):
+    """The result response of a goal cancelled after a stop signal; CliError when it cannot
+    come or is no longer waited for (module docstring)."""
+    stop = session.stop
+    stopped_at = stop.requested_at or time.monotonic()
+    watch.probe_now()
+    cancels = [handle.cancel_goal_async()]
+    sent_at = time.monotonic()
+    state = {'answered': False, 'why': None}
+
+    def second_stop() -> bool:
+        return (stop.last_signal_at is not None
+                and stop.last_signal_at - stopped_at >= SAME_STOP_S)
+
+    def done_or_given_up() -> bool:
+        nonlocal sent_at
+        if result_future.done():
+            return True
+        now = time.monotonic()
+        if not state['answered'] and any(future.done() for future in cancels):
+            state['answered'] = True
+            watch.alive()
+        how = watch.poll()
+        if second_stop():
+            taken = ('it answered the cancel' if state['answered'] else
+                     'the cancel was sent, not yet answered')
+            state['why'] = CliError(f'interrupted again: stopped waiting for the {what} to end '
+                                    f'the goal ({taken})', INTERRUPTED)
+        elif how:
+            state['why'] = CliError(f'the {what} {how} ({watch.detail}): the cancel could not '
+                                    f'be confirmed and the result is lost; {lost}', NO_ANSWER)
+        elif not state['answered'] and not watch.heard_since(stopped_at) \
+                and now - stopped_at >= HEARD_AFTER_STOP_S:
+            state['why'] = CliError(f'the {what} said nothing within {HEARD_AFTER_STOP_S:g} s '
+                                    'of the stop (it left or hangs): the cancel could not be '
+                                    f'confirmed and the result is lost; {lost}', NO_ANSWER)
+        elif not state['answered'] and now - stopped_at >= CANCEL_ANSWER_S:
+            state['why'] = CliError(f'the {what} did not answer the cancel within '
+                                    f'{CANCEL_ANSWER_S:g} s (it answers otherwise): the goal may '
+                                    'still run; `pma vent` stops it and vents the muscle',
+                                    NO_ANSWER)
+        elif state['answered'] and now - stopped_at >= CANCEL_WAIT_S:
+            state['why'] = CliError(f'the {what} answered the cancel but did not end the goal '
+                                    f'within {CANCEL_WAIT_S:g} s of the stop', FAILED)
+        elif not state['answered'] and now - sent_at >= CANCEL_RESEND_S:
+            cancels.append(handle.cancel_goal_async())     # cancelling twice is cancelling once
+            sent_at = now
+        return state['why'] is not None
+
+    session.spin_until(done_or_given_up, None, interruptible=False)
+    if not result_future.done():
+        raise state['why']
+    return result_future.result()
 
 
 def sweep_goal(args) -> Sweep.Goal:
@@ -232,7 +345,8 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
         status, result, cancelled = run_goal(
             session, Sweep, 'pma/sweep', goal, on_feedback=on_feedback, timeout_s=timeout_s,
             what='driver', hint=session.where_hint('pma/state', 'driver_node'),
-            before=lambda: release_holding_controller(session, control, timeout_s))
+            lost=SWEEP_LOST, before=lambda: release_holding_controller(session, control,
+                                                                        timeout_s))
     finally:
         progress.end()
     word = STATUS_WORDS.get(status, f'status {status}')
@@ -255,7 +369,7 @@ def move(session: Session, *, length_m: float, tolerance_m: float, settle_s: flo
                              timeout_s=goal_timeout_s)
     progress = Progress()
     started = time.monotonic()
-    limit = goal_timeout_s or 30.0
+    limit = goal_timeout_s or MOVE_DEFAULT_TIMEOUT_S
 
     def on_feedback(feedback) -> None:
         progress.show(min(1.0, (time.monotonic() - started) / limit),
@@ -268,13 +382,17 @@ def move(session: Session, *, length_m: float, tolerance_m: float, settle_s: flo
         status, result, cancelled = run_goal(
             session, MoveToLength, 'pma/move_to_length', goal, on_feedback=on_feedback,
             timeout_s=timeout_s, what='length controller',
-            hint=session.where_hint('pma/control_state', 'length_controller'))
+            hint=session.where_hint('pma/control_state', 'length_controller'), lost=MOVE_LOST,
+            result_within_s=limit + GOAL_LATE_S,
+            late=f"{limit + GOAL_LATE_S:g} s (the goal's timeout_s, {limit:g} s, and "
+                 f'{GOAL_LATE_S:g} s more)')
     finally:
         progress.end()
     word = STATUS_WORDS.get(status, f'status {status}')
     settle = (f', settled after {q.seconds(result.settle_time_s)}'
               if result.success else '')
-    _say_result(f'move {word}: {result.message} (at {q.cm(result.final_length_m)}{settle})',
+    _say_result(f'move {word}: {result.message} (measured {q.cm(result.measured_length_m)}, '
+                f'estimated {q.cm(result.estimated_length_m)}{settle})',
                 result.success or cancelled)
     if cancelled:
         return INTERRUPTED

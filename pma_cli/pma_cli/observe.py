@@ -294,6 +294,7 @@ class Watch:
         self.sequence = SequenceTracker()
         self.shown = 0
         self.received = 0
+        self.last_received_at = math.nan
         self.t0: float | None = None
         qos = QoSProfile(depth=200, reliability=qos_profile_sensor_data.reliability)
         session.node.create_subscription(PmaState, 'pma/state', self._on_state, qos)
@@ -302,6 +303,7 @@ class Watch:
 
     def _on_state(self, state: PmaState) -> None:
         self.received += 1
+        self.last_received_at = time.monotonic()
         self.sequence.add(state.seq)
         self.pending.append((time.monotonic(), state))
 
@@ -357,13 +359,15 @@ class Watch:
     def run(self, count: int, first_timeout_s: float) -> int:
         print(self.header(), file=self.out, flush=True)
         hinted = False
+        stalled = False             # said that the stream stopped (and not heard since)
         started = time.monotonic()
         code = OK
         try:
             while count <= 0 or self.shown < count:
                 self.session.spin_until(lambda: False, 0.05)
                 self.flush(limit=count)
-                if self.received == 0 and time.monotonic() - started > first_timeout_s:
+                now = time.monotonic()
+                if self.received == 0 and now - started > first_timeout_s:
                     hint = self.session.where_hint('pma/state', 'driver_node')
                     if count > 0:
                         raise CliError(f'no pma/state within {first_timeout_s:g} s: {hint}',
@@ -371,6 +375,22 @@ class Watch:
                     if not hinted:
                         print(f'pma watch: no pma/state yet: {hint}', file=sys.stderr)
                         hinted = True
+                # A stream that stops (the driver ended, or was deactivated) ends a counted
+                # watch: its last lines would never come (issue 50).
+                silent_s = now - self.last_received_at
+                if self.received and silent_s > first_timeout_s:
+                    if count > 0:
+                        self.flush(everything=True, limit=count)
+                        raise CliError(f'pma/state stopped after {self.received} samples '
+                                       f'(none for {first_timeout_s:g} s; {self.shown} of '
+                                       f'{count} lines shown): is the driver still running '
+                                       'and active?', NO_ANSWER)
+                    if not stalled:
+                        print(f'pma watch: no pma/state for {first_timeout_s:g} s (the driver '
+                              'ended, or is inactive); still watching', file=sys.stderr)
+                        stalled = True
+                elif self.received and stalled and silent_s < 1.0:
+                    stalled = False
         except Interrupted:
             self.flush(everything=True, limit=count)
             code = INTERRUPTED           # Ctrl-C, as every verb it stops (docs/cli.md)

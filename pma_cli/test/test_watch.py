@@ -5,11 +5,14 @@ import os
 import random
 import subprocess
 import sys
+import time
 from types import SimpleNamespace
 
 import pytest
 from pma_cli.observe import RateLimit, Watch
-from pma_cli.session import INTERRUPTED, Interrupted, Session
+from pma_cli.session import INTERRUPTED, NO_ANSWER, CliError, Interrupted, Session
+
+from pma_interfaces.msg import PmaState
 
 
 def shown(limit: RateLimit, stamps) -> int:
@@ -77,3 +80,63 @@ def test_a_reader_that_closes_the_pipe_ends_pma_quietly(tmp_path):
         os.close(write)
     assert result.returncode == 141, result.stderr
     assert result.stderr == ''
+
+
+class _StopsStreaming:
+    """A session that delivers `samples` states, one per wait, and then nothing: the driver
+    ended under `pma watch`."""
+
+    node = SimpleNamespace(create_subscription=lambda *args: None)
+
+    def __init__(self, samples: int):
+        self.left = samples
+        self.watch = None
+
+    def spin_until(self, done, timeout_s, interruptible=True):
+        if self.left:
+            self.left -= 1
+            state = PmaState(seq=100 - self.left)
+            state.header.stamp.sec = 100 - self.left
+            self.watch._on_state(state)
+        else:
+            time.sleep(timeout_s)
+        return False
+
+    def where_hint(self, topic, what):
+        return f'is {what} running?'
+
+
+def test_a_counted_watch_whose_stream_stops_exits_3():
+    """`pma watch --count 10` whose driver ended after 3 samples waited for ever."""
+    session = _StopsStreaming(3)
+    watch = session.watch = Watch(session, si=True, max_rate_hz=0.0, out=io.StringIO())
+    started = time.monotonic()
+    with pytest.raises(CliError) as stopped:
+        watch.run(10, 0.3)
+    assert stopped.value.code == NO_ANSWER
+    assert 'pma/state stopped after 3 samples (none for 0.3 s; 3 of 10 lines shown)' \
+        in str(stopped.value)
+    assert time.monotonic() - started < 2.0
+
+
+def test_an_endless_watch_says_the_stream_stopped_and_goes_on():
+    session = _StopsStreaming(2)
+    watch = session.watch = Watch(session, si=True, max_rate_hz=0.0, out=io.StringIO())
+    said = io.StringIO()
+    original, sys.stderr = sys.stderr, said
+    try:
+        calls = [0]
+        spin = session.spin_until
+
+        def until_a_second(done, timeout_s, interruptible=True):
+            calls[0] += 1
+            if calls[0] > 20:                                  # about a second: Ctrl-C
+                raise Interrupted('SIGINT')
+            return spin(done, timeout_s, interruptible)
+
+        session.spin_until = until_a_second
+        assert watch.run(0, 0.3) == INTERRUPTED
+    finally:
+        sys.stderr = original
+    assert said.getvalue().count('no pma/state for 0.3 s (the driver ended, or is inactive); '
+                                 'still watching') == 1, said.getvalue()

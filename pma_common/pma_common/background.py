@@ -17,7 +17,9 @@ load, the second lost the tests a goal in CI):
 
 from __future__ import annotations
 
+import contextlib
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -26,6 +28,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 
 SPIN_PERIOD_S = 0.1   # how soon close() is seen while nothing else happens
+RESULT_POLL_S = 0.05  # wait_for_result looks at the server this often
 
 
 class BackgroundSpin:
@@ -90,6 +93,33 @@ class BackgroundSpin:
             raise TimeoutError(f'timed out after {timeout:g} s waiting for {what} (a cancel '
                                'for the goal was sent, as it may run all the same)')
         return handle
+
+    def wait_for_result(self, client, handle, timeout: float, what: str = 'the result', *,
+                        server: str = 'the action server', watch=None):
+        """The result response of an accepted goal (`handle`, from send_goal).
+
+        TimeoutError after `timeout` (a cancel for the goal is sent then: it may still run),
+        ServerGone if its server left the graph or stopped answering meanwhile (ServerWatch;
+        pass the one whose `alive()` the goal's feedback calls, or a fresh one is made).
+        """
+        from pma_common.action import ServerGone, ServerWatch
+        from pma_common.service import poll
+
+        watch = watch or ServerWatch(client, call=self.call)
+        watch.alive()                       # the acceptance was just heard
+        future = self.call(handle.get_result_async)
+        deadline = time.monotonic() + timeout
+        while not poll(future.done, RESULT_POLL_S):
+            how = watch.poll()
+            if how:
+                raise ServerGone(f'{server} {how} while waiting for {what} ({watch.detail}): '
+                                 'the result is lost')
+            if time.monotonic() >= deadline:
+                with contextlib.suppress(Exception):
+                    self.call(handle.cancel_goal_async)
+                raise TimeoutError(f'timed out after {timeout:g} s waiting for {what} (a '
+                                   'cancel for the goal was sent, as it may run all the same)')
+        return future.result()
 
     def close(self, timeout: float = 2.0) -> None:
         """Stop spinning; the node may be destroyed after this (the caller's to do)."""

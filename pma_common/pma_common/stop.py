@@ -22,18 +22,27 @@ import importlib
 import os
 import select
 import signal
+import time
 from collections.abc import Callable
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 class StopRequest:
-    """Set once by the first stop signal (or by the program itself); later ones are counted."""
+    """Set once by the first stop signal (or by the program itself); later ones are counted.
+
+    `requested_at` and `last_signal_at` (time.monotonic(), None until then) let a waiting
+    program tell a second Ctrl-C typed on purpose from two deliveries of one (a terminal's and
+    `ros2 launch`'s come within milliseconds): `pma` ends its wait for a cancel's confirmation
+    at a later signal (pma_cli.goals).
+    """
 
     def __init__(self) -> None:
         self._requested = False
         self.reason = ''
         self.extra_signals = 0
+        self.requested_at: float | None = None
+        self.last_signal_at: float | None = None
         # Written once, never read: readable from the request on, for wait()'s select.
         self._readable_once_set, self._wake = os.pipe()
         os.set_blocking(self._wake, False)
@@ -47,6 +56,7 @@ class StopRequest:
     def _on_signal(self, signum: int, _frame) -> None:
         if self._requested:
             self.extra_signals += 1
+            self.last_signal_at = time.monotonic()
             return
         self.request(signal.Signals(signum).name)
 
@@ -55,6 +65,7 @@ class StopRequest:
         if self._requested:
             return
         self._requested = True    # first: a signal arriving from here on only counts
+        self.requested_at = time.monotonic()
         self.reason = reason
         try:
             os.write(self._wake, b'!')

@@ -8,15 +8,18 @@ nothing came back). Everything else is the real ActionServer and ActionClient.
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
+import rclpy
 from action_msgs.msg import GoalStatus
 from rclpy.action import ActionClient, ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.task import Future
 
-from pma_common.action import results_answered, send_goal
+from pma_common.action import ServerGone, ServerWatch, results_answered, send_goal
 from pma_common.background import BackgroundSpin
 from pma_common.service import poll
 from pma_interfaces.action import Sweep
@@ -50,17 +53,17 @@ class Server:
     decides the n-th goal callback (from 1): 'accept', 'reject', 'late' (accept after 3
     resend periods) or 'never'. A goal runs until cancelled if `until_cancelled`."""
 
-    def __init__(self, node: Node):
+    def __init__(self, node: Node, name: str = 'pma/sweep'):
         self.node = node
         self.goal_calls = 0
         self.executions = 0
         self.cancelled = 0
         self.until_cancelled = False
         self.answer = lambda n: 'accept'
-        ActionServer(node, Sweep, 'pma/sweep', execute_callback=self._execute,
-                     goal_callback=self._on_goal,
-                     cancel_callback=lambda _: CancelResponse.ACCEPT,
-                     callback_group=ReentrantCallbackGroup())
+        self.action = ActionServer(node, Sweep, name, execute_callback=self._execute,
+                                   goal_callback=self._on_goal,
+                                   cancel_callback=lambda _: CancelResponse.ACCEPT,
+                                   callback_group=ReentrantCallbackGroup())
 
     async def _pause(self, seconds: float) -> None:
         later = Future()
@@ -103,8 +106,8 @@ def rig(context):
         node.destroy_node()
 
 
-def ready(spin: BackgroundSpin, client_type=ActionClient):
-    client = client_type(spin.node, Sweep, 'pma/sweep')
+def ready(spin: BackgroundSpin, client_type=ActionClient, name: str = 'pma/sweep'):
+    client = client_type(spin.node, Sweep, name)
     assert client.wait_for_server(timeout_sec=10)
     return client
 
@@ -216,3 +219,96 @@ def test_no_result_answer_without_a_server_is_false(context):
     finally:
         spin.close()
         node.destroy_node()
+
+
+# -- ServerWatch: a server gone while its goal runs (issue 50) -----------------------------
+
+
+@pytest.fixture
+def watched(context):
+    """(Server, its node's BackgroundSpin, the client node's BackgroundSpin, a client): a
+    Sweep server whose goals run until cancelled, in a context of its own (a participant
+    of its own, as a server in another process has: leaving, it says goodbye)."""
+    server_context = Context()
+    rclpy.init(context=server_context)
+    server_node = Node('watched_server', context=server_context)
+    client_node = Node('watching_client', context=context)
+    server_spin, client_spin = BackgroundSpin(server_node), BackgroundSpin(client_node)
+    # A name of its own: the servers of the tests above linger in the process (destroy_node
+    # leaves an ActionServer in place).
+    server = Server(server_node, 'pma/watched')
+    server.until_cancelled = True
+    client = ready(client_spin, name='pma/watched')
+    yield server, server_spin, client_spin, client
+    client_spin.close()
+    client_node.destroy_node()
+    if not getattr(server, 'ended', False):
+        end(server, server_spin)
+
+
+def end(server: Server, spin: BackgroundSpin) -> None:
+    """The server's node ends as a process's does: its participant says goodbye."""
+    server.ended = True
+    spin.close()
+    server.action.destroy()
+    server.node.destroy_node()
+    server.node.context.try_shutdown()
+    server.node.context.destroy()
+
+
+def test_a_server_that_answers_is_not_gone(watched):
+    _, _, client_spin, client = watched
+    watch = ServerWatch(client, call=client_spin.call, gone_grace_s=0.3, silent_s=0.6,
+                        probe_s=0.1)
+    assert not poll(lambda: bool(watch.poll()), 2.0), watch.detail
+
+
+def test_a_server_that_stops_answering_is_gone_while_still_in_the_graph(watched):
+    """A process killed outright stays in the graph until its DDS lease ends (20 s): its
+    silence tells first."""
+    _, server_spin, client_spin, client = watched
+    watch = ServerWatch(client, call=client_spin.call, gone_grace_s=0.3, silent_s=0.6,
+                        probe_s=0.1)
+    assert not poll(lambda: bool(watch.poll()), 0.5)
+    server_spin.close()                               # nothing answers from here on
+    assert poll(lambda: watch.poll() == 'stopped answering', 3.0)
+    assert client.server_is_ready()
+    assert watch.detail.startswith('nothing heard from it for ')
+
+
+def test_a_server_that_leaves_the_graph_is_gone_after_the_grace(watched):
+    server, server_spin, client_spin, client = watched
+    watch = ServerWatch(client, call=client_spin.call, gone_grace_s=0.5, silent_s=30.0,
+                        probe_s=0.1)
+    end(server, server_spin)
+    assert poll(lambda: not client.server_is_ready(), 5.0)
+    left = time.monotonic()
+    assert poll(lambda: watch.poll() == 'left the graph', 3.0)
+    assert time.monotonic() - left >= 0.5 - 0.25      # the grace (less one graph check)
+    assert watch.detail.startswith('not in the graph for ')
+
+
+def test_feedback_counts_as_a_sign_of_life(watched):
+    _, server_spin, client_spin, client = watched
+    watch = ServerWatch(client, call=client_spin.call, silent_s=0.5, probe_s=0.1)
+    server_spin.close()
+    for _ in range(8):
+        time.sleep(0.1)
+        watch.alive()                                 # what the goal's feedback calls
+        assert watch.poll() == ''
+    assert poll(lambda: watch.poll() == 'stopped answering', 3.0)
+
+
+def test_wait_for_result_says_the_server_went_away(watched):
+    """BackgroundSpin.wait_for_result (the demo's waits) ends with ServerGone, not at its
+    timeout."""
+    _, server_spin, client_spin, client = watched
+    handle = client_spin.send_goal(client, Sweep.Goal(), 10)
+    server_spin.close()
+    started = time.monotonic()
+    with pytest.raises(ServerGone, match='driver stopped answering while waiting for the '
+                                         'sweep'):
+        client_spin.wait_for_result(client, handle, 60, 'the sweep', server='driver',
+                                    watch=ServerWatch(client, call=client_spin.call,
+                                                      silent_s=0.5, probe_s=0.1))
+    assert time.monotonic() - started < 3.0

@@ -31,6 +31,8 @@ def test_the_first_signal_names_the_request_and_later_ones_are_counted(request_i
     assert stop.wait(1.0)
     assert stop.reason == signal.Signals(first).name
     assert stop.extra_signals == 3
+    # When: a program tells a second Ctrl-C from one delivered twice (pma_cli.goals).
+    assert stop.requested_at <= stop.last_signal_at < stop.requested_at + 1.0
 
 
 def test_a_request_from_the_program_is_kept_over_later_signals(request_installed):
