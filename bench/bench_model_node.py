@@ -65,9 +65,10 @@ from std_srvs.srv import Trigger
 
 from pma_common.background import BackgroundSpin
 from pma_common.sequence import SequenceTracker
+from pma_common.service import SERVICE_QOS
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
-from pma_model.model_node import PREDICTION_QUEUE_DEPTH, SERVICE_QOS
+from pma_model.model_node import PREDICTION_QUEUE_DEPTH
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL = ROOT / 'ros2_ws' / 'install'

@@ -38,6 +38,7 @@ from pma_driver.parameters import PARAMETERS
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
 from support import firmware
+from support.bursts import BurstClient, answered
 from support.procs import INSTALL, ROOT
 from support.ros import SpinningNode, shutdown, wait_until
 
@@ -841,6 +842,26 @@ def test_tare_at_rest_zeroes_device_and_host_alike(rig, probe):
     wait_until(lambda: probe.latest().gauge_setpoint_pa == 150_000.0, 10, 'setpoint applied')
     refused = probe.call(Trigger, f'{DRIVER}/tare', Trigger.Request())
     assert not refused.success and 'not vented' in refused.message
+    assert driver.alive()
+
+
+@pytest.mark.serial
+@pytest.mark.timeout(180)
+def test_a_burst_of_300_tares_and_of_300_sweep_result_and_cancel_requests_is_answered_whole(
+        rig, procs, tmp_path):
+    """300 requests sent at once to ~/tare and to two of the Sweep action's services (results
+    and cancels of goals it does not know, answered at once): with rclpy's default queue (the
+    last 10) most were lost without an error. At rest, every tare is one the device takes."""
+    _, driver, _ = rig()
+    driver.wait_for_line('active: publishing', 30)
+    services = (f'{DRIVER}/tare', 'pma/sweep/_action/get_result',
+                'pma/sweep/_action/cancel_goal')
+    client = BurstClient(procs, tmp_path / 'go', services)
+    rounds = [client.burst(service) for service in services]
+    got = [answered(results) for results in rounds]
+    assert all(count == 300 for counts in got for count in counts.values()), f'{got}'
+    assert rounds[0][f'{DRIVER}/tare']['succeeded'] == 300, rounds[0]
+    client.close()
     assert driver.alive()
 
 

@@ -43,6 +43,7 @@ from std_srvs.srv import Trigger
 from pma_bag import BagError, BagReader, TopicInfo
 from pma_bag.reader import TruncatedBagWarning
 from pma_common.node import ros_context, spin_until_stopped
+from pma_common.service import SERVICE_QOS
 
 NS_PER_S = 1_000_000_000
 DEFAULT_QOS_DEPTH = 1000
@@ -177,10 +178,11 @@ class Player(Node):
         self._paused_at: int | None = self.start_ns if args.start_paused else None
         self.finished = threading.Event()
         self.stopping = threading.Event()
-        self.create_service(Trigger, '~/pause', self.on_pause)
-        self.create_service(Trigger, '~/resume', self.on_resume)
-        self.create_service(Trigger, '~/toggle_paused', self.on_toggle)
-        self.create_service(Trigger, '~/play_next', self.on_play_next)
+        # Each queues a burst (SERVICE_QOS), as every service of the project does.
+        self.create_service(Trigger, '~/pause', self.on_pause, qos_profile=SERVICE_QOS)
+        self.create_service(Trigger, '~/resume', self.on_resume, qos_profile=SERVICE_QOS)
+        self.create_service(Trigger, '~/toggle_paused', self.on_toggle, qos_profile=SERVICE_QOS)
+        self.create_service(Trigger, '~/play_next', self.on_play_next, qos_profile=SERVICE_QOS)
         self._step_wanted = threading.Event()   # play_next asked for one message
         self._stepped = threading.Event()       # ... and the playback thread published it
         if args.clock is not None:

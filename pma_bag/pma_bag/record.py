@@ -54,6 +54,7 @@ from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped, without_ros_args
 from pma_common.parameters import node_or_exit
 from pma_common.sequence import SequenceTracker
+from pma_common.service import SERVICE_QOS
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 
 FLUSH_AGE_S = 0.75
@@ -210,14 +211,16 @@ class Recorder(Node):
                         'the open one keeps its topics'))
         self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # ~/start awaits its topics while the messages' callbacks (default group) run on.
-        self.create_service(StartRecording, '~/start', self.on_start,
+        # Every service queues a burst (SERVICE_QOS): with the default 10, of 300 requests
+        # sent at once 11-39 were answered, the rest lost without an error.
+        self.create_service(StartRecording, '~/start', self.on_start, qos_profile=SERVICE_QOS,
                             callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_service(StopRecording, '~/stop', self.on_stop)
-        self.create_service(Trigger, '~/split_bagfile', self.on_split)
-        self.create_service(Trigger, '~/pause', self.on_pause)
-        self.create_service(Trigger, '~/resume', self.on_resume)
-        self.create_service(Trigger, '~/toggle_paused', self.on_toggle)
-        self.create_service(IsPaused, '~/is_paused', self.on_is_paused)
+        self.create_service(StopRecording, '~/stop', self.on_stop, qos_profile=SERVICE_QOS)
+        self.create_service(Trigger, '~/split_bagfile', self.on_split, qos_profile=SERVICE_QOS)
+        self.create_service(Trigger, '~/pause', self.on_pause, qos_profile=SERVICE_QOS)
+        self.create_service(Trigger, '~/resume', self.on_resume, qos_profile=SERVICE_QOS)
+        self.create_service(Trigger, '~/toggle_paused', self.on_toggle, qos_profile=SERVICE_QOS)
+        self.create_service(IsPaused, '~/is_paused', self.on_is_paused, qos_profile=SERVICE_QOS)
         self.create_timer(graph_period_s, self.check_graph)
         self.create_timer(FLUSH_CHECK_S, self.flush)
         self.create_timer(1.0, self.publish_status)

@@ -100,6 +100,15 @@ class _File:
     message_count: int = 0
     start_time_ns: int | None = None
     end_time_ns: int | None = None
+    _texts: tuple[dict[str, Any], str, str] | None = None   # entry(), its YAML, the path's
+
+    def entry_texts(self) -> tuple[str, str]:
+        """YAML of this file's item in `files` and in `relative_file_paths`, dumped again only
+        when the entry changed (a finished file's, never)."""
+        entry = self.entry()
+        if self._texts is None or self._texts[0] != entry:
+            self._texts = (entry, _yaml_text([entry]), _yaml_text([entry['path']]))
+        return self._texts[1], self._texts[2]
 
     def entry(self) -> dict[str, Any]:
         start = self.start_time_ns or 0
@@ -333,14 +342,25 @@ class BagWriter:
 
     def _write_metadata_record(self, force: bool = False) -> None:
         """The rosbag2 Metadata record, when custom_data changed since it was last stored."""
-        info = self.metadata()
         key = repr(sorted(self.custom_data.items()))
         if not force and key == self._metadata_written:
             return
-        text = yaml.safe_dump(info, default_flow_style=False, sort_keys=False)
+        text = self._metadata_text(self.metadata())
         current = self._files[-1]
         self._guard(lambda: current.mcap.add_metadata('rosbag2', {'serialized_metadata': text}))
         self._metadata_written = key
+
+    def _metadata_text(self, info: Mapping[str, Any]) -> str:
+        """yaml.safe_dump(info) as it reads, with each file's items kept from the last time.
+
+        The record lists every file and is written twice per split (into the finished file
+        and into the new one): dumped whole, a split of a 300-file bag took 110 ms, and a burst
+        of 300 ~/split_bagfile requests stalled a recorder of 200 Hz for tens of seconds.
+        """
+        files, paths = zip(*(f.entry_texts() for f in self._files), strict=True)
+        kept = {'files': files, 'relative_file_paths': paths}
+        return ''.join(f'{key}:\n' + ''.join(kept[key]) if key in kept
+                       else _yaml_text({key: value}) for key, value in info.items())
 
     def _check_open(self) -> None:
         if self._failed is not None:
@@ -436,6 +456,10 @@ class BagWriter:
                 f'writing bag {self.mcap_path} failed: {exc.strerror or exc}')
             self._failed.__cause__ = exc
             raise self._failed from exc
+
+
+def _yaml_text(value: Any) -> str:
+    return yaml.safe_dump(value, default_flow_style=False, sort_keys=False)
 
 
 def metadata_yaml_text(info: Mapping[str, Any]) -> str:

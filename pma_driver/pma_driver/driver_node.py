@@ -29,6 +29,7 @@ from std_srvs.srv import Trigger
 
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_common.parameters import node_or_exit
+from pma_common.service import SERVICE_QOS
 from pma_driver import protocol
 from pma_driver.clock_sync import ClockSync
 from pma_driver.control import DeviceControl
@@ -91,12 +92,14 @@ class PmaDriver(Node):
         self.create_subscription(Float64, 'pma/pressure_setpoint', self._on_setpoint, 10)
         # Every goal is accepted: one that cannot run is aborted at once with the reason in
         # its result, which a client at a terminal sees (a rejection carries no reason).
+        # Its goal, result and cancel services queue a burst as every service does.
         self._sweep_server = ActionServer(
             self, Sweep, 'pma/sweep', execute_callback=self._execute_sweep,
             cancel_callback=lambda _: CancelResponse.ACCEPT,
-            callback_group=ReentrantCallbackGroup())
+            callback_group=ReentrantCallbackGroup(), goal_service_qos_profile=SERVICE_QOS,
+            result_service_qos_profile=SERVICE_QOS, cancel_service_qos_profile=SERVICE_QOS)
         # Blocks on the device's reply, so it must not hold up the default group.
-        self.create_service(Trigger, '~/tare', self._on_tare,
+        self.create_service(Trigger, '~/tare', self._on_tare, qos_profile=SERVICE_QOS,
                             callback_group=ReentrantCallbackGroup())
         self._autostart_timer = None
         if values['autostart']:

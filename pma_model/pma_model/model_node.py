@@ -18,7 +18,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
     DurabilityPolicy,
-    HistoryPolicy,
     QoSProfile,
     ReliabilityPolicy,
     qos_profile_sensor_data,
@@ -28,6 +27,7 @@ from pma_common.diagnostics import publish_status
 from pma_common.node import run_single_threaded
 from pma_common.parameters import declare_or_keep_default
 from pma_common.sequence import SequenceTracker
+from pma_common.service import SERVICE_QOS
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
@@ -59,13 +59,6 @@ _DESCRIPTIONS = {
 # ones the recorder missed while it stalled (~0.4 %).
 STATE_QUEUE_DEPTH = 2000        # 2 s
 PREDICTION_QUEUE_DEPTH = 1000   # 1 s
-# pressure_for_length queues a burst instead of dropping it: with the services' default
-# (keep last 10), of 200 requests in flight from 4 clients only 11-41 were answered, the rest
-# lost without an error. Keep-last 1000 rather than keep-all: a client that stops reading its
-# responses can never make the reply block the node's only executor thread. A client that
-# bursts needs a queue as deep on its side (its request writer and response reader).
-SERVICE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                         reliability=ReliabilityPolicy.RELIABLE)
 
 _RANGES = {
     'deadband_pa': (0.0, 250_000.0),
@@ -162,6 +155,8 @@ class ModelNode(Node):
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
         self.create_subscription(PmaState, 'pma/state', self._on_state, state_qos)
+        # Queues a burst (pma_common.service.SERVICE_QOS): with the default 10, of 200
+        # requests in flight from 4 clients only 11-41 were answered.
         self.create_service(PressureForLength, 'pressure_for_length',
                             self._on_pressure_for_length, qos_profile=SERVICE_QOS)
         self.create_timer(1.0, self._publish_diagnostics)
