@@ -27,6 +27,7 @@ from rcl_interfaces.srv import SetParameters
 from std_msgs.msg import Float64
 
 from pma_interfaces.msg import ControlState, LengthSetpoint
+from support.bursts import BurstClient, answered
 from support.control_probe import ControlProbe
 from support.procs import INSTALL, Proc
 from support.ros import shutdown, wait_until
@@ -336,3 +337,19 @@ def test_stopping_the_controller_leaves_the_pressure_where_it_is(at_rest):
     held = {s.gauge_setpoint_pa for s in rig.probe.states_since(since)}
     assert len(held) == 1 and held.pop() > 150_000.0
     rig.controller = rig.start_controller()
+
+
+@pytest.mark.serial
+def test_a_burst_of_300_result_and_cancel_requests_is_answered_whole(rig, tmp_path):
+    """300 requests at once to MoveToLength's result and cancel services (for goals it does
+    not know: answered at once): with rclpy's default queue, the last 10, about 17 and 83
+    were answered, the rest lost without an error."""
+    services = ('pma/move_to_length/_action/get_result',
+                'pma/move_to_length/_action/cancel_goal')
+    client = BurstClient(rig.procs, tmp_path / 'go', services)
+    try:
+        got = [answered(client.burst(service)) for service in services]
+    finally:
+        client.close()
+    assert all(count == 300 for counts in got for count in counts.values()), f'{got}'
+    assert rig.controller.alive()

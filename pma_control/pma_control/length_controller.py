@@ -43,6 +43,7 @@ from std_msgs.msg import Float64
 from pma_common.diagnostics import publish_status
 from pma_common.node import run_single_threaded
 from pma_common.parameters import declare_or_keep_default
+from pma_common.service import SERVICE_QOS
 from pma_control.controller import (
     MAX_CREEP_LEAD_SHARE,
     MODES,
@@ -175,7 +176,11 @@ class LengthControllerNode(Node):
             self, MoveToLength, 'pma/move_to_length',
             execute_callback=lambda handle: MoveToLength.Result(),   # replaced per goal
             goal_callback=self._on_goal, handle_accepted_callback=self._on_accepted,
-            cancel_callback=lambda _: CancelResponse.ACCEPT)
+            cancel_callback=lambda _: CancelResponse.ACCEPT,
+            # Its goal, result and cancel services are services: a burst from several
+            # clients must not be lost in rclpy's default queue of 10.
+            goal_service_qos_profile=SERVICE_QOS, result_service_qos_profile=SERVICE_QOS,
+            cancel_service_qos_profile=SERVICE_QOS)
         self.create_timer(TICK_S, self._on_tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f'length_controller ready: mode {self._controller.settings.mode}, '
