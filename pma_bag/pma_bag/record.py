@@ -795,7 +795,7 @@ def main(argv: list[str] | None = None) -> int:
                             max_bag_size=args.max_bag_size,
                             max_bag_duration_s=args.max_bag_duration, custom_data=custom,
                             start_paused=args.start_paused)
-    with ros_context(argv) as stop:
+    with ros_context(argv, own_arguments=True) as stop:
         # -p topics:=x (a string, not a list) records nothing it was not asked for.
         node = node_or_exit(lambda: Recorder(options, args.topics), 'recorder')
         executor = SingleThreadedExecutor()
