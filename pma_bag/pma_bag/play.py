@@ -42,7 +42,7 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagError, BagReader, TopicInfo
 from pma_bag.reader import TruncatedBagWarning
-from pma_common.node import ros_context, spin_until_stopped
+from pma_common.node import ros_context, spin_until_stopped, split_ros_args
 from pma_common.service import SERVICE_QOS
 
 NS_PER_S = 1_000_000_000
@@ -352,26 +352,6 @@ def open_bag(path: Path) -> BagReader:
         raise BagError(f'bag {path} is truncated (not closed by its recorder); recover it '
                        f'first: ros2 run pma_bag recover {path}')
     return reader
-
-
-def split_ros_args(argv: list[str]) -> tuple[list[str], list[str]]:
-    """(our arguments, argv for rclpy.init): only `--ros-args ... [--]` sections go to ROS.
-
-    rclpy.utilities.remove_ros_args would also swallow our `--remap /a:=/b` (it treats a bare
-    `a:=b` as a legacy remap rule), so the split is done here.
-    """
-    ours, ros, inside = [], [argv[0]], False
-    for arg in argv[1:]:
-        if arg == '--ros-args':
-            inside = True
-            ros.append(arg)
-        elif inside and arg == '--':
-            inside = False
-        elif inside:
-            ros.append(arg)
-        else:
-            ours.append(arg)
-    return ours, ros
 
 
 def main(argv: list[str] | None = None) -> int:
