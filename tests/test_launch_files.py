@@ -453,8 +453,7 @@ def test_bringup_on_hardware_starts_driver_and_model_only(stand_ins, declared):
     assert launched.processes == [], 'no fake_arduino without use_fake_arduino'
     driver = next(n for n in launched.nodes if n['executable'] == 'driver_node')
     assert parameters_given(driver)['port'] == '/dev/ttyACM0'
-    assert {p.name for p in launched.included} == {'driver.launch.py', 'model.launch.py',
-                                                   'length_controller.launch.py'}
+    assert launched.included == [], 'the nodes come from pma_bringup.node_set, one list'
 
 
 @pytest.mark.integration
@@ -514,7 +513,8 @@ def test_launch_files_parse_and_use_known_api():
     """ast fallback, independent of the stand-ins: imports and node literals."""
     known = {module: set(members) for module, members in STAND_INS.items()}
     known['lifecycle_msgs.msg'] = {'Transition'}
-    known['datetime'] = {'datetime'}
+    from pma_bringup import node_set
+    known['pma_bringup.node_set'] = {name for name in dir(node_set) if not name.startswith('_')}
     for path in LAUNCH_FILES.values():
         tree = ast.parse(path.read_text(), filename=str(path))
         functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
@@ -555,3 +555,89 @@ def test_stand_ins_catch_a_wrong_keyword(stand_ins):
     context = Context({})
     with pytest.raises(KeyError, match='never declared'):
         LaunchConfiguration('nope').perform(context)
+
+
+# ---------------------------------------------------------------------------------------
+# `pma up` starts what the launch file starts: both build from pma_bringup.node_set.
+
+
+def up_processes(*flags: str) -> tuple[list[dict], list[list[str]]]:
+    """The nodes (as the walker records them) and plain processes `pma up FLAGS` starts,
+    read back from the argv it would execute."""
+    from pma_cli.main import parser
+
+    from pma_cli import up
+
+    nodes, processes = [], []
+    for spec, argv in up.commands(up.options_from_args(parser().parse_args(['up', *flags]))):
+        exe = Path(argv[0])
+        assert exe.is_file() and exe.parent.parent.parent.parent == INSTALL, exe
+        package, executable = exe.parent.name, exe.name
+        if '--ros-args' not in argv:
+            assert not spec.ros
+            processes.append(argv)
+            continue
+        split = argv.index('--ros-args')
+        node = {'package': package, 'executable': executable, 'name': None, 'namespace': '',
+                'parameters': [], 'arguments': argv[1:split]}
+        rest = iter(argv[split + 1:])
+        for flag in rest:
+            value = next(rest)
+            if flag == '--params-file':
+                node['parameters'].append(Path(value))
+            elif flag == '-p':
+                name, _, text = value.partition(':=')
+                node['parameters'].append({name: yaml.safe_load(text)})
+            elif flag == '-r' and value.startswith('__node:='):
+                node['name'] = value.removeprefix('__node:=')
+            elif flag == '-r' and value.startswith('__ns:='):
+                node['namespace'] = value.removeprefix('__ns:=')
+            else:
+                raise AssertionError(f'unexpected ROS argument {flag} {value}')
+        nodes.append(node)
+    return nodes, processes
+
+
+def same_node(launched: dict, started: dict, read_files: bool) -> None:
+    key = (launched['package'], launched['executable'])
+    assert (started['package'], started['executable']) == key
+    assert started['name'] == (launched['name'] or NODE_NAMES[key])
+    assert started['namespace'].strip('/') == launched['namespace'].strip('/')
+    assert started['arguments'] == launched['arguments']
+    files = [Path(p).resolve() for p in launched['parameters'] if isinstance(p, Path)]
+    assert [p.resolve() for p in started['parameters'] if isinstance(p, Path)] == files
+    values = {k: v for p in launched['parameters'] if isinstance(p, dict) for k, v in p.items()}
+    assert {k: v for p in started['parameters'] if isinstance(p, dict)
+            for k, v in p.items()} == values, key
+    if read_files:
+        assert parameters_given(started) == parameters_given(launched), key
+
+
+@pytest.mark.parametrize(('flags', 'arguments'), [
+    ((), {}),
+    (('--port', '/dev/pma0'), {'port': '/dev/pma0'}),
+    (('--simulated',), {'use_fake_arduino': 'true'}),
+    (('--simulated', '--namespace', 'left', '--port', '/tmp/pma_left_x', '--seed', '3',
+      '--record', '/tmp/pma_bag_left', '--live', '--live-port', '8766'),
+     {'use_fake_arduino': 'true', 'namespace': 'left', 'port': '/tmp/pma_left_x',
+      'fake_arduino_seed': '3', 'record': 'true', 'bag_dir': '/tmp/pma_bag_left',
+      'live': 'true', 'live_port': '8766'}),
+    (('--no-control', '--live', '--live-host', '0.0.0.0', '--namespace', '/right'),
+     {'control': 'false', 'live': 'true', 'live_host': '0.0.0.0', 'namespace': 'right'}),
+    (('--refit-params', '/tmp/refit.yaml', '--driver-params', '/tmp/rig.yaml',
+      '--model-params', '/tmp/model.yaml', '--control-params', '/tmp/control.yaml',
+      '--record', '/tmp/b', '--recorder-params', '/tmp/record.yaml'),
+     {'refit_params_file': '/tmp/refit.yaml', 'driver_params_file': '/tmp/rig.yaml',
+      'model_params_file': '/tmp/model.yaml', 'control_params_file': '/tmp/control.yaml',
+      'record': 'true', 'bag_dir': '/tmp/b', 'recorder_params_file': '/tmp/record.yaml'}),
+])
+def test_pma_up_starts_what_the_launch_file_starts(stand_ins, flags, arguments):
+    """The same options give the same processes, names, namespaces, arguments, parameters
+    files and values (the files the last case names do not exist: compared by path)."""
+    launched = launch('bringup', **arguments)
+    nodes, processes = up_processes(*flags)
+    assert processes == launched.processes
+    assert [n['executable'] for n in nodes] == [n['executable'] for n in launched.nodes]
+    read_files = '--driver-params' not in flags
+    for launched_node, started in zip(launched.nodes, nodes, strict=True):
+        same_node(launched_node, started, read_files)

@@ -8,117 +8,86 @@
     ros2 launch pma_bringup bringup.launch.py namespace:=left port:=/dev/pma0
     ros2 launch pma_bringup bringup.launch.py namespace:=right port:=/dev/pma1
 
-The driver comes from driver.launch.py (a LifecycleNode that autostarts; that file says why)
-and the model from pma_model's model.launch.py, each included in its own scope so their
-`params_file` arguments do not leak into each other. With use_fake_arduino:=true,
-fake_arduino makes `port` a symlink to its pty; the driver retries the port until it appears,
-so start order does not matter. docs/user-guide.md walks through the whole bring-up.
+Which nodes start, with which arguments and parameters files, comes from
+pma_bringup.node_set, the list `pma up` starts too (the same nodes without `ros2 launch`:
+docs/cli.md); this file turns it into launch actions. The driver is a LifecycleNode that
+autostarts (pma_driver's driver.launch.py says why); with autostart:=false this file
+configures it when its process starts and activates it once configured. With
+use_fake_arduino:=true, fake_arduino makes `port` a symlink to its pty; the driver retries the
+port until it appears, so start order does not matter. docs/user-guide.md walks through the
+whole bring-up.
 """
-
-from datetime import datetime
 
 from launch import LaunchDescription
 from launch.actions import (
     DeclareLaunchArgument,
+    EmitEvent,
     ExecuteProcess,
-    GroupAction,
-    IncludeLaunchDescription,
     OpaqueFunction,
+    RegisterEventHandler,
 )
-from launch.launch_description_sources import PythonLaunchDescriptionSource
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
-from launch_ros.actions import Node
+from launch.event_handlers import OnProcessStart
+from launch.events import matches_action
+from launch.substitutions import PathJoinSubstitution
+from launch_ros.actions import LifecycleNode, Node
+from launch_ros.event_handlers import OnStateTransition
+from launch_ros.events.lifecycle import ChangeState
+from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackagePrefix, FindPackageShare
+from lifecycle_msgs.msg import Transition
 
-DEVICE_PORT = '/dev/ttyACM0'
-LIVE_PORT = 8765
-
-
-def live_port(text: str) -> int:
-    """The live view's TCP port as the integer parameter foxglove_live declares."""
-    try:
-        port = int(text)
-    except ValueError:
-        raise ValueError(f'live_port:={text} is not a port number') from None
-    if not 0 <= port <= 65535:
-        raise ValueError(f'live_port:={text} is outside 0..65535')
-    return port
+from pma_bringup.node_set import DEFAULT_PARAMS_FILES, DEVICE_PORT, LIVE_PORT, Options, node_set
 
 
-def _flag(value: str) -> bool:
-    """'true'/'false' as IfCondition reads them (choices already refuse anything else)."""
-    return value.strip().lower() in ('true', '1')
+def _parameters(spec) -> list:
+    """The spec's files, then its values; a string as ParameterValue(str), so that launch
+    does not read '' or 'true' as YAML (null, a bool)."""
+    values = {name: ParameterValue(value, value_type=str) if isinstance(value, str) else value
+              for name, value in spec.parameters.items()}
+    return [*spec.params_files, *([values] if values else [])]
 
 
-def default_port(namespace: str, use_fake_arduino: bool) -> str:
-    """A per-namespace /tmp path for the simulated device (never a real /dev node)."""
-    if not use_fake_arduino:
-        return DEVICE_PORT
-    return f'/tmp/pma_{namespace.strip("/").replace("/", "_") or "muscle"}'
-
-
-def default_bag_dir(namespace: str) -> str:
-    """pma_bag_[<namespace>_]<date-time>, so two muscles never write into the same bag."""
-    stem = namespace.strip('/').replace('/', '_')
-    stamp = datetime.now().strftime('%Y_%m_%d-%H_%M_%S')
-    return f'pma_bag_{stem + "_" if stem else ""}{stamp}'
+def _manual_lifecycle(driver) -> list:
+    """autostart:=false: configure when the process starts, activate when configured."""
+    def change(transition_id):
+        return EmitEvent(event=ChangeState(lifecycle_node_matcher=matches_action(driver),
+                                           transition_id=transition_id))
+    return [RegisterEventHandler(OnProcessStart(
+                target_action=driver, on_start=[change(Transition.TRANSITION_CONFIGURE)])),
+            RegisterEventHandler(OnStateTransition(
+                target_lifecycle_node=driver, start_state='configuring', goal_state='inactive',
+                entities=[change(Transition.TRANSITION_ACTIVATE)]))]
 
 
 def _bringup(context):
-    """Resolve the arguments once, then build this muscle's actions from plain strings."""
-    def arg(name: str) -> str:
-        return LaunchConfiguration(name).perform(context)
-
-    namespace = arg('namespace')
-    use_fake_arduino = _flag(arg('use_fake_arduino'))
-    port = arg('port') or default_port(namespace, use_fake_arduino)
+    """Resolve the arguments once, then one action per process of node_set."""
+    options = Options.from_launch_arguments(context.launch_configurations)
     actions = []
-
-    if use_fake_arduino:
-        # A plain executable, not a ROS node: ExecuteProcess, so no --ros-args are appended.
-        actions.append(ExecuteProcess(
-            cmd=[PathJoinSubstitution(
-                [FindPackagePrefix('pma_driver'), 'lib', 'pma_driver', 'fake_arduino']),
-                '--link', port, '--seed', arg('fake_arduino_seed')],
-            name='fake_arduino', output='screen', additional_env={'PYTHONUNBUFFERED': '1'}))
-
-    actions.append(GroupAction([IncludeLaunchDescription(
-        PythonLaunchDescriptionSource(PathJoinSubstitution(
-            [FindPackageShare('pma_driver'), 'launch', 'driver.launch.py'])),
-        launch_arguments={'namespace': namespace, 'port': port,
-                          'params_file': arg('driver_params_file'),
-                          'autostart': arg('autostart')}.items())]))
-
-    actions.append(GroupAction([IncludeLaunchDescription(
-        PythonLaunchDescriptionSource(PathJoinSubstitution(
-            [FindPackageShare('pma_model'), 'launch', 'model.launch.py'])),
-        launch_arguments={'namespace': namespace,
-                          'params_file': arg('model_params_file'),
-                          'refit_params_file': arg('refit_params_file')}.items())]))
-
-    if _flag(arg('control')):
-        actions.append(GroupAction([IncludeLaunchDescription(
-            PythonLaunchDescriptionSource(PathJoinSubstitution(
-                [FindPackageShare('pma_control'), 'launch', 'length_controller.launch.py'])),
-            launch_arguments={'namespace': namespace,
-                              'params_file': arg('control_params_file')}.items())]))
-
-    if _flag(arg('record')):
-        actions.append(Node(
-            package='pma_bag', executable='record', name='recorder', namespace=namespace,
-            arguments=['-o', arg('bag_dir') or default_bag_dir(namespace)],
-            parameters=[arg('recorder_params_file')], output='screen', emulate_tty=True))
-
-    if _flag(arg('live')):
-        actions.append(Node(
-            package='pma_bringup', executable='foxglove_live', name='foxglove_live',
-            namespace=namespace, output='screen', emulate_tty=True,
-            parameters=[{'host': arg('live_host'), 'port': live_port(arg('live_port'))}]))
+    for spec in node_set(options):
+        if not spec.ros:
+            # A plain executable, not a ROS node: ExecuteProcess, so no --ros-args are appended.
+            actions.append(ExecuteProcess(
+                cmd=[PathJoinSubstitution([FindPackagePrefix(spec.package), 'lib',
+                                           spec.package, spec.executable]), *spec.arguments],
+                name=spec.name, output='screen', additional_env=dict(spec.env)))
+            continue
+        node = (LifecycleNode if spec.lifecycle else Node)(
+            package=spec.package, executable=spec.executable, name=spec.name,
+            namespace=spec.namespace, arguments=list(spec.arguments),
+            parameters=_parameters(spec), remappings=list(spec.remappings),
+            output='screen', emulate_tty=True)
+        actions.append(node)
+        if spec.lifecycle and not options.autostart:
+            actions += _manual_lifecycle(node)
     return actions
 
 
+def _default_params(option: str):
+    package, relative = DEFAULT_PARAMS_FILES[option]
+    return PathJoinSubstitution([FindPackageShare(package), *relative.split('/')])
+
+
 def generate_launch_description():
-    driver_config = PathJoinSubstitution([FindPackageShare('pma_driver'), 'config'])
     return LaunchDescription([
         DeclareLaunchArgument(
             'namespace', default_value='',
@@ -139,8 +108,7 @@ def generate_launch_description():
             description='true: also run the length controller (idle until given a target)'),
         DeclareLaunchArgument(
             'control_params_file',
-            default_value=PathJoinSubstitution(
-                [FindPackageShare('pma_control'), 'config', 'length_controller.yaml']),
+            default_value=_default_params('control_params_file'),
             description='length_controller parameters'),
         DeclareLaunchArgument(
             'record', default_value='false', choices=['true', 'false'],
@@ -165,20 +133,18 @@ def generate_launch_description():
             description='driver configures/activates itself (true) or launch does it (false)'),
         DeclareLaunchArgument(
             'driver_params_file',
-            default_value=PathJoinSubstitution([driver_config, 'driver_node.yaml']),
+            default_value=_default_params('driver_params_file'),
             description='driver_node parameters'),
         DeclareLaunchArgument(
             'model_params_file',
-            default_value=PathJoinSubstitution(
-                [FindPackageShare('pma_model'), 'config', 'model_node.yaml']),
+            default_value=_default_params('model_params_file'),
             description='model_node parameters'),
         DeclareLaunchArgument(
             'refit_params_file', default_value='',
             description='refit --params-out YAML that model_node hot-reloads; empty = none'),
         DeclareLaunchArgument(
             'recorder_params_file',
-            default_value=PathJoinSubstitution([FindPackageShare('pma_bag'), 'config',
-                                                'record.yaml']),
+            default_value=_default_params('recorder_params_file'),
             description='recorder parameters (the topic list)'),
         OpaqueFunction(function=_bringup),
     ])

@@ -278,6 +278,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--no-comments', action='store_true',
                    help='no # metadata lines above the header: the metadata goes to '
                         'OUT.metadata.yaml instead')
+    p = verb('up', "start one muscle's nodes (what bringup.launch.py starts), each logging "
+             'into runs/<timestamp>/logs, wait until the driver streams, and keep them '
+             'running; Ctrl-C stops them all (the driver vents)')
+    from pma_cli import up
+    up.add_arguments(p, _quantity('time', minimum=0.0, strict=True))
     p = verbs.add_parser('run', help='`ros2 run` without the ros2 CLI: run PACKAGE EXECUTABLE',
                          description='Start ros2_ws/install/PACKAGE/lib/PACKAGE/EXECUTABLE with '
                          'ARGS, exactly what `ros2 run PACKAGE EXECUTABLE ARGS` starts.')
@@ -287,22 +292,31 @@ def parser() -> argparse.ArgumentParser:
     return top
 
 
-def run_executable(package: str, executable: str, args: list[str]) -> int:
-    """exec the installed executable, as `ros2 run` does (same process: signals go to it)."""
+def installed_executable(package: str, executable: str) -> Path:
+    """Where `ros2 run package executable` finds it: install/PKG/lib/PKG/EXE (CliError,
+    USAGE, naming what the package has, if it is not there)."""
     from ament_index_python.packages import PackageNotFoundError, get_package_prefix
     try:
         prefix = Path(get_package_prefix(package))
     except PackageNotFoundError:
-        print(f'pma run: no package {package} (is the workspace sourced: . tools/env.sh?)',
-              file=sys.stderr)
-        return USAGE
+        raise CliError(f'no package {package} (is the workspace sourced: . tools/env.sh?)',
+                       USAGE) from None
     path = prefix / 'lib' / package / executable
     if not os.access(path, os.X_OK):
         found = sorted(p.name for p in (prefix / 'lib' / package).glob('*')
                        if os.access(p, os.X_OK))
-        print(f'pma run: {package} has no executable {executable} (it has: '
-              f'{", ".join(found) or "none"})', file=sys.stderr)
-        return USAGE
+        raise CliError(f'{package} has no executable {executable} (it has: '
+                       f'{", ".join(found) or "none"})', USAGE)
+    return path
+
+
+def run_executable(package: str, executable: str, args: list[str]) -> int:
+    """exec the installed executable, as `ros2 run` does (same process: signals go to it)."""
+    try:
+        path = installed_executable(package, executable)
+    except CliError as error:
+        print(f'pma run: {error}', file=sys.stderr)
+        return error.code
     sys.stdout.flush()
     os.execv(path, [str(path), *args])
     return FAILED    # not reached
@@ -352,6 +366,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     if args.verb == 'run':
         return run_executable(args.package, args.executable, args.args)
+    if args.verb == 'up':                 # its processes start before rclpy does
+        from pma_cli import up
+        return up.main(args)
     if args.verb == 'export':
         from pma_cli.export import ExportError, export_csv
         out = None if str(args.csv) == '-' else args.csv
