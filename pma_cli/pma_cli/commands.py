@@ -5,6 +5,7 @@ from __future__ import annotations
 import difflib
 import math
 import os
+import re
 import statistics
 import sys
 import time
@@ -81,9 +82,10 @@ class Setpoints:
             return bool(driver) and self.publisher.get_subscription_count() >= len(readers) \
                 and self.state.message is not None
 
-        if not self.session.spin_until(matched, timeout_s):
+        if not self.session.spin_until(matched, timeout_s, waiting_for=DRIVER):
             raise CliError(f'no driver takes setpoints on {topic} (waited {timeout_s:g} s): '
-                           + self.session.where_hint('pma/state', DRIVER), NO_ANSWER)
+                           + self.session.where_hint('pma/state', DRIVER)
+                           + f' Start it: {self.session.start_hint(DRIVER)}', NO_ANSWER)
 
     def read_ceiling(self, timeout_s: float, absent_after_s: float | None = None) -> bool:
         """Set `ceiling_pa` from the driver (driver_ceiling_pa); False, and nothing changed,
@@ -208,7 +210,7 @@ def driver_ceiling_pa(session: Session, timeout_s: float,
                               in session.node.get_node_names_and_namespaces()}
 
     try:
-        session.spin_until(ready_or_absent, timeout_s)
+        session.spin_until(ready_or_absent, timeout_s, waiting_for=DRIVER)
         if not client.service_is_ready():
             return None
         try:
@@ -405,7 +407,7 @@ def tare(session: Session, vent_first: bool, timeout_s: float) -> int:
         state = setpoints.steady()
         print(f'settled at {q.kpa(state.gauge_pressure_pa)}')
     response = session.call(client, Trigger.Request(), timeout_s,
-                            session.where_hint('pma/state', DRIVER))
+                            session.where_hint('pma/state', DRIVER), node=DRIVER)
     if not response.success:
         hint = ' (`pma tare --vent` vents and waits first)' if 'not vented' in response.message \
             else ''
@@ -423,24 +425,63 @@ BRANCH_CHOICES = {'auto': PressureForLength.Request.BRANCH_AUTO,
                   'decreasing': PressureForLength.Request.BRANCH_DECREASING}
 
 
+_NUMBER = r'[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?'
+
+
+def describe_inverse(answer, length_m: float, branch: str, unit: str = 'cm') -> str:
+    """pressure_for_length's answer in one line, lengths in `unit` and pressures in kPa.
+
+    The service's message is SI and names the model's inner workings (`on the mixed
+    increasing path from the current state (1649.56 Pa)`: `mixed` is the blend of its
+    memory rules); what a user needs of it is said in words instead: which way the pressure
+    goes, and from where.
+    """
+    message = answer.message
+    direction = BRANCHES.get(answer.branch) or (
+        'increasing' if branch in ('inc', 'increasing') else
+        'decreasing' if branch in ('dec', 'decreasing') else
+        next(iter(re.findall(r'\b(increasing|decreasing)\b', message)), ''))
+    now = re.search(rf'current state \(({_NUMBER}) Pa', message)
+    if branch == 'auto' and now:
+        way = 'inflating' if direction == 'increasing' else 'deflating'
+        how = (f'{way} from the current {q.kpa(float(now.group(1)))}, along the path the '
+               "model predicts from the muscle's history")
+        there = 'that way'
+    else:
+        how = {'increasing': 'inflating from rest', 'decreasing': 'deflating from the top'
+               }.get(direction, '')
+        there = 'on that branch'
+    where = f' on the {direction} branch' if direction else ''
+    where += f' ({how})' if how else ''
+    wanted = q.length(length_m, unit)
+    if answer.success:
+        return (f'{wanted}{where}: {q.kpa(answer.gauge_pressure_pa)} '
+                f'({answer.gauge_pressure_pa:.0f} Pa); reachable {there}: '
+                f'{q.length_range(answer.min_length_m, answer.max_length_m, unit)}')
+    if not (math.isfinite(answer.min_length_m) and math.isfinite(answer.max_length_m)):
+        # Refused before any range was computed (a negative length): the service's reason.
+        return f'no pressure for {wanted}: {q.in_units(message, unit)}'
+    top = re.search(rf'0\.\.({_NUMBER}) Pa', message)
+    pressures = f' with 0 .. {q.kpa(float(top.group(1)))}' if top else ''
+    return (f'no pressure gives {wanted}{where}: reachable {there} '
+            f'{q.length_range(answer.min_length_m, answer.max_length_m, unit)}{pressures}')
+
+
 def pressure_for_length(session: Session, length_m: float, branch: str, si: bool,
-                        timeout_s: float) -> int:
+                        timeout_s: float, *, unit: str = 'cm') -> int:
+    """Ask the inverse model; lengths are printed in `unit` (the one the user typed)."""
     client = session.node.create_client(PressureForLength, 'pressure_for_length')
     request = PressureForLength.Request(length_m=length_m, branch=BRANCH_CHOICES[branch])
     answer = session.call(client, request, timeout_s,
-                          session.where_hint('pma/prediction', 'model_node'), query=True)
-    reach = f'{q.cm(answer.min_length_m)} .. {q.cm(answer.max_length_m)}'
+                          session.where_hint('pma/prediction', 'model_node')
+                          + f' Start it: {session.start_hint("model_node")}', query=True,
+                          node='model_node')
     if not answer.success:
-        # A request refused before any range was computed (a negative length) has none.
-        known = math.isfinite(answer.min_length_m) and math.isfinite(answer.max_length_m)
-        raise CliError(f'no pressure for {q.cm(length_m)}: {answer.message}'
-                       + (f' (reachable: {reach})' if known else ''))
+        raise CliError(describe_inverse(answer, length_m, branch, unit))
     if si:
         print(f'{answer.gauge_pressure_pa:.1f}')
         return OK
-    print(f'{q.cm(length_m)} on the {BRANCHES.get(answer.branch, "?")} branch: '
-          f'{q.kpa(answer.gauge_pressure_pa)} ({answer.gauge_pressure_pa:.0f} Pa; '
-          f'reachable there: {reach})' + (f'; {answer.message}' if answer.message else ''))
+    print(describe_inverse(answer, length_m, branch, unit))
     return OK
 
 
@@ -489,7 +530,7 @@ class Parameters:
             nodes = running()
             return bool(nodes) and self.node not in nodes
 
-        self.session.spin_until(ready_or_absent, self.timeout_s)
+        self.session.spin_until(ready_or_absent, self.timeout_s, waiting_for=self.node)
         if not client.service_is_ready():
             nodes = sorted(running())
             close = difflib.get_close_matches(self.node, nodes, n=1, cutoff=0.5)
@@ -538,7 +579,13 @@ def typed_value(name: str, text: str, current_type: int):
     try:
         if current_type == ParameterType.PARAMETER_DOUBLE:
             q.ascii_only(text)                 # float() takes every script's digits
-            return q.parse(text, kind) if kind else float(text)
+            if not kind:
+                return float(text)
+            value = q.parse(text, kind)
+            slip = q.unit_slip(text, kind)     # `max_gauge_pressure_pa 450`: 450 Pa
+            if slip:
+                print(f'pma param: note: {slip}', file=sys.stderr)
+            return value
         if current_type == ParameterType.PARAMETER_INTEGER:
             return q.parse_count(text, *INT64)
         if current_type == ParameterType.PARAMETER_BOOL:

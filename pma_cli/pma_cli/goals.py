@@ -104,11 +104,12 @@ class Progress:
 
 def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, timeout_s: float,
              what: str, hint: str, lost: str, before: Callable[[], None] | None = None,
-             result_within_s: float | None = None, late: str = ''):
+             result_within_s: float | None = None, late: str = '', server: str = ''):
     """(status, result, cancelled) of one goal; a stop signal cancels it and its result is
     still awaited, as long as the server is there (module docstring).
 
-    `before` runs once the server is there, before the goal is sent. `lost` says what a
+    `before` runs once the server is there, before the goal is sent. `server` names the
+    server's node, said (with how to start it) while it is waited for. `lost` says what a
     server gone during the goal leaves behind; `result_within_s` (from the acceptance), if
     given, is how long the result may take (`late` says why), after which the goal is
     cancelled and given up on.
@@ -121,9 +122,11 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
         on_feedback(message.feedback)
 
     try:
-        if not session.spin_until(client.server_is_ready, timeout_s):
+        if not session.spin_until(client.server_is_ready, timeout_s, waiting_for=server):
+            start = session.start_hint(server) if server else ''
             raise CliError(f'no {what} answers on {session.resolve(name)} (waited '
-                           f'{timeout_s:g} s): {hint}', NO_ANSWER)
+                           f'{timeout_s:g} s): {hint}' + (f' Start it: {start}' if start else ''),
+                           NO_ANSWER)
         if before is not None:
             before()
         try:
@@ -346,7 +349,8 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
             session, Sweep, 'pma/sweep', goal, on_feedback=on_feedback, timeout_s=timeout_s,
             what='driver', hint=session.where_hint('pma/state', 'driver_node'),
             lost=SWEEP_LOST, before=lambda: release_holding_controller(session, control,
-                                                                        timeout_s))
+                                                                        timeout_s),
+            server='driver_node')
     finally:
         progress.end()
     word = STATUS_WORDS.get(status, f'status {status}')
@@ -364,20 +368,28 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
 
 
 def move(session: Session, *, length_m: float, tolerance_m: float, settle_s: float,
-         goal_timeout_s: float, timeout_s: float) -> int:
+         goal_timeout_s: float, timeout_s: float, unit: str = 'cm') -> int:
+    """Move to `length_m` and hold it; lengths are printed in `unit` (the user's).
+
+    `moving to ...` is said once the controller follows the goal (its first feedback): a
+    target it cannot reach is refused at once, with the reachable range, and no move began.
+    """
     goal = MoveToLength.Goal(length_m=length_m, tolerance_m=tolerance_m, settle_s=settle_s,
                              timeout_s=goal_timeout_s)
     progress = Progress()
     started = time.monotonic()
     limit = goal_timeout_s or MOVE_DEFAULT_TIMEOUT_S
+    moving = []
 
     def on_feedback(feedback) -> None:
+        if not moving:
+            moving.append(True)
+            print(f'moving to {q.length(length_m, unit)}', flush=True)
         progress.show(min(1.0, (time.monotonic() - started) / limit),
-                      f'length {q.cm(feedback.estimated_length_m)} (target {q.cm(length_m)}, '
-                      f'error {feedback.error_m * 1000:+.1f} mm)  command '
-                      f'{q.kpa(feedback.gauge_pressure_command_pa)}', None)
+                      f'length {q.length(feedback.estimated_length_m, unit)} (target '
+                      f'{q.length(length_m, unit)}, error {feedback.error_m * 1000:+.1f} mm)  '
+                      f'command {q.kpa(feedback.gauge_pressure_command_pa)}', None)
 
-    print(f'moving to {q.cm(length_m)}', flush=True)
     try:
         status, result, cancelled = run_goal(
             session, MoveToLength, 'pma/move_to_length', goal, on_feedback=on_feedback,
@@ -385,14 +397,15 @@ def move(session: Session, *, length_m: float, tolerance_m: float, settle_s: flo
             hint=session.where_hint('pma/control_state', 'length_controller'), lost=MOVE_LOST,
             result_within_s=limit + GOAL_LATE_S,
             late=f"{limit + GOAL_LATE_S:g} s (the goal's timeout_s, {limit:g} s, and "
-                 f'{GOAL_LATE_S:g} s more)')
+                 f'{GOAL_LATE_S:g} s more)', server='length_controller')
     finally:
         progress.end()
     word = STATUS_WORDS.get(status, f'status {status}')
     settle = (f', settled after {q.seconds(result.settle_time_s)}'
               if result.success else '')
-    _say_result(f'move {word}: {result.message} (measured {q.cm(result.measured_length_m)}, '
-                f'estimated {q.cm(result.estimated_length_m)}{settle})',
+    _say_result(f'move {word}: {q.in_units(result.message, unit)} (measured '
+                f'{q.length(result.measured_length_m, unit)}, estimated '
+                f'{q.length(result.estimated_length_m, unit)}{settle})',
                 result.success or cancelled)
     if cancelled:
         return INTERRUPTED

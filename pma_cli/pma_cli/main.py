@@ -39,32 +39,52 @@ def _argument(parse, name: str):
     return convert
 
 
-def _quantity(kind: str, **bounds):
-    """A quantity of `kind`; `bounds` as for quantities.parse (minimum=, strict=)."""
-    return _argument(lambda text: q.parse(text, kind, **bounds), kind)
+def _note_slip(text: str, kind: str, **where) -> None:
+    """A note on stderr when a plain number reads like a unit left out (`pma set 200`,
+    `--max 500`); it is still taken as SI (quantities.unit_slip)."""
+    slip = q.unit_slip(text, kind, **where)
+    if slip:
+        print(f'pma: note: {slip}', file=sys.stderr)
+
+
+def _quantity(kind: str, flag: str = '', **bounds):
+    """A quantity of `kind`; `bounds` as for quantities.parse (minimum=, strict=). With
+    `flag`, a plain number that reads like a unit left out gets a note (_note_slip)."""
+    def parse(text: str) -> float:
+        value = q.parse(text, kind, **bounds)
+        if flag:
+            _note_slip(text, kind, flag=flag)
+        return value
+    return _argument(parse, kind)
 
 
 def _target(kind: str):
-    """A verb's own quantity (`pma set 200`, `pma move 27`): as _quantity, with a note on stderr
-    when a plain number reads like a unit left out; it is still taken as SI."""
-    parse = _quantity(kind)
-
-    def convert(text: str) -> float:
-        value = parse(text)
-        slip = q.unit_slip(text, kind)
-        if slip:
-            print(f'pma: note: {slip}', file=sys.stderr)
+    """A verb's own quantity (`pma set 200`, `pma move 27`): a quantities.Given (what is
+    printed about it is in its unit), with _note_slip's note."""
+    def parse(text: str) -> q.Given:
+        value = q.parse_given(text, kind)
+        _note_slip(text, kind)
         return value
-    convert.__name__ = kind
-    return convert
+    return _argument(parse, kind)
 
 
-def _quantities(kind: str):
-    return _argument(lambda text: q.parse_list(text, kind), f'{kind} list')
+def _quantities(kind: str, flag: str = ''):
+    def parse(text: str) -> list[float]:
+        values = q.parse_list(text, kind)
+        for part in (p for p in re.split(r'[,\s]+', text.strip()) if p):
+            if flag:
+                _note_slip(part, kind, flag=flag)
+        return values
+    return _argument(parse, f'{kind} list')
 
 
-def _rate(kind: str):
-    return _argument(lambda text: q.parse_rate(text, kind), f'{kind} rate')
+def _rate(kind: str, flag: str = ''):
+    def parse(text: str) -> float:
+        value = q.parse_rate(text, kind)
+        if flag and '/' not in text:
+            _note_slip(text, kind, flag=flag, per='/s')
+        return value
+    return _argument(parse, f'{kind} rate')
 
 
 def _field_count(message, field: str, minimum: int):
@@ -139,6 +159,17 @@ class _Parser(argparse.ArgumentParser):
             return None              # a positional value
         return super()._parse_optional(arg_string)
 
+    joins_units = False          # the top parser: it sees the whole command line
+
+    def parse_known_args(self, args=None, namespace=None):
+        """`pma set 2 bar`: a unit typed apart from its number is joined to it
+        (quantities.join_spaced_units); never in `pma run`'s arguments, which are the
+        executable's own."""
+        args = sys.argv[1:] if args is None else list(args)
+        if self.joins_units and args[:1] != ['run']:
+            args = q.join_spaced_units(args)
+        return super().parse_known_args(args, namespace)
+
 
 def parser() -> argparse.ArgumentParser:
     common = _Parser(add_help=False)
@@ -156,6 +187,7 @@ def parser() -> argparse.ArgumentParser:
         '26.5cm, 5s; a plain number is SI (Pa, m, s).',
         epilog='exit codes: 0 done, 1 refused or failed, 2 bad arguments, 3 nothing answered, '
                '130 interrupted. docs/cli.md has the details and the ros2 equivalents.')
+    top.joins_units = True
     verbs = top.add_subparsers(dest='verb', required=True, metavar='VERB')
 
     def verb(name: str, text: str, **kwargs) -> argparse.ArgumentParser:
@@ -179,7 +211,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('pressure', type=_target('pressure'), help='e.g. 200kPa, 2bar, 200000')
     p.add_argument('--wait', action='store_true', help='also wait until the pressure is there '
                    '(up to 30s, or --timeout if longer)')
-    p.add_argument('--tolerance', type=_quantity('pressure', minimum=0.0, strict=True),
+    p.add_argument('--tolerance', type=_quantity('pressure', '--tolerance', minimum=0.0,
+                                                 strict=True),
                    default=10_000.0,
                    help='for --wait (default 10kPa)')
     p = verb('vent', 'cancel any sweep or move and command 0 Pa')
@@ -197,10 +230,10 @@ def parser() -> argparse.ArgumentParser:
              'by the driver, with the reason.')
     p.add_argument('--profile', choices=PROFILES, default='staircase',
                    help='the path of the pressure (default staircase)')
-    p.add_argument('--max', type=_quantity('pressure'), default=0.0, dest='max_pa',
+    p.add_argument('--max', type=_quantity('pressure', '--max'), default=0.0, dest='max_pa',
                    metavar='PRESSURE', help='top of a staircase, FORC set or ramp, e.g. 500kPa; '
                    'sine, csv: an optional bound')
-    p.add_argument('--step', type=_quantity('pressure'), default=0.0, dest='step_pa',
+    p.add_argument('--step', type=_quantity('pressure', '--step'), default=0.0, dest='step_pa',
                    metavar='PRESSURE', help='staircase, forc: step height, e.g. 50kPa')
     p.add_argument('--hold', type=_quantity('time'), default=None, dest='hold_s',
                    metavar='TIME', help='staircase, forc: hold at each step (default 5s); '
@@ -209,14 +242,15 @@ def parser() -> argparse.ArgumentParser:
                    help='repetitions of the whole profile; sine: periods (default 1)')
     p.add_argument('--rest', type=_quantity('time'), default=0.0, dest='rest_s',
                    metavar='TIME', help='rest at 0 Pa between cycles (default none)')
-    p.add_argument('--reversals', type=_quantities('pressure'), default=[],
+    p.add_argument('--reversals', type=_quantities('pressure', '--reversals'), default=[],
                    help='staircase, ramp: minor loops, turn at these pressures, e.g. '
                         '300kPa,150kPa')
-    p.add_argument('--rate', type=_rate('pressure'), default=0.0, dest='rate_pa_s',
+    p.add_argument('--rate', type=_rate('pressure', '--rate'), default=0.0, dest='rate_pa_s',
                    metavar='RATE', help='ramp: rise and fall rate, e.g. 50kPa/s')
-    p.add_argument('--amplitude', type=_quantity('pressure'), default=0.0,
+    p.add_argument('--amplitude', type=_quantity('pressure', '--amplitude'), default=0.0,
                    dest='amplitude_pa', metavar='PRESSURE', help='sine: amplitude, e.g. 100kPa')
-    p.add_argument('--offset', type=_quantity('pressure'), default=0.0, dest='offset_pa',
+    p.add_argument('--offset', type=_quantity('pressure', '--offset'), default=0.0,
+                   dest='offset_pa',
                    metavar='PRESSURE', help='sine: mean pressure, e.g. 200kPa')
     p.add_argument('--frequency', type=_quantity('frequency'), default=0.0,
                    dest='frequency_hz', metavar='FREQUENCY', help='sine: e.g. 0.1Hz')
@@ -241,7 +275,7 @@ def parser() -> argparse.ArgumentParser:
     p = verb('move', 'move to a length and hold it (the length controller\'s MoveToLength); '
              'Ctrl-C cancels')
     p.add_argument('length', type=_target('length'), help='e.g. 26.5cm')
-    p.add_argument('--tolerance', type=_quantity('length'), default=0.0,
+    p.add_argument('--tolerance', type=_quantity('length', '--tolerance'), default=0.0,
                    help='settled within this (default: the action\'s 2mm)')
     p.add_argument('--settle', type=_quantity('time'), default=0.0,
                    help='for this long (default: the action\'s 1s)')
@@ -260,7 +294,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('-o', '--params-out', type=_output_file,
                    default=Path('pma_calibration.yaml'),
                    help='params file to write (default pma_calibration.yaml)')
-    p.add_argument('--check-pressure', type=_quantity('pressure'), default=None,
+    p.add_argument('--check-pressure', type=_quantity('pressure', '--check-pressure'),
+                   default=None,
                    help='span check pressure (default 60 %% of max_gauge_pressure_pa)')
     p.add_argument('--skip-pressure', action='store_true', help='no tare, no span check')
     p.add_argument('--skip-length', action='store_true', help='no length offset')
@@ -338,12 +373,12 @@ def dispatch(args, session) -> int:
     if args.verb == 'sweep':
         return goals.sweep(session, args.goal, timeout_s=args.timeout)
     if args.verb == 'length':
-        return commands.pressure_for_length(session, args.length, args.branch, args.si,
-                                            args.timeout)
+        return commands.pressure_for_length(session, float(args.length), args.branch, args.si,
+                                            args.timeout, unit=q.length_unit(args.length))
     if args.verb == 'move':
-        return goals.move(session, length_m=args.length, tolerance_m=args.tolerance,
+        return goals.move(session, length_m=float(args.length), tolerance_m=args.tolerance,
                           settle_s=args.settle, goal_timeout_s=args.goal_timeout,
-                          timeout_s=args.timeout)
+                          timeout_s=args.timeout, unit=q.length_unit(args.length))
     if args.verb == 'param':
         if args.action in ('get', 'set') and not args.name:
             raise CliError(f'pma param {args.action} needs NODE NAME'
@@ -363,7 +398,8 @@ def dispatch(args, session) -> int:
 
 @closed_pipe_ends_quietly
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+    top = parser()
+    args = top.parse_args(argv)
     if args.verb == 'run':
         return run_executable(args.package, args.executable, args.args)
     if args.verb == 'up':                 # its processes start before rclpy does
@@ -402,7 +438,8 @@ def main(argv: list[str] | None = None) -> int:
     from pma_cli.session import Session
     from pma_common.node import ros_context
     with ros_context([]) as stop:
-        session = Session(args.namespace, stop)
+        verbs = next(a for a in top._actions if isinstance(a, argparse._SubParsersAction))
+        session = Session(args.namespace, stop, verb=args.verb, up='up' in verbs.choices)
         try:
             return dispatch(args, session)
         except CliError as error:

@@ -142,7 +142,7 @@ def model_line(status: NodeStatus | None, prediction: PmaPrediction | None,
         return None
     parts = []
     if status is not None:
-        parts.append(f'{status.level} {status.message}')
+        parts.append(f'{status.level} {q.in_units(status.message)}')
     if params is not None:
         parts.append(f'{params.form} branches, {params.memory} memory')
     if prediction is not None:
@@ -158,15 +158,17 @@ def control_line(status: NodeStatus | None, control: ControlState | None) -> str
         return None
     parts = []
     if status is not None:
-        parts.append(f'{status.level} {status.message}')
+        # The controller's own words are SI (`holding 0.2750 m`): in cm and kPa, as the rest.
+        parts.append(f'{status.level} {q.in_units(status.message)}')
     if control is not None:
         parts.append(f'mode {MODES.get(control.mode, control.mode)}')
         if control.mode in (ControlState.MODE_GOAL, ControlState.MODE_STREAM,
                             ControlState.MODE_HOLD):
             parts.append(f'target {q.cm(control.target_length_m)}, command '
                          f'{q.kpa(control.gauge_pressure_command_pa)}')
-        elif control.message and control.message not in parts[0]:
-            parts.append(control.message)      # why it let go (a fault, a release, a cancel)
+        elif control.message and q.in_units(control.message) not in parts[0]:
+            # Why it let go (a fault, a release, a cancel).
+            parts.append(q.in_units(control.message))
     return 'control   ' + ' | '.join(parts)
 
 

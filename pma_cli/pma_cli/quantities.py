@@ -68,8 +68,11 @@ def parse(text: str, kind: str, *, minimum: float | None = None, strict: bool = 
     number, unit = float(match.group(1)), match.group(2).lower()
     if unit and unit not in units:
         known = ', '.join(sorted({_spelling(u) for u in units}))
-        raise QuantityError(f'{text!r}: {match.group(2)!r} is not a unit of {kind} '
-                            f'(known: {known}; a plain number is {si_unit})')
+        # `pma set 2cm`, `pma move 2bar`: say what the unit is for, and what this takes.
+        other = next((k for k, (other_units, _, _) in KINDS.items() if unit in other_units), '')
+        but = f' but of {other}' if other else ''
+        raise QuantityError(f'{text!r}: {match.group(2)!r} is not a unit of {kind}{but} '
+                            f'(units of {kind}: {known}; a plain number is {si_unit})')
     value = number * units[unit] if unit else number
     if not math.isfinite(value):
         raise QuantityError(f'{text!r} is not a finite {kind}')
@@ -83,13 +86,62 @@ def parse(text: str, kind: str, *, minimum: float | None = None, strict: bool = 
     return value
 
 
+class Given(float):
+    """An SI value that remembers the unit it was typed in (lower case; '' for a plain
+    number), so that what is printed back about it is in the user's unit."""
+
+    unit: str = ''
+
+    def __new__(cls, value: float, unit: str = ''):
+        given = super().__new__(cls, value)
+        given.unit = unit
+        return given
+
+
+def parse_given(text: str, kind: str) -> Given:
+    """parse(text, kind), with the unit it was typed in."""
+    value = parse(text, kind)
+    match = _QUANTITY.match(text)
+    return Given(value, match.group(2).lower() if match else '')
+
+
+# Every unit `pma` knows, of any kind, and a rate's `/time`: a word that, after a plain number,
+# was meant as its unit (`pma set 2 bar`, `--max 500 kPa`, `--rate 50 kPa/s`).
+_UNIT_WORD = re.compile(r'^([a-zA-Z]+)(/[a-zA-Z]+)?$', re.ASCII)
+_NUMBER = re.compile(r'^[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$', re.ASCII)
+
+
+def is_unit_word(text: str) -> bool:
+    match = _UNIT_WORD.match(text)
+    if match is None:
+        return False
+    per = (match.group(2) or '/s')[1:].lower()
+    return any(match.group(1).lower() in units for units, _, _ in KINDS.values()) \
+        and per in TIME_UNITS
+
+
+def join_spaced_units(argv: list[str]) -> list[str]:
+    """`2 bar` typed as two words becomes the one quantity `2 bar`: argparse would take the
+    2 alone (2 Pa, with a note suggesting 2kPa) and refuse `bar` as an extra argument."""
+    joined: list[str] = []
+    for word in argv:
+        if joined and is_unit_word(word) and _NUMBER.match(joined[-1]):
+            joined[-1] = f'{joined[-1]} {word}'
+        else:
+            joined.append(word)
+    return joined
+
+
 # A plain number is SI, but a muscle is about 0.3 m long and inflates to hundreds of kPa: these
-# look like a unit left out (`pma move 27`, `pma set 200`).
+# look like a unit left out (`pma move 27`, `pma set 200`, `pma sweep --max 500`).
 _UNIT_SLIPS = {'length': (lambda v: v >= 1.0, 'cm'), 'pressure': (lambda v: 0 < v < 1000, 'kPa')}
 
 
-def unit_slip(text: str, kind: str) -> str:
-    """A note when a plain number of `kind` reads like a unit left out ('' otherwise)."""
+def unit_slip(text: str, kind: str, *, flag: str = '', per: str = '') -> str:
+    """A note when a plain number of `kind` reads like a unit left out ('' otherwise).
+
+    `flag` names the option it was given to (`--max`); `per` is a rate's time unit (`/s`).
+    """
     match = _QUANTITY.match(text)
     if match is None or match.group(2) or kind not in _UNIT_SLIPS:
         return ''
@@ -98,8 +150,9 @@ def unit_slip(text: str, kind: str) -> str:
     if not (math.isfinite(value) and looks_wrong(value)):
         return ''
     _, si_unit, _ = KINDS[kind]
-    return (f'{text} is read as {value:g} {si_unit} (a plain number is SI): did you mean '
-            f'{text}{unit}?')
+    option = f'{flag} ' if flag else ''
+    return (f'{option}{text.strip()} is read as {value:g} {si_unit}{per} (a plain number is '
+            f'SI): did you mean {option}{text.strip()}{unit}{per}?')
 
 
 def parse_count(text: str, minimum: int = 0, maximum: int | None = None) -> int:
@@ -175,6 +228,51 @@ def cm(length_m: float, digits: int = 2) -> str:
     if not math.isfinite(length_m):
         return '-'
     return f'{length_m / M_PER_CM:.{digits}f} cm'
+
+
+# A length printed in the unit it was asked in: the same 0.1 mm in each.
+LENGTH_DIGITS = {'cm': 2, 'mm': 1, 'm': 4}
+
+
+def length_unit(given) -> str:
+    """The unit to print lengths in: the one `given` (a Given) was typed in, else cm."""
+    unit = getattr(given, 'unit', '')
+    return unit if unit in LENGTH_DIGITS else 'cm'
+
+
+def length(length_m: float, unit: str = 'cm', *, number_only: bool = False) -> str:
+    """`26.50 cm`, `265.0 mm` or `0.2650 m`; NaN as `-`."""
+    if not math.isfinite(length_m):
+        return '-'
+    number = f'{length_m / LENGTH_UNITS[unit]:.{LENGTH_DIGITS[unit]}f}'
+    return number if number_only else f'{number} {unit}'
+
+
+def length_range(low_m: float, high_m: float, unit: str = 'cm') -> str:
+    """`24.45 .. 30.04 cm`."""
+    return f'{length(low_m, unit, number_only=True)} .. {length(high_m, unit)}'
+
+
+_SI_NUMBER = r'[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?'
+# A node's message in SI (`reachable [0.2454, 0.3008] m with 0..500000 Pa`, `holding 0.2750
+# m`): ranges first, then single values; a unit followed by `/` is a rate's, left alone.
+_SI_LENGTH_RANGE = re.compile(rf'\[\s*({_SI_NUMBER})\s*,\s*({_SI_NUMBER})\s*\]\s*m\b(?!/)')
+_SI_PRESSURE_RANGE = re.compile(rf'(?<![\w.])({_SI_NUMBER})\s*\.\.\s*({_SI_NUMBER})\s*Pa\b(?!/)')
+_SI_LENGTH = re.compile(rf'(?<![\w.])({_SI_NUMBER})\s*m\b(?!/)')
+_SI_PRESSURE = re.compile(rf'(?<![\w.])({_SI_NUMBER})\s*Pa\b(?!/)')
+
+
+def in_units(message: str, unit: str = 'cm') -> str:
+    """A node's message (SI: metres and pascals) with its lengths in `unit` and its
+    pressures in kPa, as everything else `pma` prints: `holding 0.2750 m` -> `holding 27.50
+    cm`, `reachable [0.2454, 0.3008] m with 0..500000 Pa` -> `reachable 24.54 .. 30.08 cm with
+    0.0 .. 500.0 kPa`."""
+    message = _SI_LENGTH_RANGE.sub(
+        lambda m: length_range(float(m.group(1)), float(m.group(2)), unit), message)
+    message = _SI_PRESSURE_RANGE.sub(
+        lambda m: f'{float(m.group(1)) / PA_PER_KPA:.1f} .. {kpa(float(m.group(2)))}', message)
+    message = _SI_LENGTH.sub(lambda m: length(float(m.group(1)), unit), message)
+    return _SI_PRESSURE.sub(lambda m: kpa(float(m.group(1))), message)
 
 
 def seconds(duration_s: float) -> str:

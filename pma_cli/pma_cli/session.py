@@ -9,6 +9,7 @@ every topic, service and action at /left/... as `__ns:=/left` does for the nodes
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections.abc import Callable
 
@@ -30,6 +31,13 @@ INTERRUPTED = 130   # stopped by Ctrl-C (or SIGTERM/SIGHUP) before it finished; 
 
 SPIN_S = 0.05
 CANCEL_SEND_S = 0.5    # a cancel sent on the way out (send_goal) is given this long to leave
+WAITING_NOTE_S = 1.0   # a node not in the graph by then: say what is waited for
+# How to start each node of a muscle by hand, for a verb that waits for one (`pma up` starts
+# them all); `{ns}` takes `-r __ns:=/left` outside the root namespace.
+START = {'driver_node': 'pma run pma_driver driver_node --ros-args{ns} -p port:=/dev/pma0',
+         'model_node': 'pma run pma_model model_node{ros_args}',
+         'length_controller': 'pma run pma_control length_controller{ros_args}',
+         'recorder': 'pma run pma_bag record --idle{ros_args}'}
 
 
 class Interrupted(Exception):  # noqa: N818  (a stop, not an error)
@@ -53,8 +61,11 @@ def namespace_of(text: str) -> str:
 class Session:
     """A hidden node in the command's namespace, and waits that a stop signal interrupts."""
 
-    def __init__(self, namespace: str, stop: StopRequest):
+    def __init__(self, namespace: str, stop: StopRequest, verb: str = '', up: bool = False):
         self.stop = stop
+        self.verb = verb                       # names the notes on stderr: `pma set: ...`
+        self.up = up                           # `pma up` exists: hints name it
+        self._waiting_said: set[str] = set()
         self.started = time.monotonic()        # discovery of the other nodes began here
         self.namespace = namespace_of(namespace)
         # A leading underscore hides the node from `ros2 node list`.
@@ -79,20 +90,66 @@ class Session:
             return name
         return f'{self.namespace.rstrip("/")}/{name}'
 
+    def running(self, node: str) -> bool:
+        """Whether the node (relative to our namespace, or absolute) is in the graph."""
+        wanted = self.node_name(node)
+        return any(f'{ns.rstrip("/")}/{name}' == wanted
+                   for name, ns in self.node.get_node_names_and_namespaces())
+
+    def start_hint(self, node: str) -> str:
+        """`pma up`, or `pma run ...`: how to start one of a muscle's nodes (START) in our
+        namespace; '' for another node."""
+        name = node.rsplit('/', 1)[-1]
+        if name not in START:
+            return ''
+        ns = '' if self.namespace == '/' else f' -r __ns:={self.namespace}'
+        by_hand = START[name].format(ns=ns, ros_args=f' --ros-args{ns}' if ns else '')
+        up = 'pma up' + ('' if self.namespace == '/' else
+                         f' --namespace {self.namespace.lstrip("/")}')
+        return ', or '.join([f'`{up}`'] * self.up + [f'`{by_hand}`'])
+
+    def waiting_note(self, node: str) -> str:
+        """What a verb waits for, and how to start it: said when it is not there."""
+        name = node.rsplit('/', 1)[-1]
+        namespace = self.node_name(node).rsplit('/', 1)[0] or '/'
+        start = self.start_hint(node)
+        return (f'waiting for {name} in {namespace} (not seen yet): is it running?'
+                + (f' ({start})' if start else '') + self._elsewhere(name))
+
+    def _elsewhere(self, name: str) -> str:
+        found = sorted({ns for n, ns in self.node.get_node_names_and_namespaces()
+                        if n == name and ns != self.namespace})
+        if not found:
+            return ''
+        flags = ', '.join(f'--namespace {n.lstrip("/") or "/"}' for n in found)
+        return f' It runs in {", ".join(found)}: add {flags}.'
+
     # -- waiting -----------------------------------------------------------------------
 
     def spin_for(self, duration_s: float) -> None:
         self.spin_until(lambda: False, duration_s)
 
     def spin_until(self, done: Callable[[], bool], timeout_s: float | None,
-                   interruptible: bool = True) -> bool:
-        """Spin until `done()`; False on timeout; Interrupted on a stop signal (if asked)."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+                   interruptible: bool = True, waiting_for: str = '') -> bool:
+        """Spin until `done()`; False on timeout; Interrupted on a stop signal (if asked).
+
+        `waiting_for` names a node `done` needs: if it is not in the graph WAITING_NOTE_S into
+        the wait, a note on stderr says once what is waited for and how to start it, so that a
+        wait for a node that is not running is not a silent one.
+        """
+        started = time.monotonic()
+        deadline = None if timeout_s is None else started + timeout_s
         while True:
             if interruptible and self.stop.is_set():
                 raise Interrupted(self.stop.reason)
             if done():
                 return True
+            if waiting_for and waiting_for not in self._waiting_said \
+                    and time.monotonic() - started >= WAITING_NOTE_S:
+                self._waiting_said.add(waiting_for)
+                if not self.running(waiting_for):
+                    print(f'{" ".join(("pma", self.verb)).strip()}: '
+                          f'{self.waiting_note(waiting_for)}', file=sys.stderr, flush=True)
             remaining = None if deadline is None else deadline - time.monotonic()
             if remaining is not None and remaining <= 0:
                 return False
@@ -122,8 +179,9 @@ class Session:
                            'goal was sent, as it may run all the same', NO_ANSWER)
         return handle
 
-    def wait_for_service(self, client, timeout_s: float, hint: str) -> None:
-        if not self.spin_until(client.service_is_ready, timeout_s):
+    def wait_for_service(self, client, timeout_s: float, hint: str, *, node: str = '') -> None:
+        """Until the service is there; `node`, its server, is named while waited for."""
+        if not self.spin_until(client.service_is_ready, timeout_s, waiting_for=node):
             raise CliError(f'nothing serves {client.srv_name} (waited {timeout_s:g} s): {hint}',
                            NO_ANSWER)
 
@@ -143,9 +201,10 @@ class Session:
                            'be lost), so check before repeating it', NO_ANSWER)
         return future.result()
 
-    def call(self, client, request, timeout_s: float, hint: str, query: bool = False):
+    def call(self, client, request, timeout_s: float, hint: str, query: bool = False, *,
+             node: str = ''):
         """Call a service once it is there; its response (see `answer` for `query`)."""
-        self.wait_for_service(client, timeout_s, hint)
+        self.wait_for_service(client, timeout_s, hint, node=node)
         return self.answer(client, request, timeout_s, query)
 
     # -- topics ------------------------------------------------------------------------

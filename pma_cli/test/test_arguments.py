@@ -181,3 +181,63 @@ def test_a_plain_number_that_fits_gets_no_note(capsys):
     parsed('move', '0.27')
     parsed('set', '200000')
     assert capsys.readouterr().err == ''
+
+
+# -- issue 46 ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(('argv', 'field', 'si'), [
+    (('set', '2', 'bar'), 'pressure', 200_000.0),           # bar is a pressure unit: 200 kPa
+    (('set', '150', 'kPa', '--wait'), 'pressure', 150_000.0),
+    (('move', '27', 'cm'), 'length', 0.27),
+    (('sweep', '--max', '500', 'kPa', '--step', '100', 'kPa'), 'max_pa', 500_000.0),
+    (('sweep', '--profile', 'ramp', '--max', '3', 'bar', '--rate', '50', 'kPa/s'),
+     'rate_pa_s', 50_000.0),
+])
+def test_a_unit_typed_apart_from_its_number_is_taken_with_it_and_no_note(argv, field, si,
+                                                                         capsys):
+    # `pma set 2 bar` took 2 Pa, suggested `2kPa` and refused `bar` as an extra argument.
+    assert getattr(parsed(*argv), field) == pytest.approx(si)
+    assert capsys.readouterr().err == ''
+
+
+def test_a_unit_of_another_kind_typed_apart_is_refused_naming_the_units_taken(capsys):
+    line = refusal(capsys, 'move', '2', 'bar')
+    assert "'bar' is not a unit of length but of pressure (units of length: cm, m, mm" in line
+    assert 'did you mean' not in line
+
+
+def test_run_passes_its_arguments_on_untouched():
+    args = parsed('run', 'pma_driver', 'fake_arduino', '--delay', '5', 's')
+    assert args.args == ['--delay', '5', 's']
+
+
+@pytest.mark.parametrize(('argv', 'note'), [
+    (('sweep', '--max', '500', '--step', '100kPa'), 'did you mean --max 500kPa?'),
+    (('sweep', '--max', '500kPa', '--step', '50'), 'did you mean --step 50kPa?'),
+    (('sweep', '--profile', 'ramp', '--max', '300kPa', '--rate', '50'),
+     'did you mean --rate 50kPa/s?'),
+    (('sweep', '--max', '500kPa', '--step', '100kPa', '--reversals', '300,150kPa'),
+     'did you mean --reversals 300kPa?'),
+    (('sweep', '--profile', 'sine', '--amplitude', '100', '--offset', '200kPa',
+      '--frequency', '0.1Hz'), 'did you mean --amplitude 100kPa?'),
+    (('set', '200kPa', '--tolerance', '5'), 'did you mean --tolerance 5kPa?'),
+    (('move', '27cm', '--tolerance', '2'), 'did you mean --tolerance 2cm?'),
+    (('calibrate', '--check-pressure', '300'), 'did you mean --check-pressure 300kPa?'),
+])
+def test_a_flags_plain_number_like_a_unit_left_out_gets_the_note_cli_md_promises(argv, note,
+                                                                                capsys):
+    parsed(*argv)
+    err = capsys.readouterr().err
+    assert err.startswith('pma: note: ') and note in err, err
+
+
+def test_a_flags_plain_number_in_si_gets_no_note(capsys):
+    parsed('sweep', '--max', '500000', '--step', '100000', '--hold', '5', '--rate', '5e4')
+    assert capsys.readouterr().err == ''
+
+
+@pytest.mark.parametrize(('argv', 'unit'), [(('length', '300mm'), 'mm'), (('move', '27cm'), 'cm'),
+                                            (('length', '0.3m'), 'm'), (('move', '0.27'), 'cm')])
+def test_a_length_keeps_the_unit_it_was_typed_in(argv, unit):
+    from pma_cli import quantities as q
+    assert q.length_unit(parsed(*argv).length) == unit

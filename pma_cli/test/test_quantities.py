@@ -207,3 +207,81 @@ def test_a_number_in_any_other_scripts_digits_is_never_read(number, digit):
                   lambda: q.parse_list(f'1kPa,{text}kPa', 'pressure')):
         with pytest.raises(q.QuantityError, match='is not an ASCII digit: use ASCII digits 0-9'):
             parse()
+
+
+# -- issue 46: units typed apart, a unit of another kind, what is printed back -------------
+
+@pytest.mark.parametrize(('argv', 'joined'), [
+    (['set', '2', 'bar'], ['set', '2 bar']),
+    (['sweep', '--max', '500', 'kPa', '--rate', '50', 'kPa/s'],
+     ['sweep', '--max', '500 kPa', '--rate', '50 kPa/s']),
+    (['move', '-2', 'mm'], ['move', '-2 mm']),
+    (['set', '2', 'foo'], ['set', '2', 'foo']),             # not a unit: left for argparse
+    (['set', '2bar'], ['set', '2bar']),
+    (['param', 'get', 'driver_node', 'x'], ['param', 'get', 'driver_node', 'x']),
+])
+def test_a_unit_typed_apart_from_its_number_is_joined_to_it(argv, joined):
+    assert q.join_spaced_units(argv) == joined
+
+
+@pytest.mark.parametrize(('text', 'kind', 'words'), [
+    ('2 bar', 'length', "'bar' is not a unit of length but of pressure (units of length: "
+                        'cm, m, mm; a plain number is m)'),
+    ('27cm', 'pressure', "'cm' is not a unit of pressure but of length (units of pressure: "),
+    ('5kPa', 'time', "'kPa' is not a unit of time but of pressure"),
+    ('3atm', 'pressure', "'atm' is not a unit of pressure (units of pressure: "),
+])
+def test_a_unit_of_another_kind_is_named_as_such_with_the_units_taken(text, kind, words):
+    with pytest.raises(q.QuantityError) as error:
+        q.parse(text, kind)
+    assert words in str(error.value)
+    assert 'did you mean' not in str(error.value)
+
+
+def test_a_spaced_unit_is_no_unit_slip_and_bar_is_a_pressure():
+    assert q.parse('2 bar', 'pressure') == 200_000.0
+    assert q.unit_slip('2 bar', 'pressure') == ''          # never "did you mean 2kPa?"
+
+
+@pytest.mark.parametrize(('text', 'kind', 'where', 'note'), [
+    ('500', 'pressure', {'flag': '--max'},
+     '--max 500 is read as 500 Pa (a plain number is SI): did you mean --max 500kPa?'),
+    ('50', 'pressure', {'flag': '--rate', 'per': '/s'},
+     '--rate 50 is read as 50 Pa/s (a plain number is SI): did you mean --rate 50kPa/s?'),
+    ('500kPa', 'pressure', {'flag': '--max'}, ''),
+])
+def test_a_flags_plain_number_that_reads_like_a_unit_left_out_gets_a_note(text, kind, where,
+                                                                          note):
+    assert q.unit_slip(text, kind, **where) == note
+
+
+@pytest.mark.parametrize(('text', 'unit'), [('300mm', 'mm'), ('27cm', 'cm'), ('0.27m', 'm'),
+                                            ('0.27', 'cm'), ('2 MM', 'mm')])
+def test_lengths_are_printed_back_in_the_unit_they_were_typed_in(text, unit):
+    given = q.parse_given(text, 'length')
+    assert q.length_unit(given) == unit
+    assert q.length(float(given), unit).endswith(f' {unit}')
+
+
+def test_lengths_print_to_a_tenth_of_a_millimetre_in_every_unit():
+    assert [q.length(0.27, u) for u in ('cm', 'mm', 'm')] == ['27.00 cm', '270.0 mm', '0.2700 m']
+    assert q.length_range(0.2445, 0.3004, 'mm') == '244.5 .. 300.4 mm'
+    assert q.length(math.nan, 'mm') == '-'
+
+
+@pytest.mark.parametrize(('message', 'unit', 'shown'), [
+    ('holding 0.2750 m', 'cm', 'holding 27.50 cm'),
+    ('target 0.4000 m is not reachable: reachable [0.2454, 0.3008] m with 0..500000 Pa', 'cm',
+     'target 40.00 cm is not reachable: reachable 24.54 .. 30.08 cm with 0.0 .. 500.0 kPa'),
+    ('target 0.4000 m is not reachable: reachable [0.2454, 0.3008] m with 0..500000 Pa', 'mm',
+     'target 400.0 mm is not reachable: reachable 245.4 .. 300.8 mm with 0.0 .. 500.0 kPa'),
+    ('hold ended: released: another node commanded 60000 Pa on pma/pressure_setpoint', 'cm',
+     'hold ended: released: another node commanded 60.0 kPa on pma/pressure_setpoint'),
+    # Left alone: rates, millimetres, seconds, names with a unit in them.
+    ('ramp_rate_pa_s must be > 0 Pa/s', 'cm', 'ramp_rate_pa_s must be > 0 Pa/s'),
+    ('settled within 2.0 mm for 1 s after 0.83 s; holding', 'cm',
+     'settled within 2.0 mm for 1 s after 0.83 s; holding'),
+])
+def test_a_nodes_si_message_is_shown_in_one_unit_style(message, unit, shown):
+    assert q.in_units(message, unit) == shown
+    assert ' m ' not in f'{q.in_units(message, unit)} ' or unit == 'm'
