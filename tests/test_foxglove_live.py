@@ -6,7 +6,9 @@ the advertised channels and decodes each message twice: with rclpy (the class th
 schema name names) and with rosbags from the advertised `ros2msg` schema text alone, as the
 Foxglove app does. Publishers are real processes: a stand-in whose values follow from the
 sequence number (every value and the order are checked, through publisher restarts, one with
-other QoS), and the real chain on the simulated rig (driver, model, controller), compared
+other QoS, by two viewers at once: one offering only the subprotocol `foxglove.websocket.v1`, as
+PlotJuggler and older Lichtblick do, one only `foxglove.sdk.v1`), and the real chain on the
+simulated rig (driver, model, controller), compared
 with what a plain subscriber receives and checked against the layout's topics and paths.
 """
 
@@ -18,13 +20,19 @@ import math
 import os
 import re
 import signal
+import socket
+import struct
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import pytest
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import deserialize_message
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
 
 from helpers.live_publisher import prediction_fields, state_fields
 from pma_bag.record import message_class
@@ -40,6 +48,7 @@ HELPERS = ROOT / 'tests' / 'helpers'
 LAYOUT = ROOT / 'pma_bringup' / 'foxglove' / 'pma_testbed.json'
 URL = re.compile(r'ws://\S+')
 STATE, PREDICTION = '/pma/state', '/pma/prediction'
+OLD, SDK = 'foxglove.websocket.v1', 'foxglove.sdk.v1'
 
 
 def start_bridge(procs, *ros_args: str, name: str = 'foxglove_live'):
@@ -94,29 +103,37 @@ def publish(procs, tmp_path, first: int, count: int, *extra: str, go: bool = Fal
 
 
 def test_values_and_order_survive_publisher_restarts(procs, tmp_path):
+    """Both kinds of viewer at once: each gets every value, in order, on the same channels."""
     bridge, url = start_bridge(procs)
-    client = FoxgloveClient(url)
+    clients = [FoxgloveClient(url, subprotocols=[OLD]), FoxgloveClient(url, subprotocols=[SDK])]
     try:
-        assert client.wait(lambda c: c.server_info, 10, 'serverInfo')['capabilities'] == [], \
-            'read-only: no publish, services or parameters for clients'
-        client.follow([STATE, PREDICTION])
+        assert [c.subprotocol for c in clients] == [OLD, SDK]
+        for client in clients:
+            assert client.wait(lambda c: c.server_info, 10, 'serverInfo')['capabilities'] \
+                == [], 'read-only: no publish, services or parameters for clients'
+            client.follow([STATE, PREDICTION])
         first = publish(procs, tmp_path, 0, 200, go=True)
-        channels = {t: client.channel_for(t, 20)['id'] for t in (STATE, PREDICTION)}
-        assert client.channel_for(STATE)['schemaName'] == 'pma_interfaces/msg/PmaState'
+        channels = {t: clients[0].channel_for(t, 20)['id'] for t in (STATE, PREDICTION)}
+        for client in clients:
+            assert {t: client.channel_for(t, 20)['id'] for t in channels} == channels
+            assert client.channel_for(STATE)['schemaName'] == 'pma_interfaces/msg/PmaState'
+        assert clients[0].channel_for(STATE) == clients[1].channel_for(STATE)
         time.sleep(0.3)          # our subscribe request reaches the server
         (tmp_path / 'go').touch()
         first.wait_for_line('published 200', 30)
         expected = list(range(200))
-        client.wait(lambda c: len(c.received(PREDICTION)) >= 200, 10, '200 pairs')
-        check_pairs(client, expected)
+        for client in clients:
+            client.wait(lambda c: len(c.received(PREDICTION)) >= 200, 10, '200 pairs')
+            check_pairs(client, expected)
 
         # The publisher is gone; a new one starts where it left off, same QoS: same channels.
         first.popen.wait(10)
         second = publish(procs, tmp_path, 1000, 200)
         second.wait_for_line('published 200', 30)
         expected += list(range(1000, 1200))
-        client.wait(lambda c: len(c.received(PREDICTION)) >= 400, 10, '400 pairs')
-        check_pairs(client, expected)
+        for client in clients:
+            client.wait(lambda c: len(c.received(PREDICTION)) >= 400, 10, '400 pairs')
+            check_pairs(client, expected)
 
         # Killed mid-stream (no goodbye to DDS), then back with best-effort QoS: the bridge
         # subscribes again to match it, on the same channels.
@@ -130,27 +147,120 @@ def test_values_and_order_survive_publisher_restarts(procs, tmp_path):
         fourth.wait_for_line('published 200', 30)
         assert 'subscribing again' in bridge.output[bridge_output_before:]
         time.sleep(0.5)
-        decode = Decoder(client.channel_for(STATE))
-        seqs = [decode(m)[0].seq for m in client.received(STATE)]
-        third_part = [k for k in seqs if 2000 <= k < 5000]
-        best_effort = [k for k in seqs if k >= 5000]
-        assert third_part == list(range(2000, 2000 + len(third_part))) and third_part
-        assert best_effort == sorted(best_effort) and len(set(best_effort)) == len(best_effort)
-        assert len(best_effort) >= 190, f'{len(best_effort)} of 200 best-effort samples'
-        # SIGKILL may land between a state and its prediction: the last state of the killed
-        # publisher may come without one, nothing else may.
-        third_predicted = [int(p.header.frame_id[3:]) for p, _ in
-                           map(Decoder(client.channel_for(PREDICTION)),
-                               client.received(PREDICTION))
-                           if 2000 <= int(p.header.frame_id[3:]) < 5000]
-        assert third_predicted == third_part[:len(third_predicted)]
-        assert len(third_part) - len(third_predicted) <= 1, (third_part, third_predicted)
-        check_pairs(client, expected + third_part + best_effort,
-                    expected + third_predicted + best_effort)
-        assert {t: client.channel_for(t)['id'] for t in (STATE, PREDICTION)} == channels
-        assert not client.unadvertised
+        for client in clients:
+            check_the_restarts(client, expected, channels)
+    finally:
+        for client in clients:
+            client.close()
+
+
+def check_the_restarts(client: FoxgloveClient, expected: list[int], channels: dict) -> None:
+    """The killed publisher's part and the best-effort one, as one viewer received them."""
+    decode = Decoder(client.channel_for(STATE))
+    seqs = [decode(m)[0].seq for m in client.received(STATE)]
+    third_part = [k for k in seqs if 2000 <= k < 5000]
+    best_effort = [k for k in seqs if k >= 5000]
+    assert third_part == list(range(2000, 2000 + len(third_part))) and third_part
+    assert best_effort == sorted(best_effort) and len(set(best_effort)) == len(best_effort)
+    assert len(best_effort) >= 190, f'{len(best_effort)} of 200 best-effort samples'
+    # SIGKILL may land between a state and its prediction: the last state of the killed
+    # publisher may come without one, nothing else may.
+    third_predicted = [int(p.header.frame_id[3:]) for p, _ in
+                       map(Decoder(client.channel_for(PREDICTION)),
+                           client.received(PREDICTION))
+                       if 2000 <= int(p.header.frame_id[3:]) < 5000]
+    assert third_predicted == third_part[:len(third_predicted)]
+    assert len(third_part) - len(third_predicted) <= 1, (third_part, third_predicted)
+    check_pairs(client, expected + third_part + best_effort,
+                expected + third_predicted + best_effort)
+    assert {t: client.channel_for(t)['id'] for t in (STATE, PREDICTION)} == channels
+    assert not client.unadvertised
+
+
+def test_a_viewer_gets_the_subprotocol_it_lists_first(procs):
+    """foxglove.websocket.v1 and foxglove.sdk.v1 are the same protocol: either, or both in
+    either order, is answered with the first listed; a client offering neither is refused as
+    before (HTTP 400)."""
+    _bridge, url = start_bridge(procs)
+    for offered in ([OLD], [SDK], [OLD, SDK], [SDK, OLD], ['x.unknown', OLD, SDK]):
+        with connect(url, subprotocols=offered, open_timeout=10) as ws:
+            assert ws.subprotocol == next(o for o in offered if o in (OLD, SDK)), offered
+            info = json.loads(ws.recv(timeout=10))
+            assert info['op'] == 'serverInfo' and info['capabilities'] == []
+    for offered in (['foxglove.websocket.v2'], None):
+        with pytest.raises(InvalidStatus) as refused:
+            connect(url, subprotocols=offered, open_timeout=10)
+        assert refused.value.response.status_code == 400
+
+
+def bridge_resources(pid: int) -> tuple[int, int]:
+    """(threads, open file descriptors) of a process."""
+    return len(os.listdir(f'/proc/{pid}/task')), len(os.listdir(f'/proc/{pid}/fd'))
+
+
+def test_viewers_coming_and_going_leave_no_connection_or_thread_behind(procs):
+    """400 connections to 127.0.0.1, 16 at a time, as viewers and broken clients make them:
+    WebSocket sessions closed properly or reset, bare connects, half a request, and 20 that
+    stall in the request (closed by the bridge after its handshake timeout). Afterwards the
+    bridge has the threads and descriptors it had, and still serves a viewer."""
+    bridge, url = start_bridge(procs)
+    pid = bridge.popen.pid
+    host, port = '127.0.0.1', int(url.rsplit(':', 1)[1])
+    request = (f'GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n'
+               'Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n'
+               f'Sec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: {OLD}\r\n\r\n')
+    with connect(url, subprotocols=[OLD], open_timeout=10) as ws:   # the server's threads up
+        ws.recv(timeout=10)
+    time.sleep(1.0)
+    threads0, fds0 = bridge_resources(pid)
+    handshake_threads = [t for t in os.listdir(f'/proc/{pid}/task')
+                         if Path(f'/proc/{pid}/task/{t}/comm').read_text().strip()
+                         == 'fg-handshake']
+    assert len(handshake_threads) == 1
+
+    def viewer(k: int) -> None:
+        with connect(url, subprotocols=[OLD] if k % 2 else [SDK], open_timeout=10) as ws:
+            assert json.loads(ws.recv(timeout=10))['op'] == 'serverInfo'
+
+    def reset(k: int) -> None:          # upgraded, then gone without a close frame (RST)
+        sock = socket.create_connection((host, port), timeout=10)
+        sock.sendall(request.encode())
+        assert sock.recv(4096).startswith(b'HTTP/1.1 101')
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack('ii', 1, 0))
+        sock.close()
+
+    def bare(k: int) -> None:
+        socket.create_connection((host, port), timeout=10).close()
+
+    def half(k: int) -> None:
+        with socket.create_connection((host, port), timeout=10) as sock:
+            sock.sendall(request[:k % 60 + 1].encode())
+
+    stalled = [socket.create_connection((host, port), timeout=10) for _ in range(20)]
+    for sock in stalled:
+        sock.sendall(b'GET / HTTP/1.1\r\n')
+    started = time.monotonic()
+    kinds = [viewer] * 160 + [reset] * 80 + [bare] * 70 + [half] * 70
+    with ThreadPoolExecutor(16) as pool:
+        list(pool.map(lambda k: kinds[k](k), range(len(kinds)), timeout=120))
+    churn_s = time.monotonic() - started
+    threads1, _ = bridge_resources(pid)
+    assert threads1 <= threads0 + 2, (threads0, threads1)
+    # The stalled ones are closed by the bridge (HANDSHAKE_TIMEOUT_S = 10 s), not by us.
+    for sock in stalled:
+        sock.settimeout(20)
+        assert sock.recv(100) == b'', 'a stalled request is closed by the bridge'
+        sock.close()
+    wait_until(lambda: bridge_resources(pid)[1] <= fds0, 15,
+               f'the bridge back to {fds0} descriptors')
+    wait_until(lambda: bridge_resources(pid)[0] <= threads0, 30,
+               f'the bridge back to {threads0} threads')
+    client = FoxgloveClient(url, subprotocols=[OLD])
+    try:
+        assert client.wait(lambda c: c.server_info, 10, 'serverInfo')
     finally:
         client.close()
+    assert churn_s < 60, f'{len(kinds)} connections took {churn_s:.1f} s'
 
 
 @pytest.fixture(scope='module')

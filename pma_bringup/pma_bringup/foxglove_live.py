@@ -17,6 +17,11 @@ subscribes to a latched topic (pma/model_params) gets its last message at once.
 
 Read-only: clients cannot publish, call services or set parameters. It listens on localhost
 unless `host` says otherwise; docs/live-view.md explains opening it to the lab network.
+
+Viewers offering the WebSocket subprotocol `foxglove.websocket.v1` (the published spec's name,
+PlotJuggler, older Lichtblick and Foxglove Studio) and `foxglove.sdk.v1` are both served: the
+public port is a thin handshake layer (ws_handshake.py) in front of foxglove-sdk's server on an
+ephemeral loopback port, since foxglove-sdk accepts only its own name.
 """
 
 from __future__ import annotations
@@ -46,6 +51,8 @@ from pma_bag.schemas import message_schema
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped
 from pma_common.parameters import node_or_exit
+
+from .ws_handshake import SUBPROTOCOLS, HandshakeProxy
 
 DEFAULT_HOST = '127.0.0.1'
 DEFAULT_PORT = 8765
@@ -168,11 +175,18 @@ class FoxgloveLive(Node):
         self.viewers = _Viewers(self.send_latched)
         self.fg_context = foxglove.Context()
         host = self.get_parameter('host').value
+        # foxglove-sdk's server, on loopback only; viewers reach it through the handshake
+        # layer on the public (host, port), which also accepts foxglove.websocket.v1.
         self.server = foxglove.start_server(
-            name=f'PMA testbed ({self.get_fully_qualified_name()})', host=host,
-            port=self.get_parameter('port').value, context=self.fg_context,
-            server_listener=self.viewers, capabilities=[])
-        self.urls = viewer_urls(host, self.server.port)
+            name=f'PMA testbed ({self.get_fully_qualified_name()})', host='127.0.0.1',
+            port=0, context=self.fg_context, server_listener=self.viewers, capabilities=[])
+        try:
+            self.proxy = HandshakeProxy(host, self.get_parameter('port').value,
+                                        self.server.port)
+        except OSError as exc:      # port in use, an address not of this machine
+            self.server.stop()
+            raise RuntimeError(str(exc)) from exc
+        self.urls = viewer_urls(host, self.proxy.port)
         self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(GRAPH_PERIOD_S, self.check_graph)
         self.create_timer(1.0, self.publish_status)
@@ -277,6 +291,7 @@ class FoxgloveLive(Node):
         status = DiagnosticStatus(name=f'{self.get_fully_qualified_name()}: live view',
                                   hardware_id=self.urls[0])
         values = {'url': ' '.join(self.urls), 'viewers': str(viewers),
+                  'connections': str(self.proxy.open_connections()),
                   'topics forwarded': ' '.join(forwarded) or '-',
                   'messages forwarded': str(sum(e.count for e in self.forwarded.values()))}
         for topic, reason in sorted(self.skipped.items()):
@@ -291,6 +306,7 @@ class FoxgloveLive(Node):
         publish_status(self, self.diagnostics, status, values)
 
     def close(self) -> None:
+        self.proxy.close()
         self.server.stop()
         for entry in self.forwarded.values():
             entry.channel.close()
@@ -318,6 +334,9 @@ def main(args: list[str] | None = None) -> int:
         try:
             print(f'foxglove_live: Foxglove WebSocket at {" or ".join(node.urls)} '
                   '(Foxglove: Open connection -> Foxglove WebSocket)', flush=True)
+            print(f'foxglove_live: subprotocols {", ".join(SUBPROTOCOLS)} (foxglove-sdk '
+                  f'serves them on 127.0.0.1:{node.server.port}, behind the public port)',
+                  flush=True)
             layout = layout_path()
             if layout is not None:
                 print(f'foxglove_live: layout: {layout} (Foxglove: Layouts -> Import from '

@@ -1,7 +1,9 @@
 """A Foxglove WebSocket protocol client, as the Foxglove app speaks it, for tests and bench.
 
-The server (foxglove-sdk, like foxglove_bridge) speaks subprotocol `foxglove.sdk.v1` (the
-older `foxglove.websocket.v1` is offered too). Text frames are JSON: `serverInfo`, `advertise`
+foxglove_live answers subprotocol `foxglove.websocket.v1` (the published spec's name) and
+`foxglove.sdk.v1` (foxglove-sdk's, and foxglove_bridge 3.x's), whichever the client lists first;
+`FoxgloveClient(url, subprotocols=[...])` offers what a given viewer offers (default: both) and
+`.subprotocol` is the one the server chose. Text frames are JSON: `serverInfo`, `advertise`
 ({channels: [{id, topic, encoding, schemaName, schema, schemaEncoding}]}), `unadvertise`,
 `status`. After {"op": "subscribe", "subscriptions": [{"id", "channelId"}]} the server sends
 binary frames: 0x01, subscription id (uint32 LE), log time (uint64 LE, ns), the payload.
@@ -43,8 +45,11 @@ class Received:
 
 
 class FoxgloveClient:
-    def __init__(self, url: str, timeout: float = 10.0):
+    def __init__(self, url: str, timeout: float = 10.0,
+                 subprotocols: list[str] | tuple[str, ...] = SUBPROTOCOLS):
         self.url = url
+        self.offered = list(subprotocols)
+        self.subprotocol: str | None = None          # what the server answered
         self.ws = None
         self.server_info: dict | None = None
         self.channels: dict[int, dict] = {}          # advertised, by channel id
@@ -67,9 +72,10 @@ class FoxgloveClient:
 
     def _pump(self, timeout: float) -> None:
         try:
-            with connect(self.url, subprotocols=SUBPROTOCOLS, max_size=None,
+            with connect(self.url, subprotocols=self.offered, max_size=None,
                          open_timeout=timeout, compression=None) as ws:
                 self.ws = ws
+                self.subprotocol = ws.subprotocol
                 self._opened.set()
                 for frame in ws:
                     if isinstance(frame, bytes):
