@@ -51,6 +51,7 @@ from __future__ import annotations
 import bisect
 import functools
 import math
+import operator
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import ClassVar
@@ -290,6 +291,29 @@ def _lengths_at_knots(branch: Branch) -> tuple[float, ...]:
     return tuple(float(v) for v in branch.length(np.array(CORRECTION_KNOTS_PA)))
 
 
+_MAX_BASE_POINTS = 4096      # single-pressure entries a base branch keeps (_base_point)
+
+
+def _base_point(branch: Branch, p_pa: float) -> tuple[float, int, float]:
+    """(base length, knot interval k, share) at one pressure: what a corrected branch's
+    length and its knot sensitivity are made of, independent of the learned offsets. Kept
+    on the base branch, so shared by every corrected branch over it: a commit makes new
+    corrected branches and its replay asks for the same turning pressures again, and a
+    sample's pressure is asked for by the length, the two shapes and the regressor."""
+    points = branch.__dict__.get('_points')
+    if points is None:
+        points = {}
+        object.__setattr__(branch, '_points', points)   # a memo, not a field (frozen)
+    point = points.get(p_pa)
+    if point is None:
+        base = float(branch.length(p_pa))
+        point = (base, *_knot_share(p_pa, base, _lengths_at_knots(branch)))
+        if len(points) >= _MAX_BASE_POINTS:   # a long noisy run: start again
+            points.clear()
+        points[p_pa] = point
+    return point
+
+
 @dataclass(frozen=True)
 class CorrectedBranch(Branch):
     """`base` plus a correction given at CORRECTION_KNOTS_PA, flat beyond them.
@@ -333,8 +357,8 @@ class CorrectedBranch(Branch):
             known = self._known_lengths
             length = known.get(p_pa)
             if length is None:
-                base = self.base.length(p_pa)
-                length = base + self.correction_at(p_pa, base)
+                base, k, share = _base_point(self.base, p_pa)
+                length = base + _interpolated(self.offsets_m, k, share)
                 if len(known) >= _MAX_KNOWN_LENGTHS:   # a long noisy hold: start again
                     known.clear()
                 known[p_pa] = length
@@ -395,12 +419,20 @@ def monotone_correction(offsets, caps) -> tuple[float, ...]:
     the corrected branch stays non-increasing. `caps`: correction_caps, as an array or a
     tuple of floats."""
     # Plain floats: it runs on every sample, where numpy's per-call cost dominates.
-    values = [min(max(v, -MAX_CORRECTION_M), MAX_CORRECTION_M)
-              for v in np.asarray(offsets, dtype=float).tolist()]
+    if isinstance(offsets, list):
+        values = offsets
+    elif isinstance(offsets, np.ndarray) and offsets.dtype == float:
+        values = offsets.tolist()
+    else:
+        values = np.asarray(offsets, dtype=float).tolist()
     rises = caps if isinstance(caps, tuple) else np.asarray(caps, dtype=float).tolist()
-    for k in range(1, len(values)):
-        values[k] = min(values[k], values[k - 1] + rises[k - 1])
-    return tuple(values)
+    low, high = -MAX_CORRECTION_M, MAX_CORRECTION_M
+    previous = min(max(values[0], low), high)
+    result = [previous]
+    for raw, rise in zip(values[1:], rises, strict=False):   # rises: one per interval
+        previous = min(max(raw, low), high, previous + rise)   # min/max select: exact
+        result.append(previous)
+    return tuple(result)
 
 
 def refine_corrections(mean_m, difference_m, increasing: Branch, decreasing: Branch
@@ -435,7 +467,7 @@ def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
     gradient = np.zeros(2 * knots + 2)
     start = 0 if rising else knots
     base = branch.base if isinstance(branch, CorrectedBranch) else branch
-    k, share = _knot_share(p_pa, float(base.length(p_pa)), _lengths_at_knots(base))
+    _, k, share = _base_point(base, p_pa)
     gradient[start + k] = 1.0 - share
     if share != 0.0:
         gradient[start + k + 1] = share
@@ -506,9 +538,11 @@ class OnlineModel:
         self._share_covariance = [[priors['share'] ** 2, 0.0, priors['share_slope'] ** 2]
                                   for _ in range(2)]
         self._filter = self._new_filter(settings, priors)
-        self._committed = (self._branch_offsets(), self._shares.copy())
-        self._committed_raw = self._raw_corrections()
-        branches = self._corrected(self._committed[0])
+        # What the model was last built with (_commit_if_moved), as plain floats: the filter's
+        # [mean correction, difference] and the shares [rising share, slope, falling ...].
+        self._committed_raw = self._filter.mean[:2 * len(CORRECTION_KNOTS_PA)].tolist()
+        self._committed_shares = self._shares.ravel().tolist()
+        branches = self._corrected(self._branch_offsets())
         self.model = HysteresisModel(*branches, memory=self.memory,
                                      deadband_pa=self.deadband_pa,
                                      max_gauge_pressure_pa=self.max_gauge_pressure_pa,
@@ -594,6 +628,9 @@ class OnlineModel:
         increasing, decreasing = offsets
         if not any(increasing) and not any(decreasing):
             return self.increasing, self.decreasing
+        if isinstance(increasing, tuple):   # floats already (monotone_correction's)
+            return (CorrectedBranch(self.increasing, increasing),
+                    CorrectedBranch(self.decreasing, decreasing))
         return (CorrectedBranch(self.increasing, tuple(float(v) for v in increasing)),
                 CorrectedBranch(self.decreasing, tuple(float(v) for v in decreasing)))
 
@@ -845,22 +882,27 @@ class OnlineModel:
         return tuple(self._shares[:, 0].tolist()), tuple(self._shares[:, 1].tolist())
 
     def _commit_if_moved(self) -> None:
-        _, committed_shares = self._committed
-        raw = self._raw_corrections()
-        (correction, difference), (then_correction, then_difference) = raw, self._committed_raw
-        if np.abs(correction - then_correction).max() < COMMIT_M and \
-                np.abs(difference - then_difference).max() < COMMIT_M and \
-                np.abs(self._shares - committed_shares).max() < COMMIT_SHARE:
+        # Plain floats: this runs on every sample, and numpy's per-call cost on 13 values
+        # was most of it. The same test as comparing each part's largest change.
+        knots = len(CORRECTION_KNOTS_PA)
+        raw = self._filter.mean[:2 * knots].tolist()
+        shares = self._shares.ravel().tolist()
+        if max(map(abs, map(operator.sub, raw, self._committed_raw))) < COMMIT_M and \
+                max(map(abs, map(operator.sub, shares, self._committed_shares))) < COMMIT_SHARE:
             return
-        self._committed_raw = raw
-        offsets = self._branch_offsets(*raw)
+        self._committed_raw, self._committed_shares = raw, shares
+        correction, difference = raw[:knots], raw[knots:]
+        # mean +/- half the difference, as _branch_offsets computes it (the same operations
+        # on floats), each bounded and monotone on its own branch.
+        offsets = tuple(monotone_correction([m + half * d for m, d in zip(
+            correction, difference, strict=True)], caps)
+                        for half, caps in ((0.5, self._caps[0]), (-0.5, self._caps[1])))
         self.commits += 1
-        new_shares, new_slopes = self._mid_shares_and_slopes()
+        new_shares, new_slopes = tuple(shares[0::2]), tuple(shares[1::2])
         branches = self._corrected(offsets)
         self.model.relearn(*branches, new_shares, new_slopes)
         if self._doubt is not None and self._doubt is not self.model:
             self._doubt.relearn(*branches, new_shares, new_slopes)
-        self._committed = (offsets, self._shares.copy())
 
     # --- inverse --------------------------------------------------------------------
 
