@@ -931,7 +931,8 @@ def test_a_recording_sweep_without_a_recorder_aborts_at_once_and_says_how_to_sta
     assert 'within 1 s' in message and '`ros2 run pma_bag record --idle`' in message
     assert 'record:=true' in message
     assert feedback == [] and answer.result.bag_path == ''
-    # A recorder that answers but cannot record: its reason, and still nothing commanded.
+    # A recorder that answers but cannot record: its reason. The bag starts at rest, so the
+    # refusal comes after the vent and the wait for rest (docs/driver.md, Recording a sweep).
     # (Time for the driver to discover it: the recorder's services are brand new.)
     assert probe.set_parameter('sweep.recorder_timeout_s', 10.0).successful
     calls = tmp_path / 'calls.jsonl'
@@ -940,8 +941,9 @@ def test_a_recording_sweep_without_a_recorder_aborts_at_once_and_says_how_to_sta
     answer = run_goal(probe, goal, timeout=15, feedback=feedback)
     assert answer.status == GOAL_STATUS_ABORTED
     assert answer.result.message == ('not started: the recorder refused to start: disk full '
-                                     '(/data: 0 bytes free)')
-    assert [c['call'] for c in read_calls(calls)] == ['start'] and feedback == []
+                                     '(/data: 0 bytes free); vented')
+    assert [c['call'] for c in read_calls(calls)] == ['start']
+    assert feedback and {f.phase for f in feedback} == {'venting to rest'}
     assert {m.gauge_setpoint_pa for m in probe.wait_states(5)} == {0.0}
     assert driver.alive()
 

@@ -257,7 +257,7 @@ def sweep_goal(args) -> Sweep.Goal:
         sine_frequency_hz=args.frequency_hz, profile_time_s=times,
         profile_pressure_pa=pressures, forc_count=args.forc_count,
         forc_family=args.forc_family, record=args.record is not None, bag_path=bag_path,
-        note=args.note)
+        note=args.note, start_pressurised=args.start_pressurised)
 
 
 # The flag of `pma sweep` behind each goal field, for a refusal that names the field.
@@ -315,6 +315,8 @@ def describe(goal: Sweep.Goal) -> str:
     text += f', {goal.cycles} {"period" if goal.profile == "sine" else "cycle"}(s)'
     if goal.rest_s:
         text += f', rest {q.seconds(goal.rest_s)} between'
+    if goal.start_pressurised:
+        text += '; from the pressure it has now (no vent to rest first)'
     if goal.record:
         text += f'; recording to {goal.bag_path or "an auto-named bag"}'
     return text
@@ -336,6 +338,9 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
 
     def on_feedback(feedback) -> None:
         measured = state.message.gauge_pressure_pa if state.message else math.nan
+        if feedback.phase == 'venting to rest':      # before the first level (docs/driver.md)
+            progress.show(0.0, f'venting to rest: {q.kpa(measured)}', 'rest')
+            return
         progress.show(feedback.progress,
                       f'{unit} {feedback.step_index + 1}/{feedback.step_count}  setpoint '
                       f'{q.kpa(feedback.gauge_setpoint_pa, 0)}  pressure {q.kpa(measured)}  '

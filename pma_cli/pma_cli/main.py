@@ -266,6 +266,9 @@ def parser() -> argparse.ArgumentParser:
                    help='record the run to its own bag (a relative path is taken from here; '
                         'no path = auto-named); needs a recorder: pma run pma_bag record --idle')
     p.add_argument('--note', default='', help="operator's note for the bag's metadata")
+    p.add_argument('--start-pressurised', action='store_true',
+                   help='start from the pressure the muscle has, without venting and waiting '
+                        'for rest first (the first level may then be on the falling branch)')
     p = verb('length', 'which pressure gives this length? (the inverse model service)')
     p.add_argument('length', type=_target('length'), help='e.g. 26.5cm, 0.265')
     p.add_argument('--branch', choices=('auto', 'inc', 'dec', 'increasing', 'decreasing'),

@@ -52,6 +52,9 @@ class DeviceControl:
         self.max_gauge_pressure_pa = max_gauge_pressure_pa
         self.latest: Sample | None = None
         self.latest_gauge_pa = math.nan
+        # (sample, gauge Pa) in one object, replaced at every sample: a sweep tells a new
+        # reading from one it has seen by identity, and never pairs a sample with another's Pa.
+        self.latest_reading: tuple[Sample, float] | None = None
         self.on_event = on_event
         self._sweep_lock = threading.Lock()
         self._sweep_running = False
@@ -80,6 +83,7 @@ class DeviceControl:
     def note_sample(self, sample: Sample, gauge_pa: float) -> None:
         self.latest = sample
         self.latest_gauge_pa = gauge_pa
+        self.latest_reading = (sample, gauge_pa)
 
     def streaming(self) -> bool:
         """Commands need a streaming link: a stalled one too means nobody can watch them."""

@@ -22,7 +22,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.lifecycle import Node, State, TransitionCallbackReturn
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
@@ -47,7 +47,12 @@ from pma_driver.protocol import Command, Hello
 from pma_driver.recorder_client import RecorderClient
 from pma_driver.sweep_runner import Outcome, SweepGoal, SweepRunner, SweepSettings
 from pma_interfaces.action import Sweep
-from pma_interfaces.msg import PmaState
+from pma_interfaces.msg import PmaState, SweepRecord
+
+# pma/sweep_record: a sweep's START, LEVELs and END; a reader that joins late (a recorder
+# subscribed after the sweep began) still gets them.
+SWEEP_RECORD_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class PmaDriver(Node):
@@ -82,11 +87,18 @@ class PmaDriver(Node):
         self._pubs = None
         self._refusal_logged: dict[str, float] = {}
 
+        self._record_pub = self.create_publisher(SweepRecord, 'pma/sweep_record',
+                                                 SWEEP_RECORD_QOS)
+        # A sweep's bag must hold its samples and its records: the recorder's readers of
+        # both are heard before the first level.
         self._recorder = RecorderClient(self, values['sweep.recorder'],
                                         values['sweep.recorder_timeout_s'],
-                                        publishers=lambda: self._pubs or ())
+                                        publishers=lambda: (*(self._pubs or ()),
+                                                            self._record_pub),
+                                        last_words=lambda: (self._record_pub,))
         self._sweeps = SweepRunner(self._control, recorder=self._recorder,
-                                   sample_count=lambda: self._published, on_event=self._log)
+                                   sample_count=lambda: self._published, on_event=self._log,
+                                   now_ns=lambda: self.get_clock().now().nanoseconds)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_subscription(Float64, 'pma/pressure_setpoint', self._on_setpoint, 10)
@@ -338,15 +350,25 @@ class PmaDriver(Node):
             feedback.sample_count = progress.sample_count
             feedback.step_index = progress.step_index
             feedback.step_count = progress.step_count
+            feedback.phase = progress.phase
             goal_handle.publish_feedback(feedback)
+
+        sweep_id = bytes(goal_handle.goal_id.uuid).hex()
+
+        def publish_record(record) -> None:
+            self._record_pub.publish(sweep_record_message(record, sweep_id))
 
         goal = SweepGoal.of(request)
         report = self._sweeps.run(
             goal,
-            SweepSettings(values['sweep.tolerance_pa'], values['sweep.step_timeout_s']),
+            SweepSettings(values['sweep.tolerance_pa'], values['sweep.step_timeout_s'],
+                          rest_pa=values['sweep.rest_pa'],
+                          rest_time_s=values['sweep.rest_time_s'],
+                          rest_timeout_s=values['sweep.rest_timeout_s']),
             cancel_requested=lambda: goal_handle.is_cancel_requested,
             feedback=publish_feedback,
-            calibration={k: v for k, v in values.items() if k.startswith('calibration.')})
+            calibration={k: v for k, v in values.items() if k.startswith('calibration.')},
+            record=publish_record)
         {Outcome.SUCCEEDED: goal_handle.succeed, Outcome.ABORTED: goal_handle.abort,
          Outcome.CANCELED: goal_handle.canceled}[report.outcome]()
         return Sweep.Result(success=report.success, message=report.message,
@@ -396,6 +418,22 @@ class PmaDriver(Node):
             })
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         return status
+
+
+def sweep_record_message(record, sweep_id: str) -> SweepRecord:
+    """pma/sweep_record's message for one of the SweepRunner's records."""
+    msg = SweepRecord(
+        sweep_id=sweep_id, kind=int(record.kind), profile=record.profile,
+        started_at_rest=record.started_at_rest,
+        start_gauge_pressure_pa=float(record.start_gauge_pressure_pa),
+        level_index=record.level_index, level_count=record.level_count,
+        target_gauge_pressure_pa=float(record.target_gauge_pressure_pa),
+        reached_gauge_pressure_pa=float(record.reached_gauge_pressure_pa),
+        branch=int(record.branch), settled=record.settled, message=record.message)
+    for stamp, ns in ((msg.header.stamp, record.stamp_ns), (msg.hold_start, record.hold_start_ns),
+                      (msg.hold_end, record.hold_end_ns)):
+        stamp.sec, stamp.nanosec = divmod(int(ns), 1_000_000_000)
+    return msg
 
 
 def main(args=None) -> int:

@@ -82,6 +82,20 @@ PARAMETERS: dict[str, tuple[Any, str, dict]] = {
                            {'floating_point_range': _floats(100.0, 100_000.0)}),
     'sweep.step_timeout_s': (10.0, 'Hold starts anyway after this long (logged) [s]',
                              {'floating_point_range': _floats(0.1, 600.0)}),
+    # At rest (before a sweep's first level): the mean over sweep.rest_time_s below
+    # sweep.rest_pa and flat (halves within 1 kPa). 5 kPa is 1 % of the 500 kPa sensor's
+    # span, twice its noise (0.5 % FS a reading; a 1 s mean at 20 Hz is within 0.6 kPa),
+    # far below the muscle's ~50 kPa dead zone; 1 s is two exhaust time constants of the
+    # simulated rig; 30 s lets a slow exhaust vent from the ceiling (2.3 s simulated).
+    'sweep.rest_pa': (5_000.0, "A sweep's wait for rest before its first level ends once the "
+                      'mean pressure over sweep.rest_time_s is below this and flat [Pa]',
+                      {'floating_point_range': _floats(500.0, 100_000.0)}),
+    'sweep.rest_time_s': (1.0, 'The window over which the pressure must be at rest (mean below '
+                          'sweep.rest_pa, its halves within 1 kPa) [s]',
+                          {'floating_point_range': _floats(0.1, 60.0)}),
+    'sweep.rest_timeout_s': (30.0, 'A sweep whose muscle is not at rest this long after venting '
+                             'aborts (and vents) [s]',
+                             {'floating_point_range': _floats(1.0, 600.0)}),
     'sweep.recorder': ('recorder', 'Node name of the recorder a Sweep goal with record asks '
                        '(its ~/start and ~/stop); relative names resolve in this namespace',
                        {'read_only': True}),
@@ -153,6 +167,13 @@ def check_parameters(values: dict, hello: Hello | None) -> str:
     if values['heartbeat_period_s'] * 1000.0 > values['heartbeat_timeout_ms'] / 2:
         return (f'heartbeat_period_s ({values["heartbeat_period_s"]} s) must be at most half '
                 f'of heartbeat_timeout_ms ({values["heartbeat_timeout_ms"]} ms)')
+    if values['sweep.rest_time_s'] * values['sample_rate_hz'] < 4:
+        return (f'sweep.rest_time_s {values["sweep.rest_time_s"]} s holds fewer than 4 samples '
+                f'at sample_rate_hz {values["sample_rate_hz"]} Hz: the wait for rest compares '
+                'the means of its two halves; raise either')
+    if values['sweep.rest_timeout_s'] <= values['sweep.rest_time_s']:
+        return (f'sweep.rest_timeout_s ({values["sweep.rest_timeout_s"]} s) must be longer than '
+                f'sweep.rest_time_s ({values["sweep.rest_time_s"]} s)')
     reason = recorder_name_error(values['sweep.recorder'])
     if reason:
         return reason

@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 from diagnostic_msgs.msg import KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.client import Client
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 
@@ -43,11 +44,14 @@ def how_to_start(start_service: str) -> str:
 
 class RecorderClient:
     def __init__(self, node: Node, recorder: str, timeout_s: float,
-                 publishers: Callable[[], Sequence[Publisher]] = tuple):
+                 publishers: Callable[[], Sequence[Publisher]] = tuple,
+                 last_words: Callable[[], Sequence[Publisher]] = tuple):
         self._node = node
         self.recorder = recorder
         self.timeout_s = timeout_s
         self._publishers = publishers       # ours, whose samples the bag must not miss
+        # ours (reliable), whose last message before ~/stop the bag must hold (a sweep's END)
+        self._last_words = last_words
         group = MutuallyExclusiveCallbackGroup()   # answers come while the sweep thread waits
         self.start_service = node.resolve_service_name(f'{recorder}/start')
         self.stop_service = node.resolve_service_name(f'{recorder}/stop')
@@ -89,7 +93,22 @@ class RecorderClient:
                     and time.monotonic() < deadline:
                 time.sleep(0.01)
 
+    def check(self) -> None:
+        """RecorderError unless the recorder's ~/start is there (nothing is started)."""
+        if not self._start.wait_for_service(timeout_sec=self.timeout_s):
+            raise self._missing(self._start)
+
+    def _missing(self, client: Client) -> RecorderError:
+        return RecorderError(
+            f'no recorder answers at {client.service_name} (parameter sweep.recorder = '
+            f'{self.recorder!r}) within {self.timeout_s:g} s: ' + how_to_start(self.start_service))
+
     def stop(self) -> RecordingSummary:
+        # The recorder finishes the bag at once: what is still on its way to it is not in
+        # the bag (a sweep's END record was lost so). Acknowledged by its reader first, a
+        # message is handled before the request (rclpy takes subscriptions before services).
+        for publisher in self._last_words():
+            publisher.wait_for_all_acked(Duration(seconds=min(self.timeout_s, 2.0)))
         response = self._call(self._stop, StopRecording.Request())
         if response is None:
             raise RecorderError(f'no answer from {self.stop_service} within '
@@ -105,10 +124,7 @@ class RecorderClient:
         if not client.wait_for_service(timeout_sec=self.timeout_s):
             if quiet:
                 return None
-            raise RecorderError(
-                f'no recorder answers at {client.service_name} (parameter sweep.recorder = '
-                f'{self.recorder!r}) within {self.timeout_s:g} s: '
-                + how_to_start(self.start_service))
+            raise self._missing(client)
         done = threading.Event()
         future = client.call_async(request)
         future.add_done_callback(lambda _: done.set())

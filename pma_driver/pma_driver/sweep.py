@@ -86,6 +86,7 @@ class SweepGoal:
     profile_pressure_pa: Sequence[float] = ()
     forc_count: int = 0
     forc_family: str = ''
+    start_pressurised: bool = False   # no vent and wait for rest before the first level
 
     @property
     def profile_name(self) -> str:

@@ -61,6 +61,11 @@ def test_every_number_has_a_range_that_holds_its_default(name):
     ({'sweep__recorder': ''}, 'sweep.recorder'),
     ({'qos_reliability': 'foo'}, "qos_reliability must be 'reliable' or 'best_effort', got 'foo'"),
     ({'sample_rate_hz': 25.5}, 'sample_rate_hz must be a whole number of Hz'),
+    ({'sweep__rest_pa': 0.0}, 'sweep.rest_pa 0.0 is outside 500..100000'),
+    ({'sample_rate_hz': 2.0}, 'sweep.rest_time_s 1.0 s holds fewer than 4 samples at '
+                              'sample_rate_hz 2.0 Hz'),
+    ({'sweep__rest_timeout_s': 1.0}, 'sweep.rest_timeout_s (1.0 s) must be longer than '
+                                     'sweep.rest_time_s'),
 ])
 def test_nonsense_calibrations_are_refused_with_the_reason(changes, words):
     reason = check_parameters(with_(**changes), None)

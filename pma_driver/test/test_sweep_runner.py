@@ -22,11 +22,16 @@ from pma_driver.sim.device import DeviceConfig, SimDevice
 from pma_driver.sim.pneumatics import PneumaticParams
 from pma_driver.sweep import STREAM_RATE_HZ, plan_goal
 from pma_driver.sweep_runner import (
+    PHASE_REST,
+    PHASE_RUNNING,
+    Branch,
     Outcome,
     RecorderError,
     RecordingSummary,
+    RecordKind,
     SweepGoal,
     SweepProgress,
+    SweepRecord,
     SweepRunner,
     SweepSettings,
 )
@@ -41,14 +46,22 @@ CALIBRATION = {'calibration.volts_at_zero': 0.5, 'calibration.volts_at_full': 4.
 class ListRecorder:
     """Keeps what the runner asked of it, with the device time and the commands sent so far."""
 
-    def __init__(self, rig: Rig, fail_start: str = '', fail_stop: str = ''):
+    def __init__(self, rig: Rig, fail_start: str = '', fail_stop: str = '',
+                 fail_check: str = ''):
         self.rig = rig
         self.fail_start = fail_start
         self.fail_stop = fail_stop
+        self.fail_check = fail_check
         self.calls: list[tuple[str, int, int, object]] = []
+        self.records_by: dict[str, int] = {}     # call: how many records had come by then
 
     def _note(self, call: str, detail) -> None:
         self.calls.append((call, self.rig.device.t_ms, len(self.rig.link.sent), detail))
+        self.records_by[call] = len(self.rig.records)
+
+    def check(self):
+        if self.fail_check:
+            raise RecorderError(self.fail_check)
 
     def start(self, bag_path, custom_data):
         self._note('start', (bag_path, dict(custom_data)))
@@ -78,6 +91,7 @@ class Rig:
         self.cancel_at_s = None
         self.recorder = None
         self.trace: list[tuple[float, float, int]] = []   # (device s, measured Pa, device SET)
+        self.records: list[SweepRecord] = []
 
     def _event(self, level: int, message: str) -> None:
         self.events.append((level, message))
@@ -101,15 +115,19 @@ class Rig:
         goal = {'cycles': 1, **goal}
         runner = SweepRunner(self.control, recorder=self.recorder,
                              sample_count=lambda: self.samples, clock=self.clock,
-                             sleep=self.clock.sleep, on_event=self._event)
+                             sleep=self.clock.sleep, on_event=self._event,
+                             now_ns=lambda: round(self.clock() * 1e9))
         self.runner = runner
         return runner.run(
             SweepGoal(**goal), settings, feedback=self._on_feedback, calibration=CALIBRATION,
             cancel_requested=lambda: self.cancel_at_s is not None
-            and self.clock() >= self.cancel_at_s)
+            and self.clock() >= self.cancel_at_s, record=self.records.append)
 
     def sets(self) -> list[int]:
         return [args[0] for args in self.link.commands('SET')]
+
+    def levels(self) -> list[SweepRecord]:
+        return [r for r in self.records if r.kind is RecordKind.LEVEL]
 
     def timed_sets(self) -> list[tuple[float, int]]:
         """(device s, Pa) of every SET."""
@@ -131,13 +149,14 @@ def test_a_sweep_steps_through_its_plan_and_holds_each_step(rig):
     report = rig.run()
     assert report.outcome is Outcome.SUCCEEDED and report.success, report.message
     assert report.message.startswith('5 steps done')
-    assert rig.sets() == [0, 100_000, 200_000, 100_000, 0]
+    assert rig.sets() == [0, 0, 100_000, 200_000, 100_000, 0]     # the first: to rest
     assert not rig.link.commands('VENT') and not rig.warnings()
     assert {f.step_index for f in rig.feedback} == set(range(5))
     progress = [f.progress for f in rig.feedback]
     assert progress == sorted(progress) and progress[-1] == 1.0
-    # Each hold starts once the step is reached: 5 holds of 1 s, plus the filling and venting.
-    assert 5.0 < rig.clock() < 5.0 + 4.0
+    # At rest already: the wait is one rest_time_s. Then each hold starts once the step is
+    # reached: 5 holds of 1 s, plus the filling and venting.
+    assert 6.0 < rig.clock() < 6.0 + 4.0
     # 50 Hz throughout, and counted from the first step on.
     assert report.sample_count == pytest.approx(50 * rig.clock(), abs=2)
 
@@ -156,7 +175,7 @@ def test_a_lost_set_reply_is_sent_once_more_and_the_sweep_goes_on(rig):
         rig.link, 'lost_replies', 1)
     report = rig.run()
     assert report.success, report.message
-    assert rig.sets() == [0, 100_000, 200_000, 200_000, 100_000, 0]
+    assert rig.sets() == [0, 0, 100_000, 200_000, 200_000, 100_000, 0]
 
 
 def test_two_lost_replies_abort_and_vent(rig):
@@ -167,7 +186,7 @@ def test_two_lost_replies_abort_and_vent(rig):
     report = rig.run()
     assert report.outcome is Outcome.ABORTED and report.vented
     assert report.message == ('SET 200000 Pa failed: no reply to SET within 0.5 s; vented')
-    assert rig.sets() == [0, 100_000, 200_000, 200_000]
+    assert rig.sets() == [0, 0, 100_000, 200_000, 200_000]
     assert len(rig.link.commands('VENT')) == 1
     rig.settle()
     assert rig.device.setpoint_pa == 0 and rig.device.rig.pressure_pa < 5_000
@@ -222,8 +241,11 @@ def test_a_step_the_supply_cannot_reach_times_out_and_the_hold_starts_anyway():
     rig.on_feedback = lambda f: starts.setdefault(f.step_index, rig.clock())
     report = rig.run(settings, max_gauge_pressure_pa=400_000.0, step_pa=200_000.0)
     assert report.success, report.message
-    [warning] = rig.warnings()
+    warning, level = rig.warnings()
     assert warning.startswith('sweep step 2: 400000 Pa not reached within 2 s (at 2')
+    assert level.startswith('sweep level 2 (400 kPa): not settled: not reached within '
+                            'sweep.step_timeout_s 2 s; 2')
+    assert [r.settled for r in rig.levels()] == [True, True, False, True, True]
     # Step 3 starts after the timeout (2 s), the 1 s hold and one poll.
     assert starts[3] - starts[2] == pytest.approx(3.0, abs=0.05)
 
@@ -278,6 +300,150 @@ def test_setpoints_are_refused_while_a_sweep_runs(rig):
     assert rig.control.command_setpoint(300_000.0) == ('', '')
 
 
+# -- the start from rest, and the records -----------------------------------------------------
+
+
+def pressurised(**config) -> Rig:
+    """A rig left at 200 kPa, as `pma set 200kPa --wait` leaves it (user guide, step 5)."""
+    rig = Rig(**config)
+    rig.link.send(Command.SET, 200_000)
+    rig.settle(3.0)
+    assert rig.device.rig.pressure_pa > 190_000
+    return rig
+
+
+def mean_pressure(rig: Rig, start_s: float, end_s: float) -> float:
+    values = [p for t, p, _ in rig.trace if start_s <= t < end_s]
+    return sum(values) / len(values)
+
+
+def test_a_sweep_vents_and_waits_for_rest_before_its_first_level():
+    rig = pressurised()
+    report = rig.run()
+    assert report.success, report.message
+    assert rig.sets() == [200_000, 0, 0, 100_000, 200_000, 100_000, 0]
+    (_, vent_s), (_, first_level_s) = [(v, t) for t, v in rig.timed_sets()][1:3]
+    # The first level (0 Pa) began only once the pressure had been below 5 kPa and flat for
+    # 1 s: venting 200 kPa takes ~1.8 s to 5 kPa on the simulated exhaust (tau 0.5 s).
+    assert first_level_s - vent_s > 2.0
+    assert mean_pressure(rig, first_level_s - 1.0, first_level_s) < 5_000.0
+    assert abs(mean_pressure(rig, first_level_s - 1.0, first_level_s - 0.5)
+               - mean_pressure(rig, first_level_s - 0.5, first_level_s)) < 1_000.0
+    phases = [f.phase for f in rig.feedback]
+    assert phases[0] == PHASE_REST and phases[-1] == PHASE_RUNNING
+    assert phases == sorted(phases, key=[PHASE_REST, PHASE_RUNNING].index)
+    assert all(f.gauge_setpoint_pa == 0.0 for f in rig.feedback if f.phase == PHASE_REST)
+    start, *levels, end = rig.records
+    assert start.kind is RecordKind.START and start.started_at_rest
+    assert start.start_gauge_pressure_pa < 5_000.0 and start.message.startswith('at rest: ')
+    assert start.stamp_ns == pytest.approx(first_level_s * 1e9, abs=0.05e9)
+    assert [r.branch for r in levels] == [Branch.REST, Branch.RISING, Branch.RISING,
+                                          Branch.FALLING, Branch.FALLING]
+    assert end.kind is RecordKind.END and end.message == 'succeeded: 5 steps done'
+
+
+def test_the_old_order_is_what_the_records_show_with_start_pressurised():
+    # start_pressurised: from the pressure it finds (the user guide's tester, before issue
+    # 46): the first "0 kPa" level comes from 200 kPa and is on the decreasing branch.
+    rig = pressurised()
+    report = rig.run(start_pressurised=True)
+    assert report.success, report.message
+    assert rig.sets() == [200_000, 0, 100_000, 200_000, 100_000, 0]
+    assert all(f.phase == PHASE_RUNNING for f in rig.feedback)
+    start = rig.records[0]
+    assert start.kind is RecordKind.START and not start.started_at_rest
+    assert start.start_gauge_pressure_pa == pytest.approx(200_000, abs=10_000)
+    assert 'started pressurised at 20' in start.message
+    assert any('started pressurised' in m for _, m in rig.events)
+    assert [r.branch for r in rig.levels()] == [Branch.FALLING, Branch.RISING, Branch.RISING,
+                                                Branch.FALLING, Branch.FALLING]
+    assert rig.recorder is None
+
+
+def test_not_at_rest_in_time_aborts_with_the_reason_and_vents():
+    # An exhaust that hardly lets air out (blocked): the muscle stays pressurised.
+    rig = pressurised(pneumatics=PneumaticParams(vent_time_constant_s=1000.0))
+    rig.recorder = ListRecorder(rig)
+    settings = SweepSettings(tolerance_pa=10_000.0, step_timeout_s=5.0, rest_timeout_s=4.0)
+    started_s = rig.clock()
+    report = rig.run(settings, record=True)
+    assert report.outcome is Outcome.ABORTED and report.vented
+    assert report.message.startswith('not at rest within sweep.rest_timeout_s 4 s of venting '
+                                     '(19'), report.message
+    assert 'a blocked exhaust' in report.message and report.message.endswith('; vented')
+    assert rig.clock() - started_s == pytest.approx(4.0, abs=0.1)
+    assert rig.sets() == [200_000, 0] and rig.link.commands('VENT')
+    assert rig.recorder.calls == []               # no bag: it would have begun at rest
+    assert [(r.kind, r.message) for r in rig.records] == [
+        (RecordKind.END, 'aborted: ' + report.message)]
+
+
+def test_every_level_is_recorded_with_what_it_reached(rig):
+    report = rig.run(hold_s=2.0)
+    assert report.success, report.message
+    levels = rig.levels()
+    assert [r.level_index for r in levels] == list(range(5))
+    assert {r.level_count for r in levels} == {5}
+    assert [r.target_gauge_pressure_pa for r in levels] == [0, 100e3, 200e3, 100e3, 0]
+    assert all(r.settled and r.message == '' for r in levels), levels
+    for r in levels:
+        assert abs(r.reached_gauge_pressure_pa - r.target_gauge_pressure_pa) < 5_000.0
+        assert (r.hold_end_ns - r.hold_start_ns) / 1e9 == pytest.approx(2.0, abs=0.05)
+        assert r.stamp_ns == r.hold_end_ns and r.profile == 'staircase'
+    assert [r.kind for r in rig.records] == [RecordKind.START, *[RecordKind.LEVEL] * 5,
+                                             RecordKind.END]
+
+
+def test_a_hold_too_short_for_the_pressure_to_settle_is_recorded_as_not_settled():
+    # A slow inlet (tau 10 s): each rising step times out after 0.5 s and its 0.5 s hold ends
+    # with the pressure still climbing, far below the target; the last 0 Pa too (venting
+    # 100 kPa to 10 kPa takes 1.2 s), while 200 -> 100 kPa is reached in 0.3 s.
+    rig = Rig(pneumatics=PneumaticParams(fill_time_constant_s=10.0))
+    settings = SweepSettings(tolerance_pa=10_000.0, step_timeout_s=0.5)
+    report = rig.run(settings, hold_s=0.5)
+    assert report.success, report.message
+    levels = rig.levels()
+    assert [r.settled for r in levels] == [True, False, False, True, False]
+    for r in (*levels[1:3], levels[4]):
+        assert abs(r.reached_gauge_pressure_pa - r.target_gauge_pressure_pa) > 10_000.0
+        assert r.message.startswith('not settled: not reached within sweep.step_timeout_s '
+                                    '0.5 s; '), r.message
+        assert 'kPa from the target (sweep.tolerance_pa 10 kPa)' in r.message
+
+
+def test_a_cancel_and_an_abort_end_with_an_end_record():
+    rig = Rig()
+    rig.recorder = ListRecorder(rig)
+    rig.cancel_at_s = 3.5
+    report = rig.run(record=True)
+    assert report.outcome is Outcome.CANCELED
+    end = rig.records[-1]
+    assert end.kind is RecordKind.END and end.message == 'canceled: canceled; vented'
+    # The END is in the bag: it came before the recorder was asked to stop.
+    assert rig.recorder.records_by['stop'] == len(rig.records)
+    assert rig.recorder.records_by['start'] == 0     # and START after the bag began
+    assert rig.records[0].kind is RecordKind.START
+
+    rig = Rig()
+    rig.clock.on_tick = lambda t: t >= 3.5 and rig.control.active and rig.control.deactivate()
+    report = rig.run()
+    assert report.outcome is Outcome.ABORTED
+    assert rig.records[-1].message == 'aborted: driver deactivated; vented'
+    assert [r.kind for r in rig.records].count(RecordKind.END) == 1
+
+
+def test_a_goal_that_commands_nothing_records_nothing(rig):
+    report = rig.run(cycles=0)
+    assert report.outcome is Outcome.ABORTED and rig.records == []
+
+
+def test_a_streamed_profile_has_a_start_and_an_end_but_no_levels(rig):
+    report = rig.run(**SINE)
+    assert report.success, report.message
+    assert [r.kind for r in rig.records] == [RecordKind.START, RecordKind.END]
+    assert rig.records[0].profile == 'sine' and rig.records[0].started_at_rest
+
+
 # -- recording -----------------------------------------------------------------------------
 
 
@@ -292,7 +458,9 @@ def test_a_recording_sweep_starts_the_bag_before_the_first_step_and_stops_it_aft
     (start, _, sent_before, (bag, data)), (stop, stopped_ms, sent_by_stop, _) = \
         rig.recorder.calls
     assert (start, stop, bag) == ('start', 'stop', 'major')
-    assert sent_before == 0 and sent_by_stop == len(rig.link.sent)
+    # The bag starts at rest: after the vent (SET 0) and before the first level's SET.
+    assert [args for _, name, args in rig.link.sent[:sent_before] if name == 'SET'] == [(0,)]
+    assert sent_by_stop == len(rig.link.sent)
     assert stopped_ms == rig.device.t_ms
     assert data['note'] == 'new muscle, 20 degC'
     assert json.loads(data['sweep.setpoints_pa']) == [0, 100_000, 200_000, 100_000, 0]
@@ -304,11 +472,26 @@ def test_a_recording_sweep_starts_the_bag_before_the_first_step_and_stops_it_aft
 
 
 def test_without_a_recorder_the_goal_aborts_at_once_and_commands_nothing(rig):
-    rig.recorder = ListRecorder(rig, fail_start='no recorder at /recorder/start: start one')
+    rig.recorder = ListRecorder(rig, fail_check='no recorder at /recorder/start: start one')
     report = rig.run(record=True)
     assert report.outcome is Outcome.ABORTED and not report.vented
     assert report.message == 'not started: no recorder at /recorder/start: start one'
-    assert rig.link.sent == [] and [c[0] for c in rig.recorder.calls] == ['start']
+    assert rig.link.sent == [] and rig.recorder.calls == [] and rig.records == []
+
+
+def test_a_recorder_that_refuses_the_bag_after_the_wait_for_rest_leaves_the_muscle_vented():
+    # The bag starts at rest, so the recorder's refusal (its path holds a bag) comes after
+    # the vent: the goal aborts, says so, and the END record has it.
+    rig = Rig()
+    rig.link.send(Command.SET, 200_000)
+    rig.settle(3.0)
+    rig.recorder = ListRecorder(rig, fail_start='the recorder refused to start: b exists')
+    report = rig.run(record=True, bag_path='b')
+    assert report.outcome is Outcome.ABORTED and report.vented
+    assert report.message == 'not started: the recorder refused to start: b exists; vented'
+    assert rig.sets() == [200_000, 0] and rig.device.setpoint_pa == 0
+    assert [r.kind for r in rig.records] == [RecordKind.END]
+    assert rig.records[0].message == 'aborted: ' + report.message
 
 
 def test_an_aborted_recording_sweep_vents_before_the_bag_is_closed(rig):
@@ -336,8 +519,8 @@ def test_a_failing_recorder_is_an_abort_with_the_error_never_a_raise(rig):
     rig.recorder = BrokenRecorder(rig)
     report = rig.run(record=True)
     assert report.outcome is Outcome.ABORTED
-    assert report.message == "internal error: ValueError('not enough values to unpack')"
-    assert rig.link.sent == [] and not rig.control.sweep_running
+    assert report.message == "internal error: ValueError('not enough values to unpack'); vented"
+    assert rig.link.commands('SET') == [(0,)] and not rig.control.sweep_running
 
 
 # -- the other profiles ----------------------------------------------------------------------
@@ -353,14 +536,14 @@ def plan_of(**goal):
 
 def streamed_start(rig: Rig) -> float:
     """Device time at which the profile's clock started (its first point reached)."""
-    return round(rig.timed_sets()[1][0] - 1 / STREAM_RATE_HZ, 3)
+    return round(rig.timed_sets()[2][0] - 1 / STREAM_RATE_HZ, 3)   # [0]: the vent to rest
 
 
 def test_a_ramp_is_streamed_at_20_hz_and_the_pressure_follows_it(rig):
     report = rig.run(**RAMP)
     assert report.success, report.message
     assert report.message == 'ramp done: 321 setpoints over 16 s'
-    timed = rig.timed_sets()
+    timed = rig.timed_sets()[1:]                  # [0]: the vent to rest
     values = [v for _, v in timed]
     assert len(values) == 321 and values[0] == 0 and values[-1] == 0
     top = values.index(400_000)
@@ -385,7 +568,7 @@ def test_a_sine_starts_at_its_trough_peaks_on_time_and_ends_vented(rig):
     assert report.success, report.message
     assert report.message == 'sine done: 201 setpoints over 10 s'
     values = rig.sets()
-    assert values[0] == 50_000 and max(values) == 350_000 and values[-2:] == [50_000, 0]
+    assert values[:2] == [0, 50_000] and max(values) == 350_000 and values[-2:] == [50_000, 0]
     start = streamed_start(rig)
     plan = plan_of(**SINE)
     errors = [p - plan.pressure_at(t - start) for t, p, _ in rig.trace
@@ -420,7 +603,7 @@ def test_a_forc_set_runs_its_plan_step_by_step(rig):
     report = rig.run(**goal)
     assert report.success, report.message
     plan = plan_of(**goal)
-    assert rig.sets() == [round(p) for p in plan.setpoints_pa]
+    assert rig.sets() == [0, *(round(p) for p in plan.setpoints_pa)]
     assert report.message.startswith(f'{plan.step_count} steps done')
 
 
@@ -439,7 +622,7 @@ def test_a_late_answer_skips_the_stale_setpoints_and_sends_the_newest(rig):
     assert warning.endswith('failed: no reply to SET within 0.5 s; the stream goes on')
     start = streamed_start(rig)
     plan = plan_of(**RAMP)
-    timed = rig.timed_sets()
+    timed = rig.timed_sets()[1:]
     assert max(b[0] - a[0] for a, b in itertools.pairwise(timed)) == pytest.approx(0.5)
     # Every SET is the profile's value at the time it was sent.
     for t, value in timed[1:-1]:
@@ -510,6 +693,7 @@ def test_a_recorded_sine_keeps_its_profile_in_the_bag(rig):
         'sweep.profile': 'sine', 'sweep.max_gauge_pressure_pa': '0.0',
         'sweep.sine_amplitude_pa': '150000.0', 'sweep.sine_offset_pa': '200000.0',
         'sweep.sine_frequency_hz': '0.2', 'sweep.cycles': '2', 'sweep.rest_s': '0.0',
+        'sweep.start_pressurised': 'false',
         'sweep.duration_s': '10.0', 'sweep.stream_rate_hz': '20.0',
         'sweep.setpoint_count': '201'}
 
