@@ -5,8 +5,10 @@
 BAG is a bag directory (split or not, with or without metadata.yaml) or a bare .mcap file.
 Files, size, storage, duration, start/end, message count, chunk compression, per-topic type,
 count and offered QoS, then the experiment's custom_data (metadata.yaml) and the recorder's
-loss counts. When the bag holds pma_interfaces/msg/PmaState: pressure range, sample rate,
-sequence gaps and sweeps found, decoded from the bag's own schema (no sourced ROS needed).
+loss counts. When the bag holds pma_interfaces/msg/PmaState: pressure range, sample rate and
+sequence gaps; and the sweeps its pma/sweep_record holds (the driver's START, LEVEL and END
+records: how many, how they ended, their levels and how many did not settle), or that it
+holds none. Decoded from the bag's own schemas (no sourced ROS needed).
 `--check` validates every CRC the writer stored (chunks, data section, summary); exit code 1
 if one does not match or a file was not closed. A missing or unreadable bag: exit code 2.
 """
@@ -17,7 +19,7 @@ import argparse
 import math
 import sys
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
@@ -26,11 +28,14 @@ from pma_bag.reader import BagReader, TopicInfo, TruncatedBagWarning
 from pma_common.console import closed_pipe_ends_quietly
 
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
+RECORD_TYPE = 'pma_interfaces/msg/SweepRecord'
+# SweepRecord's constants (pma_interfaces/msg/SweepRecord.msg)
+KIND_START, KIND_LEVEL, KIND_END = 0, 1, 2
+BRANCH_REST, BRANCH_RISING, BRANCH_FALLING = 0, 1, -1
+OUTCOMES = ('succeeded', 'aborted', 'canceled')
 # The recorder's loss counts in custom_data (docs/bags.md), shown under their own heading.
 LOSS_KEYS = ('lost_messages', 'lost_state_samples', 'state_sequence_gaps',
              'dds_messages_lost')
-# A sweep is a run of setpoints above this [Pa] between holds at 0 (the staircase's ends).
-SWEEP_THRESHOLD_PA = 1_000.0
 LABEL_WIDTH = 19
 
 
@@ -70,7 +75,6 @@ class StateSummary:
     gaps: int
     duplicates: int
     restarts: int
-    sweeps: int
 
 
 def state_summary(reader: BagReader, topic: TopicInfo) -> StateSummary:
@@ -81,10 +85,9 @@ def state_summary(reader: BagReader, topic: TopicInfo) -> StateSummary:
 
     decode = generate_dynamic(topic.type_name, topic.schema.text)[topic.type_name]
     tracker = SequenceTracker()
-    count = sweeps = 0
+    count = 0
     first_stamp = last_stamp = None
     p_min, p_max, sp_max = math.inf, -math.inf, 0.0
-    in_sweep = False
     for message in reader.messages([topic.name]):
         state = decode(message.data)
         count += 1
@@ -95,18 +98,57 @@ def state_summary(reader: BagReader, topic: TopicInfo) -> StateSummary:
         if math.isfinite(state.gauge_pressure_pa):
             p_min = min(p_min, state.gauge_pressure_pa)
             p_max = max(p_max, state.gauge_pressure_pa)
-        setpoint = state.gauge_setpoint_pa
-        if setpoint > SWEEP_THRESHOLD_PA and not in_sweep:
-            in_sweep = True
-            sweeps += 1
-        elif setpoint <= SWEEP_THRESHOLD_PA:
-            in_sweep = False
-        sp_max = max(sp_max, setpoint)
+        sp_max = max(sp_max, state.gauge_setpoint_pa)
     span = (last_stamp - first_stamp) if count > 1 else 0.0
     stats = tracker.stats()
     return StateSummary(topic.name, count, (count - 1) / span if span > 0 else 0.0,
                         p_min, p_max, sp_max, stats.lost, stats.gaps, stats.duplicates,
-                        stats.restarts, sweeps)
+                        stats.restarts)
+
+
+@dataclass
+class SweepSummary:
+    """The sweeps a bag's SweepRecords tell of (none: `topics` is empty or they hold none)."""
+
+    topics: list[str]
+    sweeps: int = 0
+    ended: dict[str, int] = field(default_factory=dict)    # outcome: sweeps
+    unended: int = 0              # a START without an END in the bag (cut short?)
+    before_first_level: int = 0   # an END without a START: aborted before the first level
+    pressurised: int = 0          # started from the pressure it had (start_pressurised)
+    levels: int = 0
+    branches: dict[int, int] = field(default_factory=dict)
+    not_settled: int = 0
+
+
+def sweep_summary(reader: BagReader, topics: list[TopicInfo]) -> SweepSummary:
+    """Count sweeps by sweep_id from their START and END records, and their LEVELs."""
+    from mcap_ros2._dynamic import generate_dynamic
+
+    summary = SweepSummary([t.name for t in topics])
+    started: set[str] = set()
+    ended: dict[str, str] = {}
+    for topic in topics:
+        decode = generate_dynamic(topic.type_name, topic.schema.text)[topic.type_name]
+        for message in reader.messages([topic.name]):
+            record = decode(message.data)
+            key = f'{topic.name} {record.sweep_id}'
+            if record.kind == KIND_START:
+                started.add(key)
+                summary.pressurised += not record.started_at_rest
+            elif record.kind == KIND_END:
+                outcome = record.message.split(':', 1)[0]
+                ended[key] = outcome if outcome in OUTCOMES else 'ended otherwise'
+            elif record.kind == KIND_LEVEL:
+                summary.levels += 1
+                summary.branches[record.branch] = summary.branches.get(record.branch, 0) + 1
+                summary.not_settled += not record.settled
+    summary.sweeps = len(started | set(ended))
+    for outcome in ended.values():
+        summary.ended[outcome] = summary.ended.get(outcome, 0) + 1
+    summary.unended = len(started - set(ended))
+    summary.before_first_level = len(set(ended) - started)
+    return summary
 
 
 def describe(reader: BagReader, *, pma: bool = True) -> list[str]:
@@ -154,9 +196,12 @@ def describe(reader: BagReader, *, pma: bool = True) -> list[str]:
         row('Recorder losses', ', '.join(f'{k.replace("_", " ")} {v}'
                                          for k, v in losses.items()))
     if pma:
-        for topic in topics:
-            if topic.type_name == STATE_TYPE and topic.message_count:
-                lines += pma_lines(state_summary(reader, topic))
+        states = [t for t in topics if t.type_name == STATE_TYPE and t.message_count]
+        records = [t for t in topics if t.type_name == RECORD_TYPE]
+        for topic in states:
+            lines += pma_lines(state_summary(reader, topic))
+        if states or records:
+            lines += sweep_lines(sweep_summary(reader, records))
     return lines
 
 
@@ -169,9 +214,32 @@ def pma_lines(summary: StateSummary) -> list[str]:
         f'{summary.pressure_max_pa / 1e3:.1f} kPa gauge',
         f'  sequence:       {summary.lost} lost in {summary.gaps} gaps, '
         f'{summary.duplicates} duplicates, {summary.restarts} restarts',
-        f'  sweeps found:   {summary.sweeps} (setpoint up from 0 and back, max '
-        f'{summary.setpoint_max_pa / 1e3:.1f} kPa)',
+        f'  setpoints:      up to {summary.setpoint_max_pa / 1e3:.1f} kPa',
     ]
+
+
+def sweep_lines(summary: SweepSummary) -> list[str]:
+    """`sweeps: N (how they ended)` and their levels, from the driver's records only."""
+    if not summary.sweeps:
+        where = ', '.join(summary.topics) or 'no pma/sweep_record topic in the bag'
+        return [f'  sweeps:         none recorded ({where})']
+    how = [f'{n} {outcome}' for outcome, n in sorted(summary.ended.items())]
+    if summary.unended:
+        how.append(f'{summary.unended} without an END in the bag (cut short?)')
+    if summary.before_first_level:
+        how.append(f'{summary.before_first_level} ended before its first level')
+    if summary.pressurised:
+        how.append(f'{summary.pressurised} started pressurised (start_pressurised)')
+    branches = summary.branches
+    settled = (f'{summary.not_settled} not settled' if summary.not_settled
+               else 'all settled')
+    lines = [f'  sweeps:         {summary.sweeps} ({", ".join(how)}; from '
+             f'{", ".join(summary.topics)})']
+    if summary.levels:
+        lines.append(f'  levels:         {summary.levels} ({branches.get(BRANCH_REST, 0)} at '
+                     f'rest, {branches.get(BRANCH_RISING, 0)} rising, '
+                     f'{branches.get(BRANCH_FALLING, 0)} falling), {settled}')
+    return lines
 
 
 def check_lines(reader: BagReader) -> tuple[list[str], bool]:

@@ -64,7 +64,7 @@ START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its topics to
 START_POLL_S = 0.01
 DEFAULT_TOPICS = ['pma/state', 'pma/pressure', 'pma/range', 'pma/prediction',
                   'pma/model_params', 'pma/control_state', 'pma/pressure_setpoint',
-                  'pma/length_setpoint', '/diagnostics']
+                  'pma/length_setpoint', 'pma/sweep_record', '/diagnostics']
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
 DIAGNOSTICS_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
 # Types of the PMA topics (and whether they are latched), subscribed before discovery.
@@ -77,8 +77,15 @@ KNOWN_TOPICS = {
     'pma/control_state': ('pma_interfaces/msg/ControlState', False),
     'pma/pressure_setpoint': ('std_msgs/msg/Float64', False),
     'pma/length_setpoint': ('pma_interfaces/msg/LengthSetpoint', False),
+    'pma/sweep_record': ('pma_interfaces/msg/SweepRecord', True),
     '/diagnostics': (DIAGNOSTICS_TYPE, False),
 }
+# Transient local too, but records of what happened (a sweep's START, LEVELs, END), not a
+# value in force: a new bag does not get the last one written again, and what a reader
+# matched while a bag is open gets from before it opened (an earlier sweep's records, from
+# the driver's history) is not written into it (EVENT_HISTORY_SLACK_NS: clocks of two hosts).
+EVENT_TOPICS = ('pma/sweep_record',)
+EVENT_HISTORY_SLACK_NS = 1_000_000_000
 # Published with every sample while the rig runs. A reader can match a writer before that
 # writer knows of it (discovery is per side), and only the writer's knowing delivers samples:
 # a message heard is the one proof, so ~/start waits for one on these (waiting for the
@@ -165,6 +172,7 @@ class Bag:
         self.path = path
         self.topics = topics
         self.writer = writer
+        self.opened_ns = time.time_ns()
         self.state_trackers: dict[str, SequenceTracker] = {}
         self.dds_lost = 0
         self.error = ''
@@ -185,6 +193,7 @@ class Recorder(Node):
     def __init__(self, options: RecordOptions, topics: list[str] | None = None,
                  graph_period_s: float = GRAPH_PERIOD_S, **node_kwargs):
         super().__init__('recorder', **node_kwargs)
+        self.event_topics = set(self.resolve_topics(EVENT_TOPICS))
         self.options = options
         self.default_topics: list[str] = []
         self.subscribed: dict[str, _Subscribed] = {}
@@ -416,7 +425,8 @@ class Recorder(Node):
             self.get_logger().error(f'not recording {topic} [{type_name}]: {exc}')
             return
         entry = _Subscribed(topic, type_name, offered, None, qos,
-                            qos.durability == DurabilityPolicy.TRANSIENT_LOCAL)
+                            qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                            and topic not in self.event_topics)
 
         def on_message(data, info, entry=entry):
             self.on_message(entry, data, info)
@@ -507,6 +517,9 @@ class Recorder(Node):
             tracker = bag.state_trackers.get(entry.topic)
             if tracker is not None:   # counted while paused too: not recorded is not lost
                 tracker.add(pma_state_seq(data))
+            if entry.topic in self.event_topics and (info.get('source_timestamp') or 0) \
+                    < bag.opened_ns - EVENT_HISTORY_SLACK_NS:
+                return          # history from before this bag (module constants)
             if not self.was_paused_at(info.get('received_timestamp') or time.time_ns()):
                 self._write(bag, entry, data, info)
 
