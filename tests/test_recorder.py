@@ -26,6 +26,7 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagReader, BagWriteError, BagWriter, recover_bag
 from pma_bag.reader import TruncatedBagWarning
+from pma_common.commands import run_command
 from pma_interfaces.msg import PmaState
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 from support.bursts import BurstClient, answered
@@ -393,7 +394,7 @@ def test_full_disk_stays_up_then_exits_non_zero_and_says_recover(procs, tmp_path
         assert recorder.alive(), 'stays up and keeps reporting'
         recorder.signal(signal.SIGINT)
         assert recorder.popen.wait(20) == 1, recorder.output
-        assert f'ros2 run pma_bag recover {bag}' in recorder.output
+        assert run_command('pma_bag', 'recover', bag) in recorder.output
         assert not (bag / 'metadata.yaml').exists()
         report = recover_bag(bag, tmp_path / 'recovered')
     kept = state_seqs(report.output)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from pma_bag.errors import BagError
 from pma_bag.reader import BagReader, TopicInfo, TruncatedBagWarning
+from pma_common.commands import run_command
 from pma_common.console import closed_pipe_ends_quietly
 
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
@@ -178,7 +179,7 @@ def describe(reader: BagReader, *, pma: bool = True) -> list[str]:
     row('Compression', f'{", ".join(chunks)} (MCAP chunks)')
     if reader.truncated:
         row('Truncated', f'yes: not closed by its recorder; recover it with '
-                         f'`ros2 run pma_bag recover {reader.path}`')
+                         f'`{run_command("pma_bag", "recover", reader.path)}`')
     topics = list(reader.topics.values())
     for index, topic in enumerate(topics):
         text = (f'Topic: {topic.name} | Type: {topic.type_name} | Count: '

@@ -42,6 +42,7 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagError, BagReader, TopicInfo
 from pma_bag.reader import TruncatedBagWarning
+from pma_common.commands import run_command
 from pma_common.node import ros_context, spin_until_stopped, split_ros_args
 from pma_common.service import SERVICE_QOS
 
@@ -350,7 +351,7 @@ def open_bag(path: Path) -> BagReader:
     if reader.truncated:
         reader.close()
         raise BagError(f'bag {path} is truncated (not closed by its recorder); recover it '
-                       f'first: ros2 run pma_bag recover {path}')
+                       f'first: {run_command("pma_bag", "recover", path)}')
     return reader
 
 
@@ -389,8 +390,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def legacy_main() -> int:
     """`ros2 run pma_model replay`: the old name, kept for one release."""
-    print('replay: `ros2 run pma_model replay` is now `ros2 run pma_bag play`; the old name '
-          'goes in the next release', file=sys.stderr)
+    print(f'replay: `{run_command("pma_model", "replay")}` is now '
+          f'`{run_command("pma_bag", "play")}`; the old name goes in the next release',
+          file=sys.stderr)
     return main()
 
 

@@ -29,6 +29,7 @@ import yaml
 
 from pma_bag.errors import BagError
 from pma_bag.schemas import MessageSchema
+from pma_common.commands import run_command
 
 MAGIC = b'\x89MCAP0\r\n'
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL = 0x01, 0x02, 0x03, 0x04
@@ -169,7 +170,7 @@ class _McapFile:
             # A record cut short where its own length fields promised more: a damaged file
             # gets the same one-line answer as any other unreadable bag, not a traceback.
             raise BagError(f'{path} is damaged ({exc}); if it was cut short by a crash, '
-                           'try: ros2 run pma_driver recorder --recover') from None
+                           f'try: {run_command("pma_bag", "recover", path)}') from None
 
     def _parse(self) -> None:
         path = self.path

@@ -50,6 +50,7 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
+from pma_common.commands import run_command
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped, without_ros_args
 from pma_common.parameters import node_or_exit
@@ -332,7 +333,7 @@ class Recorder(Node):
             self.failed_bags.append(str(bag.path))
             print(f'recorder: ERROR bag {bag.path} is incomplete ({bag.error}); '
                   f'{writer.messages_flushed} messages reached the disk. Recover them with: '
-                  f'ros2 run pma_bag recover {bag.path}', flush=True)
+                  f'{run_command("pma_bag", "recover", bag.path)}', flush=True)
         else:
             print(f'recorder: wrote {writer.message_count} messages to {bag.path}', flush=True)
         if loss['lost_messages']:
@@ -780,7 +781,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         help='fsync after every flush, so a power cut also loses at most ~1 s '
                              '(costs disk bandwidth on slow media)')
     parser.add_argument('--recover', type=Path, metavar='BAG',
-                        help='same as `ros2 run pma_bag recover BAG`')
+                        help=f'same as `{run_command("pma_bag", "recover", "BAG")}`')
     args = parser.parse_args(argv)
     if args.idle and args.output:
         parser.error('--idle opens no bag: give the path in the ~/start request instead')
@@ -837,8 +838,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def legacy_main() -> int:
     """`ros2 run pma_driver recorder`: the old name, kept for one release."""
-    print('recorder: `ros2 run pma_driver recorder` is now `ros2 run pma_bag record` '
-          '(and `... recover`); the old name goes in the next release', file=sys.stderr)
+    print(f'recorder: `{run_command("pma_driver", "recorder")}` is now '
+          f'`{run_command("pma_bag", "record")}` (and `... recover`); the old name goes in the '
+          'next release', file=sys.stderr)
     return main()
 
 

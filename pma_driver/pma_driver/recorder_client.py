@@ -20,6 +20,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 
+from pma_common.commands import has_ros2_cli, run_command
 from pma_driver.sweep_runner import RecorderError, RecordingSummary
 from pma_interfaces.srv import StartRecording, StopRecording
 
@@ -29,7 +30,7 @@ DEFAULT_NAME = 'recorder'
 def how_to_start(start_service: str) -> str:
     """How to start the recorder whose `~/start` is this (fully qualified) service."""
     namespace, name, _ = start_service.rsplit('/', 2)
-    run = 'ros2 run pma_bag record --idle'
+    run = run_command('pma_bag', 'record', '--idle')
     launch = 'ros2 launch pma_bringup bringup.launch.py record:=true'
     remaps = ''
     if namespace:
@@ -39,6 +40,8 @@ def how_to_start(start_service: str) -> str:
         remaps += f' -r __node:={name}'
     if remaps:
         run += f' --ros-args{remaps}'
+    if not has_ros2_cli():      # no `ros2 launch` on the wheels path
+        return f'start one: `{run}`'
     return f'start one: `{run}`, or the bring-up launch with a recorder (`{launch}`)'
 
 
