@@ -2,7 +2,7 @@
 
 fake_arduino, driver_node, model_node, the recorder and foxglove_live (the live view: open its
 ws:// URL in Foxglove) run as separate processes, exactly as `ros2 run` starts them; this
-script is the operator: it runs the paper's experiment and a minor-loop run through the Sweep
+script is the operator: it runs the paper's pressure levels and a minor-loop run through the Sweep
 action, asks pressure_for_length on both branches, refits the model from the new bag (with
 the time series and the minor loops against every model's prediction among its figures, all
 stamped with the run id), lets model_node hot-load the refit, and says where everything is.
@@ -454,7 +454,8 @@ def main(argv: list[str] | None = None) -> int:
             f'{first.length_m * 100:.2f} cm at rest')
         procs.wait_for_log('recorder', 'idle', 20)
 
-        say("3/8 the paper's experiment: 0 -> 500 -> 0 kPa in 50 kPa steps")
+        say("3/8 the paper's pressure levels: 0 -> 500 -> 0 kPa in 50 kPa steps, "
+            f'{args.hold_s:g} s each')
         run_sweep(spin, sweeps, 'major loop', Sweep.Goal(
             max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=args.hold_s, cycles=1,
             record=True, bag_path=str(major_bag), note=f'demo {run_dir.name}: major loop'),
