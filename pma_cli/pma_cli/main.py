@@ -316,6 +316,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--no-comments', action='store_true',
                    help='no # metadata lines above the header: the metadata goes to '
                         'OUT.metadata.yaml instead')
+    p = verb('plot', 'a figure of any bag: pressure and length against time (setpoint, the '
+             "model's prediction, the controller's target) and the loop; no ROS graph")
+    p.add_argument('bag', type=Path, help='bag directory or .mcap (one still being written too)')
+    p.add_argument('-o', '--output', type=_output_file, metavar='FILE.png',
+                   help='PNG to write (default: BAG.png beside the bag)')
+    p.add_argument('--topic', default='pma/state', help='PmaState topic (default pma/state, in '
+                   'any namespace)')
+    p.add_argument('--show', action='store_true',
+                   help='also open it in a window (needs a display)')
     p = verb('up', "start one muscle's nodes (what bringup.launch.py starts), each logging "
              'into runs/<timestamp>/logs, wait until the driver streams, and keep them '
              'running; Ctrl-C stops them all (the driver vents)')
@@ -429,6 +438,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f'pma export: warning: the bag is truncated ({summary.truncated}); exported '
                   'what it holds before the damage', file=sys.stderr)
         return 0
+
+    if args.verb == 'plot':
+        from pma_cli.plot import plot
+        return plot(args.bag, args.output, args.topic, args.show)
 
     if args.verb == 'sweep':
         from pma_cli import goals

@@ -3,14 +3,16 @@
 - loop.png (Fig. 6): the measured loop, the paper's branch fit and the model written to
   --params-out;
 - residuals.png (Fig. 7): measured minus model per branch, for each branch model;
-- comparison.png (Fig. 8): the data against every fitted model, Bouc-Wen included;
+- comparison.png (Fig. 8): the data against every fitted model, Bouc-Wen included, and each
+  model's error at the measured points, measured minus model as in residuals.png;
 - timeseries.png: pressure and length against time (a bag or sample log, not a table);
 - minor_loops.png: the --memory-check path and each branch model's prediction along it
   with its best memory rule.
 
-Every model has one colour in every figure (MODEL_COLOURS, Okabe-Ito: distinct for
-colour-blind readers too), increasing branches are solid and decreasing ones dashed, and the
-measured points are black and grey, never a model's colour. Every figure carries a footer:
+Every model has one colour and one plain name in every figure (COLOURS, the one registry:
+models and the bag figure's series; MODEL_LABELS, MEMORY_LABELS: legends say 'Hill branches',
+not 'hill'), increasing branches are solid and decreasing ones dashed, and the measured points
+are black and grey, never a model's colour. Every figure carries a footer:
 run id, source, recording and plotting dates, software version and the bag's metadata.
 """
 
@@ -34,8 +36,36 @@ from pma_model.samples import BranchData, Samples, settled_holds
 
 PRESSURE_LABEL = 'gauge pressure P [kPa]'
 LENGTH_LABEL = 'muscle length L [cm]'
-MODEL_COLOURS = {'sigmoid_fixed_c': '#0072B2', 'sigmoid_free_c': '#E69F00', 'hill': '#009E73',
-                 'bouc_wen': '#D55E00', 'bouc_wen_nonlinear': '#CC79A7'}
+RESIDUAL_LABEL = 'measured - model [cm]'      # residuals.png and comparison.png alike
+# The one colour registry: each model, and each series of the bag figure (bag_plot.py), has
+# one colour in every figure. Okabe-Ito and Tol hues chosen so that every two models differ by
+# a CIELAB distance of at least 27 for normal, deuteranope and protanope vision (Machado 2009;
+# pma_model/test/test_refit_outputs.py checks it): the old orange #E69F00 and vermillion
+# #D55E00, and green #009E73 and purple #CC79A7, were 18 apart, one colour to many readers.
+COLOURS = {'sigmoid_fixed_c': '#0072B2', 'sigmoid_free_c': '#44AA99', 'hill': '#117733',
+           'bouc_wen': '#E69F00', 'bouc_wen_nonlinear': '#882255',
+           'measured': 'black', 'setpoint': '0.45', 'prediction': '#56B4E9',
+           'target': '#D55E00', 'length setpoint': '#D55E00'}
+MODEL_COLOURS = {name: COLOURS[name] for name in
+                 ('sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear')}
+# Plain names for the legends (the JSON keys are in docs/refit.md's table beside them).
+MODEL_LABELS = {'sigmoid_fixed_c': "paper's sigmoid (c = 6.214)",
+                'sigmoid_free_c': 'sigmoid, c fitted', 'hill': 'Hill branches',
+                'bouc_wen': 'Bouc-Wen, linear backbone',
+                'bouc_wen_nonlinear': 'Bouc-Wen, Hill backbone'}
+MEMORY_LABELS = {'mix': 'learned mix of scanning curves and friction band',
+                 'identify': 'learned scanning curves',
+                 'play': 'friction band (play)', 'madelung': 'Madelung turning points',
+                 'switch': "branch switch (the paper's)"}
+# What --params-out writes (or would: loop.png's title says why it was chosen).
+CHOSEN_LABEL = 'the chosen model'
+# The bag figure's series: label, colour (COLOURS) and line.
+SERIES = {'measured': {'label': 'measured', 'lw': 0.8},
+          'setpoint': {'label': 'setpoint (device)', 'lw': 1.0, 'ls': '--'},
+          'prediction': {'label': 'model prediction (model_node)', 'lw': 1.0},
+          'target': {'label': "controller's target length", 'lw': 1.4},
+          'length setpoint': {'label': "controller's length setpoint (rate-limited)",
+                              'lw': 1.0, 'ls': '--'}}
 BRANCH_STYLES = {'increasing': '-', 'decreasing': '--'}
 DATA_STYLES = {'increasing': {'marker': 'o', 'color': 'black', 'mfc': 'black'},
                'decreasing': {'marker': 's', 'color': '0.45', 'mfc': 'none'}}
@@ -46,7 +76,20 @@ FOOTER_FONT_PT = 6.5
 
 
 def model_colour(name: str) -> str:
-    return MODEL_COLOURS.get(name, '0.3')
+    return COLOURS.get(name, '0.3')
+
+
+def model_label(name: str) -> str:
+    return MODEL_LABELS.get(name, name)
+
+
+def memory_label(rule: str) -> str:
+    return MEMORY_LABELS.get(rule, rule)
+
+
+def series_style(name: str) -> dict:
+    """Matplotlib keywords of a bag-figure series: its label, registry colour and line."""
+    return dict(SERIES[name], color=COLOURS[name])
 
 
 def _shortened(value) -> str:
@@ -108,15 +151,17 @@ def png_metadata(run: Mapping | None) -> dict[str, str]:
             'Comment': json.dumps(dict(run), sort_keys=True)}
 
 
-def save(figure, path: Path, run: Mapping | None = None, dpi: int = 120) -> Path:
-    """Footer, layout that leaves it room, PNG (the run and the titles in its text chunks),
-    close."""
+def save(figure, path: Path, run: Mapping | None = None, dpi: int = 120,
+         extra_metadata: Mapping[str, str] | None = None) -> Path:
+    """Footer, layout that leaves it room, PNG (the run, the titles and `extra_metadata` in
+    its text chunks), close."""
     bottom = add_footer(figure, run)
     figure.tight_layout(rect=(0, bottom, 1, 1))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     titles = [ax.get_title() for ax in figure.axes if ax.get_title()]
-    metadata = png_metadata(run) | ({'Title': ' | '.join(titles)} if titles else {})
+    metadata = png_metadata(run) | ({'Title': ' | '.join(titles)} if titles else {}) | dict(
+        extra_metadata or {})
     figure.savefig(path, dpi=dpi, metadata=metadata)
     plt.close(figure)
     return path
@@ -174,11 +219,12 @@ def loop_figure(data: BranchData, models: dict[str, FittedModel], *, chosen: str
     p = _curve_pressures(data)
     paper = models.get('sigmoid_fixed_c')
     if paper is not None and paper.name != chosen:
-        _branches(axes, paper, p, "sigmoid_fixed_c (the paper's form)", lw=1.2)
+        _branches(axes, paper, p, model_label(paper.name), lw=1.2)
     title = 'Hysteresis loop and branch fits (paper Fig. 6)'
     if chosen in models:
-        _branches(axes, models[chosen], p, chosen, lw=2.2)
-        title += f'\nthe chosen model: {chosen}' + (f' ({chosen_note})' if chosen_note else '')
+        _branches(axes, models[chosen], p, f'{model_label(chosen)}, {CHOSEN_LABEL}', lw=2.2)
+        title += f'\nthe chosen model: {model_label(chosen)}' + (
+            f' ({chosen_note})' if chosen_note else '')
     axes.set(xlabel=PRESSURE_LABEL, ylabel=LENGTH_LABEL, title=title)
     axes.grid(alpha=0.3)
     _legend(axes, _branch_key(), loc='lower left')
@@ -187,6 +233,12 @@ def loop_figure(data: BranchData, models: dict[str, FittedModel], *, chosen: str
 
 def plot_residuals(data: BranchData, models: dict[str, FittedModel], path: Path,
                    run: Mapping | None = None) -> Path:
+    return save(residuals_figure(data, models), path, run)
+
+
+def residuals_figure(data: BranchData, models: dict[str, FittedModel]):
+    """Measured - model per branch for each branch model (the sign of comparison.png's
+    errors too)."""
     figure, axes = plt.subplots(1, 2, figsize=(10.5, 4.4), sharey=True)
     for ax, direction, (p, length) in zip(axes, DIRECTIONS, (
             (data.inc_pressure_pa, data.inc_length_m),
@@ -197,13 +249,13 @@ def plot_residuals(data: BranchData, models: dict[str, FittedModel], path: Path,
             if name in BRANCH_MODEL_FORMS:
                 residual = units.m_to_cm(length - model.predict(p, rising))
                 ax.plot(units.pa_to_kpa(p[order]), residual[order], 'o-', ms=3.5, lw=1.0,
-                        color=model_colour(name), label=name)
+                        color=model_colour(name), label=model_label(name))
         ax.axhline(0.0, color='k', lw=0.8)
         ax.set(xlabel=PRESSURE_LABEL, title=f'{direction} pressure (paper Fig. 7)')
         ax.grid(alpha=0.3)
         _legend(ax)
-    axes[0].set_ylabel('measured - model [cm]')
-    return save(figure, path, run)
+    axes[0].set_ylabel(RESIDUAL_LABEL)
+    return figure
 
 
 def plot_comparison(data: BranchData, models: dict[str, FittedModel], path: Path,
@@ -221,8 +273,8 @@ def comparison_figure(data: BranchData, models: dict[str, FittedModel]):
     p = _curve_pressures(data)
     p_loop, l_loop, rising = data.loop()
     for name, model in models.items():
-        _branches(axes, model, p, name)
-        error = units.m_to_cm(model.predict(p_loop, rising) - l_loop)
+        _branches(axes, model, p, model_label(name))
+        error = units.m_to_cm(l_loop - model.predict(p_loop, rising))   # as residuals.png
         for direction, mask in zip(DIRECTIONS, (rising, ~rising), strict=True):
             order = np.argsort(p_loop[mask], kind='stable')
             errors.plot(units.pa_to_kpa(p_loop[mask][order]), error[mask][order],
@@ -230,7 +282,7 @@ def comparison_figure(data: BranchData, models: dict[str, FittedModel]):
                         color=model_colour(name))
     axes.set(ylabel=LENGTH_LABEL, title='Model comparison on the loop (paper Fig. 8)')
     errors.axhline(0.0, color='k', lw=0.8)
-    errors.set(xlabel=PRESSURE_LABEL, ylabel='model - measured [cm]')
+    errors.set(xlabel=PRESSURE_LABEL, ylabel=RESIDUAL_LABEL)
     for ax in (axes, errors):
         ax.grid(alpha=0.3)
     _legend(axes, _branch_key(), loc='lower left', ncols=2)
@@ -246,13 +298,13 @@ def timeseries_figure(samples: Samples, title: str = ''):
     """Pressure (and setpoint) and length against time."""
     figure, (pressure, length) = plt.subplots(2, 1, sharex=True, figsize=(10, 5.6))
     t = samples.time_s - samples.time_s[0]
-    if samples.setpoint_pa is not None:
-        pressure.plot(t, units.pa_to_kpa(samples.setpoint_pa), color='0.2', lw=1.0, ls='--',
-                      label='setpoint')
-    pressure.plot(t, units.pa_to_kpa(samples.pressure_pa), color='#0072B2', lw=0.9,
+    if samples.setpoint_pa is not None:        # the registry's colours: no model's
+        pressure.plot(t, units.pa_to_kpa(samples.setpoint_pa), color=COLOURS['setpoint'],
+                      lw=1.0, ls='--', label='setpoint')
+    pressure.plot(t, units.pa_to_kpa(samples.pressure_pa), color=COLOURS['measured'], lw=0.9,
                   label='measured')
     pressure.set_ylabel('gauge pressure [kPa]')
-    length.plot(t, units.m_to_cm(samples.length_m), color='#D55E00', lw=0.6,
+    length.plot(t, units.m_to_cm(samples.length_m), color=COLOURS['measured'], lw=0.6,
                 label='measured (HC-SR04)')
     length.set(ylabel='length [cm]', xlabel='time [s]')
     pressure.set_title(title or f'Pressure and length against time: {samples.source}')
@@ -292,22 +344,24 @@ def minor_loops_figure(samples: Samples, predictions: Mapping[str, np.ndarray],
             continue
         predicted = units.m_to_cm(predictions[key])
         rmse = scores.get(key, {}).get('rmse_cm')
-        label = f'{key}' + (f' (RMSE {rmse:.3f} cm)' if rmse is not None else '')
+        label = f'{model_label(name)}, {memory_label(rule)}' + (
+            f' (RMSE {rmse:.3f} cm)' if rmse is not None else '')
         if name == chosen:
-            label += ', params-out'
+            label += f'; {CHOSEN_LABEL}'
         width = 2.2 if name == chosen else 1.2
         loop.plot(p_kpa, predicted, '-', color=model_colour(name), lw=width, label=label)
         trace.plot(t, predicted, '-', color=model_colour(name), lw=width, label=label)
     loop.set(xlabel=PRESSURE_LABEL, ylabel=LENGTH_LABEL,
-             title='Minor loops: measured and predicted (best memory rule per model)')
-    trace.set(xlabel='time [s]', ylabel=LENGTH_LABEL, title=f'along {samples.source}')
+             title="Minor loops: measured, and each model's best memory rule")
+    trace.set(xlabel='time [s]', ylabel=LENGTH_LABEL,
+              title='Length against time along the memory-check run')
     for ax in (loop, trace):
         ax.grid(alpha=0.3)
     twin = trace.twinx()
     twin.plot(t, p_kpa, color='0.35', lw=0.7, ls=':')
     twin.set_ylabel('gauge pressure [kPa], dotted', color='0.35')
     # One legend for both panels: the same lines.
-    loop.legend(fontsize=7.5, loc='lower left', framealpha=0.9)
+    loop.legend(fontsize=7.5, loc='upper right', framealpha=0.9)   # a loop leaves it empty
     return figure
 
 

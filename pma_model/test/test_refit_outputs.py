@@ -26,11 +26,15 @@ from pma_model.params import ModelParams, default_params
 from pma_model.plots import (
     BRANCH_STYLES,
     DATA_STYLES,
+    MEMORY_LABELS,
     MODEL_COLOURS,
+    MODEL_LABELS,
+    RESIDUAL_LABEL,
     comparison_figure,
     footer_text,
     loop_figure,
     minor_loops_figure,
+    residuals_figure,
     save,
     timeseries_figure,
 )
@@ -143,7 +147,8 @@ def test_the_loop_figure_names_the_model_written_to_params_out(refit_run):
     assert written.memory == rule
     with Image.open(out / 'plots' / 'loop.png') as image:
         title = image.text['Title']
-    assert title.endswith(f'the chosen model: {name} (written to params-out, memory {rule})')
+    assert title.endswith(
+        f'the chosen model: {MODEL_LABELS[name]} (written to params-out, memory {rule})')
 
 
 def test_without_a_run_id_the_bag_names_the_run(procs, tmp_path):
@@ -172,7 +177,7 @@ def test_the_loop_figure_draws_the_chosen_model_over_the_papers(fitted_minor_loo
     data, fitted, *_ = fitted_minor_loops
     figure = closing(loop_figure(data, fitted, chosen='hill', chosen_note='written to params-out'))
     axes = figure.axes[0]
-    assert axes.get_title().endswith('the chosen model: hill (written to params-out)')
+    assert axes.get_title().endswith('the chosen model: Hill branches (written to params-out)')
     for name, width in (('hill', 2.2), ('sigmoid_fixed_c', 1.2)):
         lines = [line for line in axes.get_lines() if line.get_color() == MODEL_COLOURS[name]]
         assert len(lines) == 2 and {line.get_linewidth() for line in lines} == {width}
@@ -209,14 +214,16 @@ def test_the_minor_loops_show_each_models_prediction_and_the_chosen_on_top(
     figure = closing(minor_loops_figure(path, predictions, check, chosen='hill'))
     loop, trace = figure.axes[:2]
     drawn = [line for line in loop.get_lines() if line.get_linestyle() == '-']
-    assert [line.get_label().split(' ')[0] for line in drawn][-1] == f'hill/{best["hill"]}'
+    assert drawn[-1].get_label().startswith(
+        f'Hill branches, {MEMORY_LABELS[best["hill"]]} (RMSE')
     assert len(drawn) == len(best)
     for name, rule in best.items():
         (line,) = [line for line in drawn if line.get_color() == MODEL_COLOURS[name]]
         key = f'{name}/{rule}'
         rmse = check['models'][key]['rmse_cm']
-        assert line.get_label().startswith(f'{key} (RMSE {rmse:.3f} cm)')
-        assert line.get_label().endswith(', params-out') == (name == 'hill')
+        assert line.get_label().startswith(
+            f'{MODEL_LABELS[name]}, {MEMORY_LABELS[rule]} (RMSE {rmse:.3f} cm)')
+        assert line.get_label().endswith('; the chosen model') == (name == 'hill')
         assert line.get_linewidth() == (2.2 if name == 'hill' else 1.2)
         assert np.array_equal(line.get_xdata(), units.pa_to_kpa(path.pressure_pa))
         assert np.array_equal(line.get_ydata(), units.m_to_cm(predictions[key]))
@@ -285,3 +292,90 @@ def test_the_footer_is_drawn_below_the_plot(tmp_path, fitted_minor_loops):
     top_of_footer = footer.get_window_extent(renderer).y1
     for axes in figure.axes:
         assert axes.get_tightbbox(renderer).y0 > top_of_footer
+
+
+def _legend_texts(axes) -> list[str]:
+    legend = axes.get_legend()
+    return [text.get_text() for text in legend.get_texts()] if legend else []
+
+
+def test_the_legends_use_plain_names_not_json_keys(fitted_minor_loops):
+    data, fitted, path, check, predictions = fitted_minor_loops
+    figures = [loop_figure(data, fitted, chosen='hill'), comparison_figure(data, fitted),
+               residuals_figure(data, fitted),
+               minor_loops_figure(path, predictions, check, chosen='hill')]
+    texts = [text for figure in figures for axes in figure.axes for text in _legend_texts(axes)]
+    for figure in figures:
+        plt.close(figure)
+    assert texts
+    keys = set(MODEL_NAMES) | set(MEMORY_LABELS) | {'params-out', '--params-out'}
+    for text in texts:       # 'hill', 'mix', 'identify', 'params-out' only as plain words
+        words = set(text.replace(',', ' ').replace(';', ' ').replace('/', ' ').split())
+        assert not words & keys, text
+    comparison = _legend_texts(figures[1].axes[0])
+    assert {MODEL_LABELS[name] for name in fitted} <= set(comparison)
+    assert 'Hill branches, the chosen model' in texts
+
+
+def test_comparison_and_residuals_use_one_sign_measured_minus_model(fitted_minor_loops):
+    data, fitted, *_ = fitted_minor_loops
+    comparison = closing(comparison_figure(data, fitted))
+    residuals = closing(residuals_figure(data, fitted))
+    errors = comparison.axes[1]
+    assert errors.get_ylabel() == residuals.axes[0].get_ylabel() == RESIDUAL_LABEL \
+        == 'measured - model [cm]'
+    # The same points, the same values: the increasing branch of the paper's sigmoid.
+    model = fitted['sigmoid_fixed_c']
+    expected = units.m_to_cm(data.inc_length_m - model.predict(
+        data.inc_pressure_pa, np.ones(data.inc_pressure_pa.size, bool)))
+    order = np.argsort(data.inc_pressure_pa, kind='stable')
+    (in_comparison, _) = [line for line in errors.get_lines()
+                          if line.get_color() == MODEL_COLOURS['sigmoid_fixed_c']]
+    (in_residuals,) = [line for line in residuals.axes[0].get_lines()
+                       if line.get_color() == MODEL_COLOURS['sigmoid_fixed_c']]
+    assert np.asarray(in_comparison.get_ydata()) == pytest.approx(expected[order], abs=1e-12)
+    assert np.asarray(in_residuals.get_ydata()) == pytest.approx(expected[order], abs=1e-12)
+
+
+def test_the_minor_loop_titles_are_not_file_paths(fitted_minor_loops):
+    _, _, path, check, predictions = fitted_minor_loops
+    source = '/home/lab/runs/2026-12-01/minor_loops'
+    figure = closing(minor_loops_figure(replace(path, source=source), predictions, check))
+    titles = [axes.get_title() for axes in figure.axes if axes.get_title()]
+    assert titles and not any(source in title or '/' in title for title in titles), titles
+
+
+def _cielab_distance(first: str, second: str) -> float:
+    """The smallest CIE76 distance of two colours for normal, deuteranope and protanope
+    vision (Machado, Oliveira & Fernandes 2009, severity 1, on linear sRGB)."""
+    from matplotlib.colors import to_rgb
+    simulations = (np.eye(3),
+                   np.array([[0.367322, 0.860646, -0.227968], [0.280085, 0.672501, 0.047413],
+                             [-0.011820, 0.042940, 0.968881]]),
+                   np.array([[0.152286, 1.052583, -0.204868], [0.114503, 0.786281, 0.099216],
+                             [-0.003882, -0.048116, 1.051998]]))
+    to_xyz = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722],
+                       [0.0193, 0.1192, 0.9505]])
+
+    def lab(colour, simulation):
+        rgb = np.array(to_rgb(colour))
+        linear = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+        xyz = to_xyz @ np.clip(simulation @ linear, 0, 1) / np.array([0.95047, 1.0, 1.08883])
+        f = np.where(xyz > 0.008856, np.cbrt(xyz), 7.787 * xyz + 16 / 116)
+        return np.array([116 * f[1] - 16, 500 * (f[0] - f[1]), 200 * (f[1] - f[2])])
+
+    return min(float(np.linalg.norm(lab(first, s) - lab(second, s))) for s in simulations)
+
+
+def test_every_two_models_are_told_apart_by_colour_blind_readers_too():
+    # Orange #E69F00 and vermillion #D55E00 (sigmoid, c fitted and linear Bouc-Wen) were
+    # 18 apart: one colour in comparison.png to many readers.
+    assert _cielab_distance('#E69F00', '#D55E00') < 20
+    distances = {(a, b): _cielab_distance(MODEL_COLOURS[a], MODEL_COLOURS[b])
+                 for a, b in itertools.combinations(MODEL_NAMES, 2)}
+    assert min(distances.values()) > 25, distances
+    # Measured data in every figure keeps out of the models' colours (the time series too).
+    figure = closing(timeseries_figure(Samples(np.arange(5.0), np.zeros(5), np.full(5, 0.3),
+                                               np.zeros(5), source='x')))
+    assert not {line.get_color() for axes in figure.axes for line in axes.get_lines()} \
+        & set(MODEL_COLOURS.values())
