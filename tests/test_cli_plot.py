@@ -168,6 +168,7 @@ def test_a_controller_move_recorded_by_a_recorder_plots_its_target(rig, tmp_path
     assert covers(ranges[LENGTH]['ylim'], target)
 
 
+@pytest.mark.slow       # 41 s at load 10 on the 2-core VM (a recorder, a 4 s sine, two plots)
 def test_a_split_zstd_bag_plots_whole_and_while_it_is_written(rig, tmp_path):
     bag = tmp_path / 'split'
     recorder = rig['procs'].ros2_run(
