@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import textwrap
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -207,13 +207,16 @@ def _legend(axes, extra: list | None = None, **kwargs) -> None:
 
 
 def plot_loop(data: BranchData, models: dict[str, FittedModel], path: Path, *,
-              chosen: str | None, run: Mapping | None = None, chosen_note: str = '') -> Path:
-    return save(loop_figure(data, models, chosen=chosen, chosen_note=chosen_note), path, run)
+              chosen: str | None, run: Mapping | None = None, chosen_note: str = '',
+              warnings: Sequence[str] = ()) -> Path:
+    return save(loop_figure(data, models, chosen=chosen, chosen_note=chosen_note,
+                            warnings=warnings), path, run)
 
 
 def loop_figure(data: BranchData, models: dict[str, FittedModel], *, chosen: str | None,
-                chosen_note: str = ''):
-    """The paper's branch fit (sigmoid, c fixed) and the chosen model, on the measured loop."""
+                chosen_note: str = '', warnings: Sequence[str] = ()):
+    """The paper's branch fit (sigmoid, c fixed) and the chosen model, on the measured loop;
+    refit's data-check `warnings`, if any, in a box over it."""
     figure, axes = plt.subplots(figsize=(7.2, 5.4))
     _data(axes, data)
     p = _curve_pressures(data)
@@ -228,6 +231,12 @@ def loop_figure(data: BranchData, models: dict[str, FittedModel], *, chosen: str
     axes.set(xlabel=PRESSURE_LABEL, ylabel=LENGTH_LABEL, title=title)
     axes.grid(alpha=0.3)
     _legend(axes, _branch_key(), loc='lower left')
+    if warnings:
+        text = '\n'.join(textwrap.fill(f'! {line}', 95, subsequent_indent='   ')
+                         for line in warnings)
+        axes.text(0.99, 0.99, f'DATA WARNINGS ({len(warnings)}):\n{text}',
+                  transform=axes.transAxes, ha='right', va='top', fontsize=6, color='#B00000',
+                  bbox={'facecolor': 'white', 'edgecolor': '#B00000', 'alpha': 0.9})
     return figure
 
 
@@ -369,10 +378,12 @@ def write_plots(data: BranchData, models: dict[str, FittedModel], directory, *,
                 run: Mapping | None = None, chosen: str | None = None, chosen_note: str = '',
                 samples: Samples | None = None, memory: Mapping | None = None,
                 memory_samples: Samples | None = None, memory_run: Mapping | None = None,
-                predictions: Mapping[str, np.ndarray] | None = None) -> list[Path]:
+                predictions: Mapping[str, np.ndarray] | None = None,
+                warnings: Sequence[str] = ()) -> list[Path]:
     """Every figure the inputs allow. `chosen`: the model --params-out writes (or would);
     `memory`, `memory_samples`, `memory_run`, `predictions`: the memory check's report,
-    path, its bag's run_info, and the predicted lengths."""
+    path, its bag's run_info, and the predicted lengths; `warnings`: refit's data checks',
+    drawn on the loop."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     written = []
@@ -382,7 +393,7 @@ def write_plots(data: BranchData, models: dict[str, FittedModel], directory, *,
         chosen_note = ''
     if chosen is not None:
         written.append(plot_loop(data, models, directory / 'loop.png', chosen=chosen, run=run,
-                                 chosen_note=chosen_note))
+                                 chosen_note=chosen_note, warnings=warnings))
         written.append(plot_residuals(data, models, directory / 'residuals.png', run))
     written.append(plot_comparison(data, models, directory / 'comparison.png', run))
     if samples is not None and samples.time_s.size:

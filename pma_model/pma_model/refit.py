@@ -8,6 +8,16 @@ gives one line on stderr and exit code 2. A model that does not converge is repo
 failed (table and JSON) and the others stand; the exit code is 2 only when the model asked
 for with --model, or every branch model --params-out could use, failed. A truncated bag is
 refitted on what it holds before the damage, with a warning line.
+
+Before it trusts a fit, refit checks what it fitted (pma_model.checks: a level near 0 kPa on
+the increasing branch and near the top on the decreasing one, each level on the branch its
+place in the sweep says, the fitted L0 against the lengths measured at rest, enough levels
+for the parameters, the sweep's own `settled` verdicts): each warning is printed, kept in the
+JSON (`data_checks`), drawn on the loop figure and written at the top of the params file.
+With --strict a warning is an error: exit 3 and no params file.
+
+The console gets a summary (the run's Table 2, the warnings, the outputs); --verbose adds
+every model's parameters, the whole loop, the hold-out and the memory rules in full.
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+from pma_common.commands import run_command
 from pma_common.console import closed_pipe_ends_quietly
 from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.provenance import input_run
@@ -29,13 +40,16 @@ from pma_model.report import (
     MODEL_NAMES,
     ONLINE_MEMORIES,
     build_report,
+    data_checks,
     failed_models,
+    format_summary,
     format_table,
     memory_check,
 )
 from pma_model.samples import STATE_TOPIC, SamplesError, load_fit_input, load_samples
 
 EXIT_BAD_INPUT = 2
+EXIT_STRICT = 3     # --strict and the data checks warned (or the bag is truncated)
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -71,6 +85,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         help='PmaState topic of a bag (default: pma/state in any namespace)')
     parser.add_argument('--no-holdout', action='store_true',
                         help='skip the interleaved hold-out refits')
+    parser.add_argument('--strict', action='store_true',
+                        help='a data-check warning (or a truncated bag) is an error: exit '
+                        f'{EXIT_STRICT} and no --params-out file (the JSON and plots are '
+                        'still written)')
+    parser.add_argument('--verbose', '-v', action='store_true',
+                        help='print every model\'s parameters, the whole loop, the hold-out '
+                        'and the memory rules in full, and every model warning')
     args = parser.parse_args(argv)
     if not args.deadband_pa >= 0:
         parser.error('--deadband-pa must be >= 0')
@@ -91,7 +112,7 @@ def choose_params_model(report: dict, requested: str | None) -> str | None:
 
 
 def write_params(path: Path, fitted, name: str, source: str, memory: str | None = None, *,
-                 identified: dict | None = None) -> None:
+                 identified: dict | None = None, warnings: list[str] = ()) -> None:
     """The branch form and the fitted branches (and the memory rule, if one was measured).
 
     With memory 'mix' or 'identify', what the online identification learned along the
@@ -101,7 +122,8 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
     Adaptation, deadband and the pressure limit are the node's own settings: a hot reload
     of this file must not reset them. Both forms are written (the sigmoid from the paper's
     fixed-c fit unless the free-c one was chosen), so switching `branch_form` later also
-    uses this refit.
+    uses this refit. `warnings` (the data checks') go at the top of the file as comments:
+    a model fitted to data refit warned about never looks like any other.
     """
     from pma_model.params import default_params
 
@@ -124,7 +146,14 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
         only += tuple(f'identification.{key}' for key in identified)
         note += ', with what it learned there'
     path.parent.mkdir(parents=True, exist_ok=True)
-    params.save_yaml(path, only=only, header=(
+    header = ''
+    if warnings:
+        header = (f'WARNING: refit warned about the data this model was fitted to '
+                  f'({len(warnings)}; refit.json "data_checks"):\n'
+                  + ''.join(f'  - {text}\n' for text in warnings)
+                  + 'Check the sweep (or run it again from rest) before trusting this model; '
+                  'refit --strict does not write it.\n\n')
+    params.save_yaml(path, only=only, header=header + (
         f'Written by refit from {source}: {note}.\n'
         'Only these parameters: model_node keeps its other settings when it loads this.'))
 
@@ -169,8 +198,8 @@ def warn_if_truncated(what) -> None:
     """One line for a bag cut short (Samples or BranchData), instead of a Python warning."""
     if what.truncated:
         print(f'refit: warning: {what.source} is truncated ({what.truncated}); using the '
-              'samples recorded before the damage (a closed copy: ros2 run pma_bag recover '
-              f'{what.source})', file=sys.stderr)
+              'samples recorded before the damage (a closed copy: '
+              f'{run_command("pma_bag", "recover", what.source)})', file=sys.stderr)
 
 
 def unwritable_output(args: argparse.Namespace) -> str:
@@ -188,7 +217,15 @@ def unwritable_output(args: argparse.Namespace) -> str:
     return ''
 
 
+def end_progress(progress: list) -> None:
+    """End the one progress line (without --verbose), once, before anything else on stderr."""
+    if progress:
+        print(file=sys.stderr, flush=True)
+        progress.clear()
+
+
 def run(args: argparse.Namespace) -> int:
+    progress: list[str] = []    # models announced on the open progress line
     reason = unwritable_output(args)
     if reason:
         print(f'refit: {reason}', file=sys.stderr)
@@ -204,10 +241,16 @@ def run(args: argparse.Namespace) -> int:
             warn_if_truncated(path)
 
         def announce(name):
-            print(f'fitting {name} ...', file=sys.stderr, flush=True)
+            if args.verbose:
+                print(f'fitting {name} ...', file=sys.stderr, flush=True)
+            else:   # one line of progress, not one per model
+                print(f'fitting {name} ...' if not progress else f' {name} ...',
+                      end='', file=sys.stderr, flush=True)
+                progress.append(name)
 
         report, fitted = build_report(data, MODEL_NAMES, holdout=not args.no_holdout,
                                       on_model=announce)
+        report['data_checks'] = data_checks(data, samples, fitted, args.deadband_pa)
         made = datetime.datetime.now(datetime.timezone.utc)    # one date for every output
         provenance = input_run(args.input, args.run_id, made)
         report['run'] = {k: v for k, v in provenance.items() if k != 'custom_data'}
@@ -223,13 +266,22 @@ def run(args: argparse.Namespace) -> int:
             report['memory_check']['recorded'] = memory_run['recorded']
             if memory_run['custom_data']:
                 report['memory_check']['custom_data'] = memory_run['custom_data']
+        end_progress(progress)
     except SamplesError as error:
+        end_progress(progress)
         print(f'refit: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
     except (ValueError, RuntimeError) as error:
+        end_progress(progress)
         print(f'refit: the fit did not converge: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
-    print(format_table(report))
+    if args.verbose:
+        print(format_table(report) + '\n')
+    print(format_summary(report))
+    data_warnings = [f"{w['check']}: {w['message']}" for w in
+                     report['data_checks']['warnings']]
+    if data.truncated:
+        data_warnings.append(f'truncated: {data.source} is truncated ({data.truncated})')
     failed = failed_models(report)
     name = choose_params_model(report, args.model) if args.params_out or args.model else None
     refusal = None
@@ -242,35 +294,53 @@ def run(args: argparse.Namespace) -> int:
         refusal = (f'{name}, the model asked for with --model, did not converge: '
                    f'{failed[name]}' + (f'; {args.params_out} not written'
                                         if args.params_out else ''))
+    strict_refusal = None
+    if args.strict and data_warnings:
+        strict_refusal = (f'--strict: {len(data_warnings)} data warning'
+                          f'{"s" if len(data_warnings) > 1 else ""} (above)'
+                          + (f'; {args.params_out} not written' if args.params_out else ''))
     try:
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(report, indent=2, allow_nan=False) + '\n')
             print(f'wrote {args.json}')
-        if args.params_out and refusal is None:
+        params_written = (args.params_out is not None and refusal is None
+                          and strict_refusal is None)
+        if params_written:
             check = report.get('memory_check', {})
             memory = check.get('best_memory', {}).get(name)
             write_params(args.params_out, fitted, name, str(args.input), memory,
-                         identified=check.get('identified', {}).get(name))
+                         identified=check.get('identified', {}).get(name),
+                         warnings=data_warnings)
             print(f'wrote {args.params_out} ({name}, branch_form '
-                  f'{BRANCH_MODEL_FORMS[name]})')
+                  f'{BRANCH_MODEL_FORMS[name]}'
+                  + (f'; marked: fitted to data with {len(data_warnings)} warning'
+                     f'{"s" if len(data_warnings) > 1 else ""}' if data_warnings else '')
+                  + ')')
         if args.plots:
-            chosen, note = plotted_choice(report, name,
-                                          args.params_out is not None and refusal is None)
+            chosen, note = plotted_choice(report, name, params_written)
             from pma_model.plots import write_plots
 
-            for written in write_plots(
-                    data, fitted, args.plots, run=provenance, chosen=chosen, chosen_note=note,
-                    samples=samples,
-                    memory=report.get('memory_check'), memory_samples=path,
-                    memory_run=memory_run, predictions=predictions):
-                print(f'wrote {written}')
+            figures = write_plots(
+                data, fitted, args.plots, run=provenance, chosen=chosen, chosen_note=note,
+                samples=samples,
+                memory=report.get('memory_check'), memory_samples=path,
+                memory_run=memory_run, predictions=predictions, warnings=data_warnings)
+            if args.verbose:
+                for written in figures:
+                    print(f'wrote {written}')
+            else:
+                print(f'wrote {len(figures)} figures to {args.plots}: '
+                      + ', '.join(Path(written).name for written in figures))
     except (OSError, ValueError) as error:
         print(f'refit: cannot write output: {error}', file=sys.stderr)
         return EXIT_BAD_INPUT
     if refusal:
         print(f'refit: {refusal}', file=sys.stderr)
         return EXIT_BAD_INPUT
+    if strict_refusal:
+        print(f'refit: {strict_refusal}', file=sys.stderr)
+        return EXIT_STRICT
     return 0
 
 

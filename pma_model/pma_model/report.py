@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pma_model import units
+from pma_model import checks, units
 from pma_model.boucwen import BoucWenFit, fit_bouc_wen, minor_loop_drift
 from pma_model.branches import Branch, HillBranch, SigmoidBranch
 from pma_model.detector import DEFAULT_DEADBAND_PA, detect_branches
@@ -32,7 +32,7 @@ from pma_model.identification import OnlineModel
 from pma_model.memory import HysteresisModel
 from pma_model.metrics import fit_metrics
 from pma_model.params import MEMORIES
-from pma_model.samples import BranchData, Samples, settled_holds
+from pma_model.samples import BranchData, Samples, hold_runs, settled_holds
 
 PAPER_C = 6.214
 MODEL_NAMES = ('sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear')
@@ -425,6 +425,92 @@ def _clean(value):
     return value
 
 
+# --- what was fitted, checked ----------------------------------------------------------------
+
+def data_checks(data: BranchData, samples: Samples | None, fitted: dict[str, FittedModel],
+                deadband_pa: float = DEFAULT_DEADBAND_PA) -> dict:
+    """pma_model.checks on this refit: the levels (the sweep's records when the bag has
+    them, else the trace's holds, as the steady-state reduction finds them), the length
+    noise, and every warning. JSON-ready (kPa, cm), the report's `data_checks`."""
+    fit = checks.FitView(
+        data.inc_pressure_pa, data.dec_pressure_pa,
+        {name: model.branches['increasing'].l0_m for name, model in fitted.items()
+         if name in BRANCH_MODEL_FORMS and 'increasing' in model.branches},
+        {name: model.k_branch['increasing'] for name, model in fitted.items()
+         if name in BRANCH_MODEL_FORMS})
+    skipped = []
+    if samples is None or samples.pressure_pa.size == 0:
+        levels, source = None, 'nowhere (a branch table has no pressure trace)'
+        noise = checks.noise_estimate(np.empty(0), [])
+        first = None
+        rest = [(f'the table at {units.pa_to_kpa(p):.0f} kPa ({direction})', length)
+                for direction, (pressures, lengths) in zip(DIRECTIONS, _branch_arrays(data),
+                                                             strict=True)
+                for p, length in zip(pressures, lengths, strict=True)
+                if p <= checks.NEAR_ZERO_PA]
+        skipped.append('wrong_branch, started_pressurised: no pressure trace')
+    else:
+        drive = samples.setpoint_pa if samples.setpoint_pa is not None else samples.pressure_pa
+        runs = hold_runs(drive)
+        noise = checks.noise_estimate(samples.length_m, runs)
+        if samples.sweep_levels:
+            levels = checks.levels_from_records(
+                samples.sweep_levels, samples.time_s, samples.pressure_pa, samples.length_m,
+                time_origin_s=samples.time_origin_s, deadband_pa=deadband_pa,
+                start_pa=getattr(samples.sweep_start, 'start_pa', None),
+                setpoint_pa=samples.setpoint_pa)
+            source = "the sweep's records"
+        else:
+            levels = checks.derive_levels(samples.time_s, samples.pressure_pa, samples.length_m,
+                                          setpoint_pa=samples.setpoint_pa, runs=runs,
+                                          deadband_pa=deadband_pa)
+            source = 'the trace\'s holds (no sweep records)'
+        first = float(samples.pressure_pa[0])
+        rest = checks.rest_lengths(levels, _rest_start(samples))
+    from_records = bool(samples is not None and samples.sweep_levels)
+    if not from_records:
+        skipped.append('not_settled: needs the sweep\'s records (pma/sweep_record)')
+    warnings = checks.check(fit, levels, deadband_pa=deadband_pa, noise=noise,
+                            rest=rest,
+                            start=samples.sweep_start if from_records else None,
+                            first_pressure_pa=first, from_records=from_records)
+    intended = checks.intended_branches(levels or [])
+    side = {checks.RISING: 'increasing', checks.FALLING: 'decreasing', None: None}
+    approach = {checks.RISING: 'from below', checks.FALLING: 'from above',
+                checks.NONE: 'none'}
+    return _clean({
+        'levels_from': source,
+        'levels': [{'level': level.index + 1, 'target_kpa': units.pa_to_kpa(level.target_pa),
+                    'reached_kpa': units.pa_to_kpa(level.reached_pa),
+                    'origin_kpa': units.pa_to_kpa(level.origin_pa),
+                    'length_cm': units.m_to_cm(level.length_m),
+                    'approach': approach[level.approach], 'branch': side[intended[i]],
+                    'fit_branch': side[level.fit_branch], 'settled': level.settled,
+                    **({'note': level.note} if level.note else {})}
+                   for i, level in enumerate(levels or [])],
+        'rest_lengths_cm': {what: units.m_to_cm(value) for what, value in rest},
+        'fitted_l0_cm': {name: units.m_to_cm(value) for name, value in fit.l0_m.items()},
+        'noise': noise,
+        'thresholds': {'near_zero_kpa': units.pa_to_kpa(checks.NEAR_ZERO_PA),
+                       'level_gap_kpa': units.pa_to_kpa(checks.LEVEL_GAP_PA),
+                       'deadband_kpa': units.pa_to_kpa(deadband_pa),
+                       'l0_tolerance_cm': noise['tolerance_cm']},
+        'skipped': skipped,
+        'warnings': [warning.to_dict() for warning in warnings],
+    })
+
+
+def _rest_start(samples: Samples) -> tuple[float, float] | None:
+    """(mean length, samples) of the recording's first samples at rest (at most
+    checks.REST_START_S, while the pressure stays within checks.NEAR_ZERO_PA of 0)."""
+    away = np.flatnonzero((samples.pressure_pa > checks.NEAR_ZERO_PA)
+                          | (samples.time_s > checks.REST_START_S))
+    count = int(away[0]) if away.size else samples.pressure_pa.size
+    if count < MIN_POINTS_PER_BRANCH:
+        return None
+    return float(np.mean(samples.length_m[:count])), float(count)
+
+
 # --- the human-readable table ---------------------------------------------------------------
 
 def format_table(report: dict) -> str:
@@ -523,3 +609,81 @@ def _with_ci(key, value, entry) -> str:
     if interval and interval[0] is not None:
         return f'{key}={value:.5g} [{interval[0]:.4g}, {interval[1]:.4g}]'
     return f'{key}={value:.5g} (fixed)' if key in entry.get('fixed', []) else f'{key}={value:.5g}'
+
+
+# --- the summary a researcher reads first -----------------------------------------------------
+
+SUMMARY_COLUMNS = (('MSE cm2', 'mse_cm2', '10.5f'), ('MAE cm', 'mae_cm', '9.4f'),
+                   ('R2', 'r2', '8.4f'), ('r', 'r', '8.4f'), ('AIC', 'aic', '9.3f'),
+                   ('BIC', 'bic', '9.3f'))
+
+
+def format_summary(report: dict) -> str:
+    """The run's Table 2 (the paper's layout: MSE, MAE, R2, r, AIC, BIC per branch, the
+    paper's rows beside), the hold-out and memory verdicts in a line each, the data checks'
+    warnings, and how many model warnings the JSON and --verbose have."""
+    data = report['data']
+    what = 'held levels' if data['steady_state'] else 'points'
+    run = report.get('run', {}).get('run_id')
+    lines = [f"refit of {report['source']}" + (f' (run {run})' if run else '') + ': '
+             f"{data['n_increasing']} increasing + {data['n_decreasing']} decreasing {what}, "
+             f"0-{data['max_pressure_kpa']:.0f} kPa, stroke {data['stroke_cm']:.2f} cm, "
+             f"L0 {data['rest_length_cm']:.2f} cm"]
+    if data.get('truncated'):
+        lines.append(f"  only the samples before the damage: the bag is truncated "
+                     f"({data['truncated']})")
+    header = f"{'':<26}{'k':>3}" + ''.join(f'{label:>{int(spec.split(".")[0])}}'
+                                          for label, _, spec in SUMMARY_COLUMNS)
+
+    def row(label, k, metrics):
+        cells = ''.join(format(metrics[key], spec) if metrics.get(key) is not None
+                        else format('-', '>' + spec.split('.')[0])
+                        for _, key, spec in SUMMARY_COLUMNS)
+        return f'  {label:<24}{k:>3}{cells}'
+
+    lines += ['', "Table 2 for this run (paper's layout; k: free parameters per branch)", header]
+    for direction in DIRECTIONS:
+        lines.append(f'{direction} branch')
+        for name, entry in report['branches'][direction]['models'].items():
+            if 'error' in entry:
+                lines.append(f"  {name:<24}  failed: {entry['error']}")
+            else:
+                lines.append(row(name, entry['metrics'].get('k', '-'), entry['metrics']))
+        for name, values in report['paper_table2'][direction].items():
+            lines.append(row(f'paper Table 2 {name}', '', {
+                'mse_cm2': values['mse'], 'mae_cm': values['mae'], 'r2': values['r2'],
+                'aic': values['aic'], 'bic': values['bic']}))
+    holdout = report.get('holdout')
+    if holdout and 'skipped' in holdout:
+        lines += ['', f"hold-out: skipped ({holdout['skipped']})"]
+    elif holdout:
+        lines += ['', 'hold-out RMSE (every other level held out): ' + ', '.join(
+            f"{name} {entry['rmse_cm']:.3f} cm" if 'rmse_cm' in entry else f'{name} failed'
+            for name, entry in holdout['models'].items())]
+    if 'memory_check' in report:
+        check = report['memory_check']
+        lines.append(f"memory rules along {check['source']}: best: " + ', '.join(
+            f'{name} -> {memory}' for name, memory in check['best_memory'].items()))
+    lines += ['', *format_data_checks(report.get('data_checks'))]
+    model_warnings = report.get('warnings', [])
+    if model_warnings:
+        failed = sum('not fitted' in text for text in model_warnings)
+        lines.append(f'model warnings: {len(model_warnings)} (' + (
+            f'{failed} model(s) not fitted, ' if failed else '') + 'poorly identified '
+            'parameters, solver notes): refit.json "warnings", or --verbose')
+    return '\n'.join(lines)
+
+
+def format_data_checks(found: dict | None) -> list[str]:
+    """The data checks' verdict: one line, and one per warning."""
+    if not found:
+        return []
+    warnings = found.get('warnings', [])
+    head = 'data checks: ' + (f'{len(warnings)} WARNING' + ('S' if len(warnings) > 1 else '')
+                              if warnings else 'no warnings')
+    head += (f" (levels from {found['levels_from']}; L0 tolerance "
+             f"{found['noise']['tolerance_cm']:.2f} cm, from {found['noise']['from']})")
+    if not warnings:
+        return [head]
+    return ([head]
+            + [f"  ! {warning['check']}: {warning['message']}" for warning in warnings])

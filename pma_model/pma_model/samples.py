@@ -35,6 +35,10 @@ from pma_model.params import utf8_error_position
 
 STATE_TOPIC = 'pma/state'
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
+# What the Sweep action did, level by level (pma_interfaces/msg/SweepRecord): next to the
+# state topic, in the same namespace.
+SWEEP_RECORD_TOPIC = 'pma/sweep_record'
+SWEEP_RECORD_TYPE = 'pma_interfaces/msg/SweepRecord'
 SAMPLE_LOG_COLUMNS = ('time_s', 'gauge_pressure_pa', 'length_m')
 BRANCH_TABLE_COLUMNS = ('pressure_kpa', 'length_increasing_cm', 'length_decreasing_cm')
 # A hold is a run whose setpoint (or, without one, pressure) stays within this band [Pa].
@@ -59,6 +63,11 @@ class Samples:
     dropped_nan: int = 0
     source: str = ''
     truncated: str = ''     # a bag cut short: what is damaged ('' = complete input)
+    time_origin_s: float = 0.0   # the first sample's stamp: time_s counts from it
+    # The sweep's records in the bag (pma_model.checks.SweepLevelRecord, SweepStartRecord);
+    # None: the input has no pma/sweep_record topic (a CSV, a bag recorded before it).
+    sweep_levels: list | None = None
+    sweep_start: object | None = None
 
 
 @dataclass
@@ -154,14 +163,19 @@ def read_bag(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
     truncated = '; '.join(f'{f.path.name}: {f.damage}' for f in reader.files if f.truncated)
     with reader:
         try:
-            wanted = {state_topic_in(reader.topics, topic)}
+            state = state_topic_in(reader.topics, topic)
         except SamplesError as error:
             raise SamplesError(f'bag {path}: {error}') from None
-        total = sum(reader.topics[name].message_count for name in wanted)
+        wanted = {state}
+        records = sweep_record_topic(reader.topics, state)
+        total = reader.topics[state].message_count
         report = _progress_printer(total, 'reading bag') if progress else None
-        payloads = []
+        payloads, record_payloads = [], []
         try:
-            for message in reader.messages(wanted):
+            for message in reader.messages(wanted | ({records} if records else set())):
+                if message.topic != state:
+                    record_payloads.append(message.data)
+                    continue
                 payloads.append(message.data)
                 if report is not None and len(payloads) % 20_000 == 0:
                     report(min(len(payloads), total))
@@ -172,7 +186,50 @@ def read_bag(path, topic: str = STATE_TOPIC, progress: bool = True) -> Samples:
     stamp, pressure, length, setpoint = _decode_states(payloads, PmaState)
     samples = _finish(stamp, pressure, length, setpoint, str(path))
     samples.truncated = truncated
+    if records:
+        samples.sweep_levels, samples.sweep_start = _decode_sweep_records(record_payloads)
     return samples
+
+
+def sweep_record_topic(topics: dict, state_topic: str) -> str | None:
+    """The SweepRecord topic beside this state topic (same namespace), None without one."""
+    namespace = state_topic[:-len(STATE_TOPIC)] if state_topic.endswith(STATE_TOPIC) else '/'
+    name = namespace + SWEEP_RECORD_TOPIC
+    found = topics.get(name)
+    return name if found is not None and found.type_name == SWEEP_RECORD_TYPE else None
+
+
+def _decode_sweep_records(payloads: list[bytes]):
+    """(LEVEL records, the START record or None) of the bag's last sweep: a bag holds one
+    sweep (the Sweep action records each to its own bag); with several, the last one's."""
+    from rclpy.serialization import deserialize_message
+
+    from pma_interfaces.msg import SweepRecord
+    from pma_model.checks import SweepLevelRecord, SweepStartRecord
+
+    messages = [deserialize_message(data, SweepRecord) for data in payloads]
+    if not messages:
+        return [], None
+    last = messages[-1].sweep_id
+    levels, start = [], None
+
+    def seconds(stamp) -> float:
+        return stamp.sec + 1e-9 * stamp.nanosec
+
+    for message in messages:
+        if message.sweep_id != last:
+            continue
+        if message.kind == SweepRecord.KIND_START:
+            start = SweepStartRecord(bool(message.started_at_rest),
+                                     float(message.start_gauge_pressure_pa), message.sweep_id)
+        elif message.kind == SweepRecord.KIND_LEVEL:
+            levels.append(SweepLevelRecord(
+                int(message.level_index), int(message.level_count),
+                float(message.target_gauge_pressure_pa),
+                float(message.reached_gauge_pressure_pa), int(message.branch),
+                bool(message.settled), seconds(message.hold_start), seconds(message.hold_end),
+                message.message, message.sweep_id))
+    return levels, start
 
 
 # Fields read from each PmaState, with a sentinel each that cannot occur by accident.
@@ -250,8 +307,9 @@ def _finish(stamp, pressure, length, setpoint, source) -> Samples:
         setpoint = setpoint[usable]
         if not np.any(np.isfinite(setpoint)):
             setpoint = None
-    return Samples(stamp[usable] - (stamp[0] if stamp.size else 0.0), pressure[usable],
-                   length[usable], setpoint, dropped, source)
+    origin = float(stamp[0]) if stamp.size else 0.0
+    return Samples(stamp[usable] - origin, pressure[usable], length[usable], setpoint, dropped,
+                   source, time_origin_s=origin)
 
 
 def _csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:

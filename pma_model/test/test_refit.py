@@ -18,6 +18,7 @@ from test_samples import (
     write_state_bag,
 )
 
+from pma_common.commands import run_command
 from pma_model import units
 from pma_model.params import ModelParams
 
@@ -297,7 +298,8 @@ def test_a_truncated_bag_is_refitted_on_what_it_holds_with_one_line_saying_so(pr
     warnings = [line for line in output.splitlines() if 'is truncated (' in line]
     assert len(warnings) == 2, output   # the one stderr line, and the table saying so
     assert warnings[0].startswith('refit: warning:')
-    assert f'ros2 run pma_bag recover {bag}' in warnings[0]
+    # the spelling that works on this path: `pma run` without a ros2 command line
+    assert run_command('pma_bag', 'recover', bag) in warnings[0]
     assert 'TruncatedBagWarning' not in output and 'warnings.warn' not in output
     report = json.loads((tmp_path / 'r.json').read_text())
     assert 'cut off' in report['data']['truncated']
@@ -328,7 +330,7 @@ def test_one_model_failing_is_reported_for_that_model_only(procs, tmp_path):
     table = tmp_path / 'short.csv'
     table.write_text(BOUC_WEN_FAILS)
     code, output = run_refit(procs, table, '--no-holdout', '--json', tmp_path / 'r.json',
-                             '--params-out', tmp_path / 'p.yaml')
+                             '--params-out', tmp_path / 'p.yaml', '--verbose')
     assert code == 0, output
     report = json.loads((tmp_path / 'r.json').read_text())
     failed = report['loop']['models']['bouc_wen_nonlinear']
