@@ -23,7 +23,9 @@ from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
 from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_until
 
-pytestmark = pytest.mark.integration
+# Two sweeps and two refits: about 50 s (at load 7 on two cores), so its module goes to a
+# worker first.
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 EXIT_STRICT = 3     # refit --strict with data warnings (docs/refit.md)
 
