@@ -313,3 +313,18 @@ def test_a_sweep_from_rest_is_quiet_and_short(bags, tmp_path, capsys):
     code, verbose, _ = refit(capsys, bags['rest'], '--no-holdout', '--verbose')
     assert 'whole loop' in verbose and 'is poorly identified' in verbose
     assert 'data checks: no warnings' in verbose
+
+
+def test_strict_counts_a_truncated_bag(tmp_path, capsys):
+    """A bag cut short (its recorder killed) is refitted on what it holds, with a warning;
+    --strict makes that warning an error too."""
+    from pma_model.refit import EXIT_STRICT
+
+    bag = write_state_bag(tmp_path / 'crashed', *sweep(MAJOR))
+    mcap = bag / 'crashed_0.mcap'
+    mcap.write_bytes(mcap.read_bytes()[:int(mcap.stat().st_size * 0.9)])   # no summary
+    code, out, err = refit(capsys, bag, '--no-holdout', '--strict',
+                           '--params-out', tmp_path / 'p.yaml')
+    assert code == EXIT_STRICT, out + err
+    assert 'is truncated (' in err and '--strict: 1 data warning (above)' in err
+    assert not (tmp_path / 'p.yaml').exists()
