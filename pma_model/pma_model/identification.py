@@ -555,7 +555,7 @@ class OnlineModel:
             HysteresisModel(*branches, memory='identify', deadband_pa=self.deadband_pa,
                             max_gauge_pressure_pa=self.max_gauge_pressure_pa,
                             play_shares=shares, share_slopes=slopes))
-        self._lags = None
+        self._lag_values: list[float] | None = None   # the creep lags (_advance_lags)
         self._time = None
         self._static = math.nan
         # The pressure travelled since start (the virgin term's argument), through a play of
@@ -635,6 +635,11 @@ class OnlineModel:
                 CorrectedBranch(self.decreasing, tuple(float(v) for v in decreasing)))
 
     # --- what it has learned --------------------------------------------------------
+
+    @property
+    def _lags(self) -> np.ndarray | None:
+        """The creep lags' lengths (None before the first sample)."""
+        return None if self._lag_values is None else np.array(self._lag_values)
 
     @property
     def drift(self) -> Drift:
@@ -726,11 +731,16 @@ class OnlineModel:
             held, rescaled = self._doubt.expert_lengths()
             confidence = 1.0 / (1.0 + ((held - rescaled) / SPREAD_SCALE_M) ** 2)
         dt = self._advance_lags(static, t_s)
-        creep_gains = self._filter.mean[self._creep_gains]
-        creep = self._lags - static
-        undrifted = static + float(creep_gains @ creep)
+        mean = self._filter.mean
+        creep = [lag - static for lag in self._lag_values]
+        undrifted = static + sum(
+            gain * lag for gain, lag in zip(mean[self._creep_gains].tolist(), creep,
+                                            strict=True))
         if virgin_weights is not None:
-            undrifted += float(virgin_weights @ self._filter.mean[self._virgin])
+            k, share = virgin_weights
+            virgin = mean[self._virgin]
+            undrifted += (1.0 - share) * float(virgin[k]) + (
+                share * float(virgin[k + 1]) if share != 0.0 and k + 1 < virgin.size else 0.0)
         predicted = float(drift.correct(undrifted))
         measured_length_m = float(measured_length_m)
         if (self._learning or self._drifting) and math.isfinite(measured_length_m):
@@ -743,9 +753,9 @@ class OnlineModel:
                         gain=drift.gain, dt=dt, virgin_weights=virgin_weights)
         return Prediction(predicted, branch, static, drift.offset_m, drift.gain)
 
-    def _advance_travel(self, pressure_pa: float) -> np.ndarray | None:
-        """Advance the pressure travelled since start; the virgin term's interpolation
-        weights there, or None once it has ended."""
+    def _advance_travel(self, pressure_pa: float) -> tuple[int, float] | None:
+        """Advance the pressure travelled since start; the virgin term's knot interval and
+        share there (virgin_knot_weights' two weights), or None once it has ended."""
         if self._virgin is None:
             return None
         half_width = 0.5 * self.deadband_pa
@@ -757,30 +767,33 @@ class OnlineModel:
         if self._travel_pa >= VIRGIN_END_PA:
             self._end_virgin_term()
             return None
-        return virgin_knot_weights(self._travel_pa)
+        return _virgin_knot_share(self._travel_pa)
 
     def _advance_lags(self, static: float, t_s: float | None) -> float:
         """Move the creep lags to this sample's time; returns the step [s] (0 if unknown)."""
-        if self._lags is None or t_s is None or self._time is None:
+        if self._lag_values is None or t_s is None or self._time is None:
             dt = 0.0
-            if self._lags is None:
-                self._lags = np.full(len(CREEP_TIME_CONSTANTS_S), static)
+            if self._lag_values is None:
+                self._lag_values = [static] * len(CREEP_TIME_CONSTANTS_S)
         else:
             dt = elapsed_s(self._time, t_s)
         if dt > 0.0:
-            # Exact for a static length that moves linearly over the step.
+            # Exact for a static length that moves linearly over the step. Two floats: math,
+            # not numpy, whose per-call cost was most of this.
             slope = (static - self._static) / dt
-            taus = np.array(CREEP_TIME_CONSTANTS_S)
-            decay = np.exp(-dt / taus)
-            self._lags = static - slope * taus + (self._lags - self._static + slope * taus) * decay
+            before = self._static
+            self._lag_values = [static - slope * tau + (lag - before + slope * tau)
+                                * math.exp(-dt / tau)
+                                for tau, lag in zip(CREEP_TIME_CONSTANTS_S, self._lag_values,
+                                                    strict=True)]
         if t_s is not None:
             self._time = float(t_s)
         self._static = static
         return dt
 
-    def _learn(self, residual: float, *, creep: np.ndarray, undrifted: float,
+    def _learn(self, residual: float, *, creep: list[float], undrifted: float,
                shape_difference: float, confidence: float, gain: float, dt: float,
-               virgin_weights: np.ndarray | None) -> None:
+               virgin_weights: tuple[int, float] | None) -> None:
         state = self._filter
         if abs(residual) > self.adaptation.outlier_m:
             state.rejected += 1
@@ -794,40 +807,69 @@ class OnlineModel:
         # the other branch (the branch's own weights at this pressure, used until
         # 2026-11-26, had the difference's sign wrong just after a reversal: docs/model.md §5).
         gradient = self.model.length_gradient(knot_sensitivity)
-        increasing, decreasing = gradient[:knots], gradient[knots:2 * knots]
-        regressor = np.concatenate([
-            gain * (increasing + decreasing),
-            (0.5 * gain) * (increasing - decreasing),
-            gain * creep,
-            () if virgin_weights is None else gain * virgin_weights,
-            [1.0, undrifted - self.reference_length_m]])
+        size = state.mean.size
+        regressor = np.empty(size)
+        # gain * (increasing + decreasing), (gain / 2) * (increasing - decreasing), filled in
+        # place (numpy's per-call cost is most of a step's: as few calls as possible).
+        head = regressor[:knots]
+        np.add(gradient[:knots], gradient[knots:2 * knots], out=head)
+        head *= gain
+        difference = regressor[knots:2 * knots]
+        np.subtract(gradient[:knots], gradient[knots:2 * knots], out=difference)
+        difference *= 0.5 * gain
+        regressor[self._creep_gains] = [gain * lag for lag in creep]
+        if virgin_weights is not None:
+            k, share = virgin_weights
+            virgin = regressor[self._virgin]
+            virgin[:] = 0.0
+            virgin[k] = gain * (1.0 - share)
+            if share != 0.0 and k + 1 < virgin.size:
+                virgin[k + 1] = gain * share
+        regressor[-2], regressor[-1] = 1.0, undrifted - self.reference_length_m
         walk = state.walk_per_s * dt
         if self._drifting:
             # A random walk whose steady Kalman gain remembers about time_constant_s.
             samples = self.adaptation.time_constant_s / max(dt, 1e-3)
-            walk = walk.copy()
             walk[-2] = noise / samples ** 2
             walk[-1] = walk[-2] / GAIN_WALK_LENGTH_M ** 2
         covariance = state.covariance
-        covariance.flat[::covariance.shape[0] + 1] += walk   # the diagonal, in place
+        covariance.flat[::size + 1] += walk   # the diagonal, in place
         spread = covariance @ regressor
         innovation = noise / max(confidence, SPREAD_FLOOR) + float(regressor @ spread)
-        kalman_gain = spread / innovation
-        mean = state.mean + kalman_gain * residual
-        covariance = covariance - kalman_gain[:, None] * spread
-        state.covariance = 0.5 * (covariance + covariance.T)
-        state.mean = mean
+        state.mean = state.mean + spread * (residual / innovation)
+        # The covariance's update as spread spread^T / innovation: symmetric to the last bit
+        # (a product commutes), so it needs no symmetrising afterwards, and in place.
+        update = np.multiply.outer(spread, spread)
+        update /= innovation
+        covariance -= update
         self._project_shape(state)
         mean = state.mean
-        _bound_in_place(mean[knots:2 * knots], MAX_DIFFERENCE_M)
-        _bound_in_place(mean[self._creep_gains], MAX_CREEP_GAIN)
-        if self._virgin is not None:     # as large as a knot's correction may be
-            _bound_in_place(mean[self._virgin], MAX_CORRECTION_M)
-        limits = self.adaptation
-        mean[-2] = min(max(mean[-2], -limits.max_shift_m), limits.max_shift_m)
-        mean[-1] = min(max(mean[-1], limits.min_gain - 1.0), limits.max_gain - 1.0)
+        # Every bound at once (min/max select: the same as bounding each part).
+        low, high = self._state_bounds(size)
+        tail = mean[knots:]
+        np.minimum(np.maximum(tail, low, out=tail), high, out=tail)
         state.samples += 1
         self._commit_if_moved()
+
+    def _state_bounds(self, size: int) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) for the filter's state after the mean correction (difference, creep,
+        the virgin term while it lasts, shift, gain - 1), for a state of `size` values."""
+        cached = self.__dict__.get('_bounds')
+        if cached is not None and cached[0] == size:
+            return cached[1]
+        knots = len(CORRECTION_KNOTS_PA)
+        limits = self.adaptation
+        low = [-MAX_DIFFERENCE_M] * knots + [-MAX_CREEP_GAIN] * len(CREEP_TIME_CONSTANTS_S)
+        high = [MAX_DIFFERENCE_M] * knots + [MAX_CREEP_GAIN] * len(CREEP_TIME_CONSTANTS_S)
+        if self._virgin is not None:     # as large as a knot's correction may be
+            virgins = len(VIRGIN_TRAVEL_KNOTS_PA)
+            low += [-MAX_CORRECTION_M] * virgins
+            high += [MAX_CORRECTION_M] * virgins
+        low += [-limits.max_shift_m, limits.min_gain - 1.0]
+        high += [limits.max_shift_m, limits.max_gain - 1.0]
+        bounds = (np.array(low), np.array(high))
+        self._bounds = (size, bounds)
+        return bounds
 
     def _project_shape(self, state: _Filter) -> None:
         """Keep the filter's belief a correction the model can use (bounded, monotone).
@@ -837,9 +879,9 @@ class OnlineModel:
         on); the mean is moved back inside, the covariance is left alone.
         """
         knots = len(CORRECTION_KNOTS_PA)
-        shape = state.mean[:knots]
+        shape = state.mean[:knots].tolist()
         projected = self._monotone(shape)
-        if projected != tuple(shape.tolist()):   # usually equal: compared as plain floats
+        if projected != tuple(shape):   # usually equal: compared as plain floats
             state.mean[:knots] = projected
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
@@ -964,7 +1006,8 @@ class OnlineModel:
         self.model.resume_from(other.model)
         if self._doubt is not None and self._doubt is not self.model:
             self._doubt.resume_from(other._doubt if other._doubt is not None else other.model)
-        self._lags, self._time, self._static = other._lags, other._time, other._static
+        self._lag_values = None if other._lag_values is None else list(other._lag_values)
+        self._time, self._static = other._time, other._static
         # How far the muscle has travelled is its history too (what the old model learned of
         # a virgin term is not carried over: it lasts one loading).
         self._travel_pa, self._play_pa = other._travel_pa, other._play_pa
@@ -976,6 +1019,17 @@ def _bound_in_place(values: np.ndarray, limit: float) -> None:
     """Clamp a view of the filter's state to +/-limit. np.minimum/maximum: the same bounds
     as np.clip, at a third of its cost per call (every sample runs this)."""
     np.minimum(np.maximum(values, -limit, out=values), limit, out=values)
+
+
+_VIRGIN_KNOTS = (*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA)
+
+
+def _virgin_knot_share(travel_pa: float) -> tuple[int, float]:
+    """(k, share): virgin_knot_weights' two nonzero weights are 1 - share at knot k and
+    share at k + 1 (k + 1 may be VIRGIN_END_PA's, which is not in the state). travel_pa is
+    within 0..VIRGIN_END_PA."""
+    k = bisect.bisect_right(_VIRGIN_KNOTS, travel_pa) - 1
+    return k, (travel_pa - _VIRGIN_KNOTS[k]) / (_VIRGIN_KNOTS[k + 1] - _VIRGIN_KNOTS[k])
 
 
 def virgin_knot_weights(travel_pa: float) -> np.ndarray:
