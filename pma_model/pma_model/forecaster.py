@@ -155,13 +155,22 @@ class RuleMix:
         return replace(identify.learned().with_play_rule_learned(play.learned()),
                        play_rule_excess_loss_m2s=float(play_loss - identify_loss))
 
+    def _weights_floats(self) -> list[float]:
+        """`weights` as plain floats (the step's: numpy's per-call cost on two values was
+        most of the mixing)."""
+        losses = self.losses_m2s.tolist()
+        least = min(losses)
+        weights = [math.exp(-(loss - least) / self.temperature_m2s) for loss in losses]
+        total = sum(weights)
+        return [weight / total for weight in weights]
+
     def step(self, pressure_pa: float, measured_length_m: float = math.nan,
              t_s: float | None = None) -> Prediction:
         """Every rule predicts and learns; the weights learn from the predictions."""
-        weights = self.weights
+        weights = self._weights_floats()
         previous_s = self.experts[0]._time     # the rules' clock, before they advance it
         predictions = [e.step(pressure_pa, measured_length_m, t_s) for e in self.experts]
-        lengths = np.array([p.length_m for p in predictions])
+        lengths = [p.length_m for p in predictions]
         first = predictions[0]
         self.last_predictions = predictions
         if not math.isfinite(float(pressure_pa)):
@@ -171,20 +180,26 @@ class RuleMix:
         if self.learning and math.isfinite(measured) and dt > 0.0:
             # Outliers are capped at the limit the rules reject them at.
             cap = min(e.adaptation.outlier_m for e in self.experts)
-            errors = np.abs(lengths - measured)
-            if np.any(errors <= cap):    # one every rule rejects says nothing about them
-                self.losses_m2s = self.losses_m2s * math.exp(-dt / self.time_constant_s) + \
-                    np.minimum(errors, cap) ** 2 * dt
+            errors = [abs(length - measured) for length in lengths]
+            if any(error <= cap for error in errors):   # one every rule rejects: says nothing
+                forget = math.exp(-dt / self.time_constant_s)
+                self.losses_m2s = np.array([
+                    loss * forget + min(error, cap) ** 2 * dt
+                    for loss, error in zip(self.losses_m2s.tolist(), errors, strict=True)])
         local = self.local.advance(float(pressure_pa))
-        mixed = float(weights @ lengths)
+
+        def mixed_of(values) -> float:
+            return sum(w * v for w, v in zip(weights, values, strict=True))
+
+        mixed = mixed_of(lengths)
         if self.learning and self.local_offset and math.isfinite(measured):
             self.local.learn(measured, mixed)
         # Built directly: dataclasses.replace costs as much as the mixing.
         return Prediction(
             length_m=mixed + local, branch=first.branch,
-            static_length_m=float(weights @ [p.static_length_m for p in predictions]),
-            offset_m=float(weights @ [p.offset_m for p in predictions]),
-            gain=float(weights @ [p.gain for p in predictions]), local_offset_m=local)
+            static_length_m=mixed_of([p.static_length_m for p in predictions]),
+            offset_m=mixed_of([p.offset_m for p in predictions]),
+            gain=mixed_of([p.gain for p in predictions]), local_offset_m=local)
 
     # --- inverse --------------------------------------------------------------------
 

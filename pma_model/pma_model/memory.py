@@ -319,6 +319,10 @@ class HysteresisModel:
     def reset(self) -> None:
         """Back to rest: 0 Pa, increasing major branch, no turning points."""
         self._detector.reset()
+        self._reset_memory()
+
+    def _reset_memory(self) -> None:
+        """reset() but the detector's."""
         self._p = 0.0
         self._l = float(self.increasing.length(0.0))
         self._rising = True
@@ -350,13 +354,14 @@ class HysteresisModel:
         """
         old = copy.copy(self)
         old._stack = list(self._stack)
-        old._detector = copy.copy(self._detector)
         self.increasing, self.decreasing = increasing, decreasing
         if play_shares is not None:
             self.play_shares = _checked_shares(play_shares)
         if share_slopes is not None:
             self.share_slopes = _checked_slopes(share_slopes)
-        self.resume_from(old)
+        # The detector stays as it is (resume_from would reset it and then take back what
+        # it had): only the memory's state is rebuilt.
+        self._resume_memory(old)
 
     def resume_from(self, other: HysteresisModel) -> None:
         """Take over another model's state, recomputed with this model's branches.
@@ -366,8 +371,14 @@ class HysteresisModel:
         A parameter change at run time thus keeps the muscle's history instead of
         pretending it is at rest.
         """
-        self.reset()
-        for p_pa, _ in other.turning_points:
+        self._detector.reset()
+        self._resume_memory(other)
+        self._detector.resume_from(other._detector)
+
+    def _resume_memory(self, other: HysteresisModel) -> None:
+        """resume_from's memory part: everything but the detector."""
+        self._reset_memory()
+        for p_pa, _ in other._stack:
             self._step_madelung(p_pa)
         self._step_madelung(other.pressure_pa)
         if self.memory == 'switch':
@@ -382,7 +393,6 @@ class HysteresisModel:
             # Moved onto a branch by the new band: that branch is what it depends on now.
             self._play_source = (other._play_source if low < other.length_m < high
                                  else (other.length_m >= high, self._p))
-        self._detector.resume_from(other._detector)
 
     @property
     def deadband_pa(self) -> float:
