@@ -300,14 +300,15 @@ def _base_point(branch: Branch, p_pa: float) -> tuple[float, int, float]:
     on the base branch, so shared by every corrected branch over it: a commit makes new
     corrected branches and its replay asks for the same turning pressures again, and a
     sample's pressure is asked for by the length, the two shapes and the regressor."""
-    points = branch.__dict__.get('_points')
-    if points is None:
-        points = {}
-        object.__setattr__(branch, '_points', points)   # a memo, not a field (frozen)
+    memo = branch.__dict__.get('_points')
+    if memo is None:   # a memo, not a field (frozen); with the knots' lengths (no hashing)
+        memo = ({}, _lengths_at_knots(branch))
+        object.__setattr__(branch, '_points', memo)
+    points = memo[0]
     point = points.get(p_pa)
     if point is None:
         base = float(branch.length(p_pa))
-        point = (base, *_knot_share(p_pa, base, _lengths_at_knots(branch)))
+        point = (base, *_knot_share(p_pa, base, memo[1]))
         if len(points) >= _MAX_BASE_POINTS:   # a long noisy run: start again
             points.clear()
         points[p_pa] = point
