@@ -630,6 +630,10 @@ def same_node(launched: dict, started: dict, read_files: bool) -> None:
      {'refit_params_file': '/tmp/refit.yaml', 'driver_params_file': '/tmp/rig.yaml',
       'model_params_file': '/tmp/model.yaml', 'control_params_file': '/tmp/control.yaml',
       'record': 'true', 'bag_dir': '/tmp/b', 'recorder_params_file': '/tmp/record.yaml'}),
+    (('--record', '/tmp/b', '--muscle', 'm2', '--load-kg', '1.5', '--supply-kpa', '600',
+      '--operator', 'ada', '--note', 'new sleeve'),
+     {'record': 'true', 'bag_dir': '/tmp/b', 'muscle': 'm2', 'load_kg': '1.5',
+      'supply_kpa': '600', 'operator': 'ada', 'note': 'new sleeve'}),
 ])
 def test_pma_up_starts_what_the_launch_file_starts(stand_ins, flags, arguments):
     """The same options give the same processes, names, namespaces, arguments, parameters
@@ -641,3 +645,9 @@ def test_pma_up_starts_what_the_launch_file_starts(stand_ins, flags, arguments):
     read_files = '--driver-params' not in flags
     for launched_node, started in zip(launched.nodes, nodes, strict=True):
         same_node(launched_node, started, read_files)
+
+
+def test_the_launch_file_declares_every_experiment_argument_the_recorder_takes(stand_ins):
+    """Its literal declarations (the docs tests read them) are pma_common.experiment's."""
+    from pma_common.experiment import RECORDER_ARGUMENTS
+    assert set(RECORDER_ARGUMENTS) <= set(launch('bringup').arguments)

@@ -18,8 +18,10 @@ import subprocess
 from collections import Counter
 
 import pytest
+import yaml
 from rosbags.highlevel import AnyReader
 
+from pma_common import experiment
 from pma_driver.sim.families import muscle_family
 from support.procs import INSTALL
 
@@ -60,7 +62,8 @@ def test_steps_5_7_and_9_in_order_give_the_rest_length_and_one_sweep(module_proc
     assert 'reached' in out, out
     # Step 7: the quick staircase, recorded (the guide's exact command, bag under tmp_path).
     sweep = run(PMA, 'sweep', '--max', '500kPa', '--step', '100kPa', '--hold', '1s',
-                '--record', 'runs/sweep1', cwd=tmp_path, timeout=120)
+                '--record', 'runs/sweep1', '--muscle', 'm1', '--load-kg', '0', '--supply-kpa',
+                '600', '--operator', 'me', cwd=tmp_path, timeout=120)
     assert 'sweep succeeded' in sweep.stdout, sweep.stdout + sweep.stderr
     assert 'venting to rest: ' in sweep.stderr, sweep.stderr
     bag = tmp_path / 'runs' / 'sweep1'
@@ -74,6 +77,11 @@ def test_steps_5_7_and_9_in_order_give_the_rest_length_and_one_sweep(module_proc
         first_state = next(reader.deserialize(data, conn.msgtype) for conn, _, data in
                            reader.messages(connections=[c for c in reader.connections
                                                         if c.topic == '/pma/state']))
+    custom = yaml.safe_load((bag / 'metadata.yaml').read_text())[
+        'rosbag2_bagfile_information']['custom_data']          # the methods section's facts
+    assert {key: custom.get(key) for key in experiment.KEYS} == {
+        'experiment.muscle': 'm1', 'experiment.load_kg': '0.0',
+        'experiment.supply_gauge_pressure_pa': '600000.0', 'experiment.operator': 'me'}
     kinds = [r.kind for r in records]
     assert kinds == [0] + [1] * 11 + [2], kinds            # START, 11 LEVELs, END
     start, *levels, end = records
@@ -90,7 +98,8 @@ def test_steps_5_7_and_9_in_order_give_the_rest_length_and_one_sweep(module_proc
 
     # Step 9: refit (its L0 is the length at the lowest rising level: the rest length).
     report_path = tmp_path / 'refit.json'
-    run(REFIT, bag, '--json', report_path, '--no-holdout', cwd=tmp_path, timeout=120)
+    refit = run(REFIT, bag, '--json', report_path, '--no-holdout', cwd=tmp_path, timeout=120)
+    assert '  muscle m1, load 0 kg, supply 600 kPa, operator me' in refit.stdout, refit.stdout
     report = json.loads(report_path.read_text())
     l0_m = report['data']['rest_length_cm'] / 100.0
     rest_m = muscle_family().rest_length_m
@@ -99,3 +108,4 @@ def test_steps_5_7_and_9_in_order_give_the_rest_length_and_one_sweep(module_proc
     info = run(INFO, bag, cwd=tmp_path).stdout
     assert '  sweeps:         1 (1 succeeded; from /pma/sweep_record)' in info, info
     assert '  levels:         11 (1 at rest, 5 rising, 5 falling), all settled' in info, info
+    assert 'experiment.muscle: m1' in info and 'experiment.operator: me' in info, info

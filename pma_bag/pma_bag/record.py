@@ -50,6 +50,7 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagError, BagWriteError, BagWriter
 from pma_bag.recover import main as recover_main
+from pma_common import experiment
 from pma_common.commands import run_command
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped, without_ros_args
@@ -770,6 +771,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
                         help='split into files of at most S seconds (0: no split)')
     parser.add_argument('--note', help='free operator note, stored in metadata.yaml '
                                        'custom_data["note"]')
+    experiment.add_arguments(parser)
     parser.add_argument('--custom', nargs='+', type=key_value, default=[],
                         metavar='KEY=VALUE', help='more custom_data entries (rig=..., '
                                                   'muscle=..., calibration=...)')
@@ -785,6 +787,10 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.idle and args.output:
         parser.error('--idle opens no bag: give the path in the ~/start request instead')
+    try:
+        experiment.from_arguments(args)
+    except experiment.ExperimentError as error:
+        parser.error(str(error))
     if not math.isfinite(args.max_bag_duration):
         parser.error(f'--max-bag-duration must be a finite number, got {args.max_bag_duration}')
     if args.max_bag_size < 0 or args.max_bag_duration < 0 or args.queue_depth < 1:
@@ -801,7 +807,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.recover is not None:
         return recover_main([str(args.recover)]
                             + (['-o', str(args.output)] if args.output else []))
-    custom = dict(args.custom)
+    custom = {**dict(args.custom), **experiment.from_arguments(args)}
     if args.note:
         custom['note'] = args.note
     options = RecordOptions(queue_depth=args.queue_depth, fsync=args.fsync,

@@ -36,7 +36,14 @@ from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackagePrefix, FindPackageShare
 from lifecycle_msgs.msg import Transition
 
-from pma_bringup.node_set import DEFAULT_PARAMS_FILES, DEVICE_PORT, LIVE_PORT, Options, node_set
+from pma_bringup.node_set import (
+    DEFAULT_PARAMS_FILES,
+    DEVICE_PORT,
+    LIVE_PORT,
+    RECORDER_ARGUMENTS,
+    Options,
+    node_set,
+)
 
 
 def _parameters(spec) -> list:
@@ -85,6 +92,10 @@ def _bringup(context):
 def _default_params(option: str):
     package, relative = DEFAULT_PARAMS_FILES[option]
     return PathJoinSubstitution([FindPackageShare(package), *relative.split('/')])
+
+
+def _recorder_help(name: str) -> str:
+    return f"record: {RECORDER_ARGUMENTS[name]}; into every bag's custom_data"
 
 
 def generate_launch_description():
@@ -146,5 +157,16 @@ def generate_launch_description():
             'recorder_params_file',
             default_value=_default_params('recorder_params_file'),
             description='recorder parameters (the topic list)'),
+        # With record: the experiment's facts in every bag's custom_data (docs/bags.md):
+        # pma_common.experiment.RECORDER_ARGUMENTS, which test_launch_files holds these to.
+        DeclareLaunchArgument('muscle', default_value='',
+                              description=_recorder_help('muscle')),
+        DeclareLaunchArgument('load_kg', default_value='',
+                              description=_recorder_help('load_kg')),
+        DeclareLaunchArgument('supply_kpa', default_value='',
+                              description=_recorder_help('supply_kpa')),
+        DeclareLaunchArgument('operator', default_value='',
+                              description=_recorder_help('operator')),
+        DeclareLaunchArgument('note', default_value='', description=_recorder_help('note')),
         OpaqueFunction(function=_bringup),
     ])

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field, fields
 from datetime import datetime
 from pathlib import Path
 
+from pma_common.experiment import RECORDER_ARGUMENTS, recorder_flags
+
 DEVICE_PORT = '/dev/ttyACM0'
 LIVE_HOST = '127.0.0.1'
 LIVE_PORT = 8765
@@ -98,6 +100,9 @@ class Options:
     refit_params_file: str = ''
     control_params_file: str = ''
     recorder_params_file: str = ''
+    # The experiment's facts for the recorder's bags, by launch argument name
+    # (pma_common.experiment.RECORDER_ARGUMENTS: muscle, load_kg, ..., note).
+    experiment: Mapping[str, str] = field(default_factory=dict)
     # Not launch arguments of bringup.launch.py: the values its nodes always got.
     control_mode: str = 'ff_fb'
     use_sim_time: bool = False
@@ -107,15 +112,19 @@ class Options:
         """Options from launch arguments as strings (`use_fake_arduino: 'true'`, ...); names
         that are not options (launch's own) are left out."""
         kinds = {f.name: f.type for f in fields(cls)}
-        values = {}
+        values, experiment = {}, {}
         for name, text in arguments.items():
+            if name in RECORDER_ARGUMENTS:
+                if text:
+                    experiment[name] = str(text)
+                continue
             key = LAUNCH_NAMES.get(name, name)
             if key not in kinds:
                 continue
             kind = kinds[key]
             values[key] = (flag(text) if kind == 'bool' else live_port(text)
                            if key == 'live_port' else str(text))
-        return cls(**values)
+        return cls(**values, experiment=experiment)
 
     def resolved_port(self) -> str:
         return self.port or default_port(self.namespace, self.simulated)
@@ -207,7 +216,8 @@ def node_set(options: Options, share: Callable[[str], str] = package_share) -> l
     if options.record:
         specs.append(NodeSpec(
             name='recorder', package='pma_bag', executable='record', namespace=namespace,
-            arguments=('-o', options.bag_dir or default_bag_dir(namespace)),
+            arguments=('-o', options.bag_dir or default_bag_dir(namespace),
+                       *recorder_flags(options.experiment)),
             params_files=(options.params_file('recorder_params_file', share),)))
     if options.live:
         specs.append(NodeSpec(

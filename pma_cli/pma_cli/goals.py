@@ -27,6 +27,7 @@ import time
 from collections.abc import Callable
 
 from action_msgs.msg import GoalStatus
+from diagnostic_msgs.msg import KeyValue
 from rclpy.action import ActionClient
 
 from pma_cli import quantities as q
@@ -42,6 +43,7 @@ from pma_cli.session import (
     Interrupted,
     Session,
 )
+from pma_common import experiment
 from pma_common.action import ServerWatch
 from pma_driver.sweep import (
     STREAMED_PROFILES,
@@ -249,6 +251,14 @@ def sweep_goal(args) -> Sweep.Goal:
     # The recorder resolves a relative path against its own working directory: send the one
     # the user meant, relative to where they typed it.
     bag_path = os.path.abspath(args.record) if args.record else ''
+    try:
+        custom_data = experiment.from_arguments(args)
+    except experiment.ExperimentError as error:
+        raise CliError(str(error), USAGE) from None
+    if custom_data and args.record is None:
+        flags = ', '.join(f.flag for f in experiment.FIELDS if f.key in custom_data)
+        raise CliError(f'{flags}: the experiment\'s facts go into the sweep\'s bag; add '
+                       '--record', USAGE)
     return Sweep.Goal(
         profile=args.profile, max_gauge_pressure_pa=args.max_pa, step_pa=args.step_pa,
         hold_s=hold_s, cycles=args.cycles, rest_s=args.rest_s,
@@ -257,7 +267,8 @@ def sweep_goal(args) -> Sweep.Goal:
         sine_frequency_hz=args.frequency_hz, profile_time_s=times,
         profile_pressure_pa=pressures, forc_count=args.forc_count,
         forc_family=args.forc_family, record=args.record is not None, bag_path=bag_path,
-        note=args.note, start_pressurised=args.start_pressurised)
+        note=args.note, start_pressurised=args.start_pressurised,
+        custom_data=[KeyValue(key=key, value=value) for key, value in custom_data.items()])
 
 
 # The flag of `pma sweep` behind each goal field, for a refusal that names the field.

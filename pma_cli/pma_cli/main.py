@@ -18,6 +18,7 @@ from pathlib import Path
 
 from pma_cli import quantities as q
 from pma_cli.session import FAILED, INTERRUPTED, USAGE, CliError, Interrupted, namespace_of
+from pma_common import experiment
 from pma_common.console import closed_pipe_ends_quietly
 from pma_driver.sweep import FORC_FAMILIES, PROFILES
 from pma_interfaces.action import Sweep
@@ -266,6 +267,7 @@ def parser() -> argparse.ArgumentParser:
                    help='record the run to its own bag (a relative path is taken from here; '
                         'no path = auto-named); needs a recorder: pma run pma_bag record --idle')
     p.add_argument('--note', default='', help="operator's note for the bag's metadata")
+    experiment.add_arguments(p)
     p.add_argument('--start-pressurised', action='store_true',
                    help='start from the pressure the muscle has, without venting and waiting '
                         'for rest first (the first level may then be on the falling branch)')

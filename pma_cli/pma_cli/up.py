@@ -30,6 +30,7 @@ from pathlib import Path
 
 from pma_bringup.node_set import LIVE_HOST, LIVE_PORT, NodeSpec, Options, node_set, stop_order
 from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted
+from pma_common import experiment
 
 READY_TIMEOUT_S = 30.0
 # Per process: how long each signal is given before the next (the driver vents on SIGINT).
@@ -62,6 +63,8 @@ def add_arguments(p: argparse.ArgumentParser, quantity) -> None:
                        help=f'{node} parameters file (default: its package\'s config/)')
     p.add_argument('--refit-params', type=Path, metavar='FILE',
                    help='a refit --params-out file for model_node (hot-reloaded)')
+    experiment.add_arguments(p)
+    p.add_argument('--note', default='', help='with --record: a free note for every bag')
     p.add_argument('--runs-dir', type=Path, default=Path('runs'),
                    help='where the run directory with the logs goes (default ./runs)')
     p.add_argument('--wait', type=quantity, default=READY_TIMEOUT_S, metavar='TIME',
@@ -84,7 +87,8 @@ def options_from_args(args) -> Options:
         model_params_file=_absolute(args.model_params),
         control_params_file=_absolute(args.control_params),
         recorder_params_file=_absolute(args.recorder_params),
-        refit_params_file=_absolute(args.refit_params))
+        refit_params_file=_absolute(args.refit_params),
+        experiment={**experiment.typed(args), 'note': args.note})
 
 
 def command(spec: NodeSpec) -> list[str]:
@@ -311,6 +315,7 @@ def main(args) -> int:
     stop = stop_request()
     options = options_from_args(args)
     try:
+        experiment.from_arguments(args)         # a --load-kg that is no number, ...
         planned = commands(options)
     except ValueError as error:                         # a live port outside 0..65535
         print(f'pma up: {error}', file=sys.stderr)

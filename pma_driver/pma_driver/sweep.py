@@ -30,8 +30,8 @@ import bisect
 import csv
 import itertools
 import math
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, fields
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 MAX_STEPS = 10_000  # a plan longer than this is a typo (step_pa of 1 Pa), not an experiment
@@ -87,6 +87,7 @@ class SweepGoal:
     forc_count: int = 0
     forc_family: str = ''
     start_pressurised: bool = False   # no vent and wait for rest before the first level
+    custom_data: Mapping[str, str] = field(default_factory=dict)   # more bag metadata
 
     @property
     def profile_name(self) -> str:
@@ -94,8 +95,14 @@ class SweepGoal:
 
     @classmethod
     def of(cls, goal) -> SweepGoal:
-        """The fields of any object that has them by name (a `Sweep.Goal` message)."""
-        return cls(**{field.name: getattr(goal, field.name) for field in fields(cls)})
+        """The fields of any object that has them by name (a `Sweep.Goal` message, whose
+        custom_data is a list of KeyValue)."""
+        values = {item.name: getattr(goal, item.name) for item in fields(cls)
+                  if item.name != 'custom_data'}
+        entries = getattr(goal, 'custom_data', ())
+        values['custom_data'] = (dict(entries) if isinstance(entries, Mapping)
+                                 else {kv.key: kv.value for kv in entries})
+        return cls(**values)
 
 
 @dataclass(frozen=True)
@@ -313,8 +320,8 @@ def _is_default(value) -> bool:
 
 def _check_unused_fields(goal: SweepGoal, profile: str) -> None:
     uses = PROFILE_FIELDS[profile]
-    for field in fields(SweepGoal):
-        name = field.name
+    for item in fields(SweepGoal):
+        name = item.name
         if name in uses or not any(name in used for used in PROFILE_FIELDS.values()):
             continue
         if not _is_default(getattr(goal, name)):

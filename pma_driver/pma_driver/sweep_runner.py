@@ -209,7 +209,7 @@ def recording_metadata(goal: SweepGoal, plan: SweepPlan | StreamPlan, hello: Hel
                        calibration: Mapping[str, float]) -> dict[str, str]:
     """The bag's custom_data: what was asked, of which device, read with which calibration."""
     profile = goal.profile_name
-    data = {'note': goal.note, 'sweep.profile': profile}
+    data = {**goal.custom_data, 'note': goal.note, 'sweep.profile': profile}
     for name in (*PROFILE_FIELDS[profile], 'rest_s'):
         data[f'sweep.{name}'] = _metadata_value(getattr(goal, name))
     data['sweep.cycles'] = str(goal.cycles)

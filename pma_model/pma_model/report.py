@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pma_common import experiment
 from pma_model import checks, units
 from pma_model.boucwen import BoucWenFit, fit_bouc_wen, minor_loop_drift
 from pma_model.branches import Branch, HillBranch, SigmoidBranch
@@ -629,6 +630,10 @@ def format_summary(report: dict) -> str:
              f"{data['n_increasing']} increasing + {data['n_decreasing']} decreasing {what}, "
              f"0-{data['max_pressure_kpa']:.0f} kPa, stroke {data['stroke_cm']:.2f} cm, "
              f"L0 {data['rest_length_cm']:.2f} cm"]
+    facts = experiment.summary(report.get('custom_data', {}))
+    note = report.get('custom_data', {}).get('note')
+    if facts or note:
+        lines.append('  ' + '; '.join(text for text in (facts, note and f'note: {note}') if text))
     if data.get('truncated'):
         lines.append(f"  only the samples before the damage: the bag is truncated "
                      f"({data['truncated']})")
