@@ -430,8 +430,12 @@ def monotone_correction(offsets, caps) -> tuple[float, ...]:
     low, high = -MAX_CORRECTION_M, MAX_CORRECTION_M
     previous = min(max(values[0], low), high)
     result = [previous]
-    for raw, rise in zip(values[1:], rises, strict=False):   # rises: one per interval
-        previous = min(max(raw, low), high, previous + rise)   # min/max select: exact
+    # min(max(value, low), high, previous + rise) as comparisons (they select, so exact; a
+    # builtin call each cost more than the rest of the loop).
+    for value, rise in zip(values[1:], rises, strict=False):   # rises: one per interval
+        cap = previous + rise
+        bounded = low if value < low else (high if value > high else value)
+        previous = cap if bounded > cap else bounded
         result.append(previous)
     return tuple(result)
 
