@@ -30,7 +30,7 @@ DOCUMENTS = ('README.md', 'docs/user-guide.md')
 MARKER = re.compile(r'^<!--\s*docs-test:\s*skip:\s*(?P<reason>.*?)\s*-->\s*$')
 FENCE = re.compile(r'^```(?P<lang>\S*)')
 PORT = Path('/tmp/pma0')        # the documents' simulated device
-TIMEOUT_S = 240.0
+TIMEOUT_S = 420.0   # both documents' runnable blocks, in one shell, on a loaded machine
 
 
 @dataclass(frozen=True)

@@ -338,6 +338,8 @@ class SweepRunner:
                 return self._finish(run, Outcome.ABORTED, f'not started: {error}')
             self.on_event(logging.INFO, f'sweep: recording to {bag_path}')
         # After the bag started (and the recorder's readers were matched): START is in it.
+        # The run's samples are counted from here, as its bag holds them.
+        run.start_count = self.sample_count()
         self._emit(run, SweepRecord(
             RecordKind.START, run.plan.profile, self.now_ns(), started_at_rest=run.started_at_rest,
             start_gauge_pressure_pa=run.start_pa, message=start_note))

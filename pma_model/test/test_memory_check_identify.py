@@ -48,8 +48,10 @@ def recorded_minor_loops(tmp_path, memory: str, **rule):
 
 
 def check_memory(procs, tmp_path, path) -> tuple[dict, str]:
-    """(the report's memory check, refit's output) with --params-out to p.yaml."""
-    code, output = run_refit(procs, PAPER_TABLE, '--no-holdout', '--memory-check', path,
+    """(the report's memory check, refit's --verbose output, where what each rule learned is
+    printed) with --params-out to p.yaml."""
+    code, output = run_refit(procs, PAPER_TABLE, '--no-holdout', '--verbose', '--memory-check',
+                             path,
                              '--json', tmp_path / 'r.json', '--params-out', tmp_path / 'p.yaml',
                              '--model', 'sigmoid_fixed_c')
     assert code == 0, output
