@@ -483,6 +483,19 @@ class BagReader:
                 warnings.warn(message, TruncatedBagWarning, stacklevel=2)
         self._topics = self._collect_topics()
 
+    @classmethod
+    def quietly(cls, path: str | os.PathLike) -> BagReader:
+        """A reader for a tool that reports the damage itself (`damage`), so without the
+        TruncatedBagWarning."""
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', TruncatedBagWarning)
+            return cls(path)
+
+    @property
+    def damage(self) -> str:
+        """'' for a whole bag; else each truncated file's name and what is damaged."""
+        return '; '.join(f'{f.path.name}: {f.damage}' for f in self.files if f.truncated)
+
     def _open_files(self, paths: list[Path]) -> list[_McapFile]:
         files = []
         for index, path in enumerate(paths):

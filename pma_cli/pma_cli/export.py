@@ -14,14 +14,12 @@ import datetime
 import io
 import math
 import sys
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
 from pma_bag import BagError, BagReader
-from pma_bag.reader import TruncatedBagWarning
 from pma_model.samples import STATE_TOPIC, SamplesError, state_topic_in
 
 PREDICTION_TYPE = 'pma_interfaces/msg/PmaPrediction'
@@ -110,13 +108,11 @@ def export_csv(bag: Path, out: Path | None, topic: str = STATE_TOPIC,
     if not bag.exists():
         raise ExportError(f'{bag}: no such bag')
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore', TruncatedBagWarning)
-            reader = BagReader(bag)
+        reader = BagReader.quietly(bag)
     except BagError as error:
         raise ExportError(str(error)) from None
     with reader:
-        truncated = '; '.join(f'{f.path.name}: {f.damage}' for f in reader.files if f.truncated)
+        truncated = reader.damage
         try:
             state_topic = state_topic_in(reader.topics, topic)
         except SamplesError as error:

@@ -22,7 +22,6 @@ thousand points, with a few MB held at any time.
 from __future__ import annotations
 
 import json
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -143,20 +142,17 @@ def read_bag_series(path, topic: str = STATE_TOPIC, buckets: int = STATE_BUCKETS
     from rclpy.serialization import deserialize_message
 
     from pma_bag import BagError, BagReader
-    from pma_bag.reader import TruncatedBagWarning
     from pma_interfaces.msg import ControlState, PmaPrediction, PmaState
 
     path = Path(path)
     if not path.exists():
         raise BagPlotError(f'{path}: no such bag')
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore', TruncatedBagWarning)
-            reader = BagReader(path)
+        reader = BagReader.quietly(path)
     except BagError as error:
         raise BagPlotError(str(error)) from None
     with reader:
-        truncated = '; '.join(f'{f.path.name}: {f.damage}' for f in reader.files if f.truncated)
+        truncated = reader.damage
         try:
             state_topic = state_topic_in(reader.topics, topic)
         except SamplesError as error:
