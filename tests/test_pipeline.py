@@ -133,7 +133,17 @@ def swept(module_procs, probe, tmp_path_factory):
     assert result.success, result.message
     assert result.bag_path == str(bag)
     with live.lock:
-        states = live.states[first_state:]
+        last_state = stamp_ns(live.states[-1])
+
+    def predicted_up_to_the_last_state() -> bool:
+        with live.lock:
+            return any(stamp_ns(p) >= last_state for p in live.predictions[-50:])
+
+    # Every sample must get its prediction, not at once: at a recorded sweep's end they
+    # trailed the states by up to 0.9 s (the bag closing; latency is bench_model_node's).
+    wait_until(predicted_up_to_the_last_state, 10, 'the prediction of the last state')
+    with live.lock:
+        states = [s for s in live.states[first_state:] if stamp_ns(s) <= last_state]
         predictions = list(live.predictions)
     return {'work': work, 'bag': bag, 'states': states, 'predictions': predictions,
             'live': live, 'driver': driver, 'result': result}
