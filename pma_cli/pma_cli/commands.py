@@ -288,9 +288,18 @@ def cancel_all_goals(session: Session, action: str, timeout_s: float = 1.0) -> i
     lost, pma_common.service).
     """
     client = session.node.create_client(CancelGoal, f'{action}/_action/cancel_goal')
+    service = session.resolve(f'{action}/_action/cancel_goal')
+
+    def in_graph() -> bool:
+        return any(name == service for name, _ in session.node.get_service_names_and_types())
+
     try:
-        if not session.spin_until(client.service_is_ready, timeout_s):
+        # A server the graph shows but this client has not matched yet (a loaded machine
+        # takes seconds) is one whose goals may run: it gets CANCEL_ANSWER_S to match.
+        if not session.spin_until(lambda: client.service_is_ready() or in_graph(), timeout_s):
             return 0
+        if not session.spin_until(client.service_is_ready, CANCEL_ANSWER_S):
+            return None
         try:
             response = session.answer(client, CancelGoal.Request(), CANCEL_ANSWER_S,
                                       query=True)
