@@ -1,9 +1,10 @@
 """docs/bags.md's table of custom_data keys is exactly what the code writes.
 
 The keys a sweep's bag gets come from `recording_metadata`, run here on a goal of every
-profile; the recorder's own keys, the experiment's and the demo's are read from where the
-code keeps them. A key written but not documented fails, and so does a documented key that
-nothing writes (the table once named `rig`, `muscle` and `sweep_plan`, which nothing wrote).
+profile, and a recorded move's from `move_metadata`; the recorder's own keys, the
+experiment's and the demo's are read from where the code keeps them. A key written but not
+documented fails, and so does a documented key that nothing writes (the table once named
+`rig`, `muscle` and `sweep_plan`, which nothing wrote).
 tests/test_user_guide_order.py checks the experiment's keys in a bag a real sweep recorded.
 """
 
@@ -15,11 +16,13 @@ import pytest
 
 from pma_bag.info import LOSS_KEYS
 from pma_bag.record import RIG_DIAGNOSTIC_KEYS
+from pma_cli.goals import move_metadata
 from pma_common import experiment
 from pma_driver.parameters import PARAMETERS
 from pma_driver.protocol import Hello
 from pma_driver.sweep import PROFILE_FIELDS, SweepGoal, plan_goal
 from pma_driver.sweep_runner import recording_metadata
+from pma_interfaces.action import MoveToLength
 from support.procs import ROOT
 
 pytestmark = pytest.mark.in_process
@@ -58,6 +61,7 @@ def written_keys() -> set[str]:
         keys |= set(recording_metadata(goal, plan_goal(goal, ceiling_pa=500e3), hello,
                                        calibration))
     keys |= set(experiment.KEYS) | set(RIG_DIAGNOSTIC_KEYS) | set(LOSS_KEYS)
+    keys |= set(move_metadata(MoveToLength.Goal(length_m=0.27), 'a note', {}))
     keys |= {'run_id'} if "'run_id'" in (ROOT / 'pma_bringup' / 'pma_bringup' /
                                          'demo.py').read_text() else set()
     return keys

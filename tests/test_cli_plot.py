@@ -23,9 +23,10 @@ from PIL import Image
 from rclpy.serialization import deserialize_message
 
 from pma_bag import BagReader
-from pma_interfaces.msg import PmaState
+from pma_interfaces.msg import ControlState, PmaState
 from pma_model.bag_plot import RANGES_KEY
 from support.procs import INSTALL
+from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -66,7 +67,14 @@ def rig(module_procs, tmp_path_factory):
     model.wait_for_line('model_node ready', 30)
     recorder.wait_for_line('idle', 30)
     controller.wait_for_line('length_controller ready', 30)
-    return {'work': work, 'procs': module_procs, 'ns': ns}
+    # The controller publishes its state per pma/state sample: it hears the driver (a goal
+    # sent before that aborts at once, on no usable sample).
+    probe = SpinningNode('plot_probe')
+    control, _ = probe.collect(ControlState, f'/{NS}/pma/control_state')
+    wait_until(lambda: len(control) > 0, 30, 'the controller hearing pma/state')
+    yield {'work': work, 'procs': module_procs, 'ns': ns}
+    probe.close()
+    shutdown()
 
 
 def recorded_states(bag: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -218,3 +226,49 @@ def test_a_missing_bag_or_directory_is_one_line(tmp_path):
         and 'no such bag' in missing.stderr and 'Traceback' not in missing.stderr, missing
     nowhere = pma('plot', str(tmp_path), '-o', str(tmp_path / 'no' / 'x.png'))
     assert nowhere.returncode == 2 and 'there is no directory' in nowhere.stderr, nowhere
+
+
+def test_a_recorded_move_carries_the_experiment_and_its_bag_is_finished_after_ctrl_c(rig,
+                                                                                    tmp_path):
+    """`pma move --record` writes the move into its own bag through the idle recorder, with
+    the experiment's facts and the goal in custom_data, shown in `pma_bag info` and on the
+    plot; a Ctrl-C mid-move cancels the goal and still finishes the bag."""
+    flags = ['--muscle', 'm7', '--load-kg', '1.5', '--supply-kpa', '600', '--operator', 'ada',
+             '--note', 'after re-tare']
+    out = ok(pma('move', '27.5cm', '--goal-timeout', '20s', '--record', 'runs/move', *flags,
+                 cwd=tmp_path))
+    bag = tmp_path / 'runs' / 'move'
+    assert f'recording to {bag}' in out and 'move succeeded' in out, out
+    assert f'to {bag}' in out.splitlines()[-1] and 'recorded ' in out.splitlines()[-1], out
+    with BagReader(bag) as reader:
+        data = reader.custom_data
+        topics = {name.rsplit('/', 1)[-1] for name in reader.topics}
+    assert data['experiment.muscle'] == 'm7' and data['experiment.load_kg'] == '1.5'
+    assert data['experiment.supply_gauge_pressure_pa'] == '600000.0'
+    assert data['experiment.operator'] == 'ada' and data['note'] == 'after re-tare'
+    assert float(data['move.length_m']) == pytest.approx(0.275)
+    assert float(data['move.timeout_s']) == 20.0 and float(data['move.settle_s']) == 0.0
+    assert {'state', 'control_state'} <= topics, topics
+    info = subprocess.run([str(INSTALL / 'pma_bag' / 'lib' / 'pma_bag' / 'info'), str(bag)],
+                          capture_output=True, text=True, timeout=60, check=True).stdout
+    assert 'experiment.muscle: m7' in info and 'move.length_m: 0.275' in info, info
+    ok(pma('plot', str(bag)))
+    with Image.open(tmp_path / 'runs' / 'move.png') as image:
+        assert 'experiment.muscle=m7' in image.text['Description']
+
+    # Interrupted: the goal is cancelled and the bag still finished (metadata.yaml written).
+    stopped = tmp_path / 'runs' / 'stopped'
+    move = rig['procs'].ros2_run('pma_cli', 'pma', 'move', '25.5cm', '--settle', '8s',
+                                 '--record', str(stopped), '--muscle', 'm7', '--namespace', NS,
+                                 name='pma_move_recorded')
+    try:
+        move.wait_for_line('moving to', 30)
+        move.signal(signal.SIGINT)                      # what Ctrl-C sends
+        assert move.popen.wait(20) == 130, move.output
+    finally:
+        ok(pma('vent', '--wait'))
+    assert f'to {stopped}' in move.output and 'move cancelled' in move.output, move.output
+    assert (stopped / 'metadata.yaml').is_file()
+    with BagReader(stopped) as reader:
+        assert reader.custom_data['experiment.muscle'] == 'm7'
+        assert reader.message_count > 0

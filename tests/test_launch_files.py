@@ -564,9 +564,8 @@ def test_stand_ins_catch_a_wrong_keyword(stand_ins):
 def up_processes(*flags: str) -> tuple[list[dict], list[list[str]]]:
     """The nodes (as the walker records them) and plain processes `pma up FLAGS` starts,
     read back from the argv it would execute."""
-    from pma_cli.main import parser
-
     from pma_cli import up
+    from pma_cli.main import parser
 
     nodes, processes = [], []
     for spec, argv in up.commands(up.options_from_args(parser().parse_args(['up', *flags]))):

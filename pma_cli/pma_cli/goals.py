@@ -32,6 +32,7 @@ from rclpy.action import ActionClient
 
 from pma_cli import quantities as q
 from pma_cli.commands import CONTROL_TOPIC, holds_target, release_holding_controller
+from pma_cli.recording import Recording
 from pma_cli.session import (
     CANCEL_SEND_S,
     FAILED,
@@ -233,6 +234,22 @@ def _cancel_and_wait(session: Session, handle, result_future, watch: ServerWatch
     return result_future.result()
 
 
+def recorded_facts(args, what: str, note_needs_record: bool = False) -> dict[str, str]:
+    """The experiment's facts the flags give, for the bag `--record` asks for; CliError
+    (USAGE) for a value that cannot be stored, or for facts with no bag to go into."""
+    try:
+        facts = experiment.from_arguments(args)
+    except experiment.ExperimentError as error:
+        raise CliError(str(error), USAGE) from None
+    flags = [f.flag for f in experiment.FIELDS if f.key in facts]
+    if note_needs_record and args.note:
+        flags.append('--note')
+    if flags and args.record is None:
+        raise CliError(f'{", ".join(flags)}: the experiment\'s facts go into the {what}\'s '
+                       'bag; add --record', USAGE)
+    return facts
+
+
 def sweep_goal(args) -> Sweep.Goal:
     """The Sweep goal `pma sweep`'s flags describe.
 
@@ -251,14 +268,7 @@ def sweep_goal(args) -> Sweep.Goal:
     # The recorder resolves a relative path against its own working directory: send the one
     # the user meant, relative to where they typed it.
     bag_path = os.path.abspath(args.record) if args.record else ''
-    try:
-        custom_data = experiment.from_arguments(args)
-    except experiment.ExperimentError as error:
-        raise CliError(str(error), USAGE) from None
-    if custom_data and args.record is None:
-        flags = ', '.join(f.flag for f in experiment.FIELDS if f.key in custom_data)
-        raise CliError(f'{flags}: the experiment\'s facts go into the sweep\'s bag; add '
-                       '--record', USAGE)
+    custom_data = recorded_facts(args, 'sweep')
     return Sweep.Goal(
         profile=args.profile, max_gauge_pressure_pa=args.max_pa, step_pa=args.step_pa,
         hold_s=hold_s, cycles=args.cycles, rest_s=args.rest_s,
@@ -383,15 +393,42 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     return OK if result.success else FAILED
 
 
+MOVE_GOAL_FIELDS = ('length_m', 'tolerance_m', 'settle_s', 'timeout_s')
+
+
+def move_metadata(goal: MoveToLength.Goal, note: str,
+                  facts: dict[str, str]) -> dict[str, str]:
+    """A recorded move's custom_data: the experiment's facts, the note, and the goal as sent
+    (`move.<field>`; 0 is the action's default, as in the goal)."""
+    return {**facts, 'note': note,
+            **{f'move.{name}': repr(float(getattr(goal, name))) for name in MOVE_GOAL_FIELDS}}
+
+
 def move(session: Session, *, length_m: float, tolerance_m: float, settle_s: float,
-         goal_timeout_s: float, timeout_s: float, unit: str = 'cm') -> int:
+         goal_timeout_s: float, timeout_s: float, unit: str = 'cm', record: str | None = None,
+         note: str = '', facts: dict[str, str] | None = None) -> int:
     """Move to `length_m` and hold it; lengths are printed in `unit` (the user's).
 
     `moving to ...` is said once the controller follows the goal (its first feedback): a
     target it cannot reach is refused at once, with the reachable range, and no move began.
+    With `record` (a bag path, '' = auto-named) a running recorder writes the move, from
+    before the goal is sent to its result, into a bag of its own.
     """
     goal = MoveToLength.Goal(length_m=length_m, tolerance_m=tolerance_m, settle_s=settle_s,
                              timeout_s=goal_timeout_s)
+    recording = None
+    if record is not None:
+        recording = Recording(session, record, move_metadata(goal, note, facts or {}),
+                              timeout_s)
+    try:
+        return _move(session, goal, timeout_s=timeout_s, unit=unit)
+    finally:
+        if recording is not None:
+            recording.finish()
+
+
+def _move(session: Session, goal: MoveToLength.Goal, *, timeout_s: float, unit: str) -> int:
+    length_m, goal_timeout_s = goal.length_m, goal.timeout_s
     progress = Progress()
     started = time.monotonic()
     limit = goal_timeout_s or MOVE_DEFAULT_TIMEOUT_S

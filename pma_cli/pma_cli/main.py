@@ -286,6 +286,11 @@ def parser() -> argparse.ArgumentParser:
                    help='for this long (default: the action\'s 1s)')
     p.add_argument('--goal-timeout', type=_quantity('time'), default=0.0,
                    help='abort if not settled by then (default: the action\'s 30s)')
+    p.add_argument('--record', nargs='?', const='', metavar='BAG',
+                   help='record the move to its own bag (a relative path is taken from here; '
+                        'no path = auto-named); needs a recorder: pma run pma_bag record --idle')
+    p.add_argument('--note', default='', help="operator's note for the bag's metadata")
+    experiment.add_arguments(p)
     p = verb('param', "get, set or list a node's parameters (what `ros2 param` does)")
     p.add_argument('action', choices=('get', 'set', 'list'))
     p.add_argument('node', type=_rcl_name('ROS node name', _check_node),
@@ -392,7 +397,8 @@ def dispatch(args, session) -> int:
     if args.verb == 'move':
         return goals.move(session, length_m=float(args.length), tolerance_m=args.tolerance,
                           settle_s=args.settle, goal_timeout_s=args.goal_timeout,
-                          timeout_s=args.timeout, unit=q.length_unit(args.length))
+                          timeout_s=args.timeout, unit=q.length_unit(args.length),
+                          record=args.record, note=args.note, facts=args.facts)
     if args.verb == 'param':
         if args.action in ('get', 'set') and not args.name:
             raise CliError(f'pma param {args.action} needs NODE NAME'
@@ -451,6 +457,13 @@ def main(argv: list[str] | None = None) -> int:
             args.goal = goals.checked_sweep_goal(args)      # before the graph is joined
         except CliError as error:
             print(f'pma sweep: {error}', file=sys.stderr)
+            return error.code
+    if args.verb == 'move':
+        from pma_cli import goals
+        try:
+            args.facts = goals.recorded_facts(args, 'move', note_needs_record=True)
+        except CliError as error:
+            print(f'pma move: {error}', file=sys.stderr)
             return error.code
 
     from pma_cli.session import Session

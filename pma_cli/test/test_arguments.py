@@ -1,10 +1,11 @@
 """`pma`'s argument parsing: a negative quantity is a value, an option stays an option."""
 
 import pytest
+from rcl_interfaces.msg import ParameterType
+
 from pma_cli.commands import typed_value
 from pma_cli.main import main, parser
 from pma_cli.session import CliError
-from rcl_interfaces.msg import ParameterType
 
 
 def parsed(*argv: str):

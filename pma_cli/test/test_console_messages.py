@@ -6,11 +6,11 @@ import time
 from types import SimpleNamespace
 
 import pytest
+
+from pma_cli import goals
 from pma_cli.commands import describe_inverse
 from pma_cli.observe import NodeStatus, control_line
 from pma_cli.session import WAITING_NOTE_S, Session
-
-from pma_cli import goals
 from pma_interfaces.msg import ControlState
 from pma_interfaces.srv import PressureForLength
 

@@ -5,10 +5,10 @@ import math
 
 import pytest
 import yaml
-from pma_cli.export import COLUMNS, ExportError, export_csv
 from rclpy.serialization import serialize_message
 
 from pma_bag import BagWriter
+from pma_cli.export import COLUMNS, ExportError, export_csv
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_model.samples import read_sample_log
 

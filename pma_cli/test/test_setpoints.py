@@ -4,9 +4,9 @@ before anything is published (the process tests: tests/test_cli.py)."""
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+
 from pma_cli.commands import DEFAULT_CEILING_PA, check_setpoint
 from pma_cli.session import FAILED, CliError
-
 from pma_driver.control import DeviceControl
 from pma_driver.parameters import PARAMETERS, device_ceiling_pa
 

@@ -1,11 +1,13 @@
-"""`pma sweep`'s flags become the Sweep goal the driver checks (pma_driver.sweep.plan_goal)."""
+"""`pma sweep`'s flags become the Sweep goal the driver checks (pma_driver.sweep.plan_goal);
+the experiment's flags of `pma sweep` and `pma move` need a bag to go into."""
 
 import pytest
-from pma_cli.goals import checked_sweep_goal, describe, sweep_goal
-from pma_cli.main import parser
-from pma_cli.session import CliError
 
+from pma_cli.goals import checked_sweep_goal, describe, move_metadata, sweep_goal
+from pma_cli.main import main, parser
+from pma_cli.session import USAGE, CliError
 from pma_driver.sweep import SweepError, SweepGoal, plan_goal
+from pma_interfaces.action import MoveToLength
 
 pytestmark = pytest.mark.in_process
 
@@ -92,3 +94,19 @@ def test_only_the_driver_knows_its_ceiling():
                                                    '100kPa']))
     with pytest.raises(SweepError, match='above the driver ceiling'):
         planned(goal)
+
+
+@pytest.mark.parametrize('verb', [['sweep', '--max', '200kPa', '--step', '100kPa'],
+                                  ['move', '27cm']])
+def test_the_experiments_facts_without_a_bag_are_refused_before_anything_is_sent(verb, capsys):
+    assert main([*verb, '--muscle', 'm2', '--load-kg', '1.5']) == USAGE
+    assert '--muscle, --load-kg: ' in capsys.readouterr().err
+    assert main([*verb, '--record', 'x', '--load-kg', '-1']) == USAGE
+    assert '--load-kg: must be a finite number >= 0' in capsys.readouterr().err
+
+
+def test_a_recorded_moves_custom_data_holds_the_goal_as_sent():
+    goal = MoveToLength.Goal(length_m=0.27, tolerance_m=0.001)
+    assert move_metadata(goal, 'n', {'experiment.muscle': 'm2'}) == {
+        'experiment.muscle': 'm2', 'note': 'n', 'move.length_m': '0.27',
+        'move.tolerance_m': '0.001', 'move.settle_s': '0.0', 'move.timeout_s': '0.0'}

@@ -9,9 +9,9 @@ import time
 from types import SimpleNamespace
 
 import pytest
+
 from pma_cli.observe import RateLimit, Watch
 from pma_cli.session import INTERRUPTED, NO_ANSWER, CliError, Interrupted, Session
-
 from pma_interfaces.msg import PmaState
 
 
