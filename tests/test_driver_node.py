@@ -962,3 +962,26 @@ def test_ctrl_c_vents_before_closing(rig, procs, probe):
     second.wait_for_line('active: publishing', 30)
     first = probe.wait_states(1)[0]
     assert first.gauge_setpoint_pa == 0.0
+
+
+def test_a_second_driver_on_the_same_port_is_refused_and_the_first_streams_on(rig, procs,
+                                                                              probe):
+    """Two drivers on one port used to both run, each reading part of the device's lines (the
+    first reported 1 Hz and lost samples). The second is refused with the reason and keeps
+    retrying; the first goes on at its rate, losing nothing."""
+    _, driver, port = rig()
+    driver.wait_for_line('active: publishing', 30)
+    probe.wait_states(5)
+    second = procs.ros2_run('pma_driver', 'driver_node', name='second_driver',
+                            ros_args=['-p', f'port:={port}', '-r', '__ns:=/second'])
+    second.wait_for_line('another process holds it', 30)
+    assert 'second driver_node on the same port' in second.output and 'fuser' in second.output
+    states = probe.wait_states(60, timeout=10)
+    seqs = [s.seq for s in states]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), 'the first driver lost samples'
+    stamps = [s.header.stamp.sec + s.header.stamp.nanosec * 1e-9 for s in states]
+    rate_hz = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+    assert rate_hz == pytest.approx(20.0, rel=0.1)
+    assert second.alive() and 'Traceback' not in second.output
+    assert driver.stop() == 0                      # the first lets go: the second takes over
+    second.wait_for_line('active: publishing', 30)
