@@ -23,13 +23,8 @@ import sys
 import time
 from pathlib import Path
 
+from pma_common.commands import installed_executable as executable
 from pma_common.stop import STOP_SIGNALS, ignore_stop_signals
-
-
-def executable(package: str, exe: str) -> Path:
-    """Where `ros2 run package exe` finds it."""
-    from ament_index_python.packages import get_package_prefix
-    return Path(get_package_prefix(package)) / 'lib' / package / exe
 
 
 def say(text: str) -> None:

@@ -17,7 +17,6 @@ up or had to be killed, 2 bad arguments, 130 stopped before the rig was up.
 
 from __future__ import annotations
 
-import argparse
 import datetime
 import os
 import shlex
@@ -28,47 +27,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from pma_bringup.node_set import LIVE_HOST, LIVE_PORT, NodeSpec, Options, node_set, stop_order
+from pma_bringup.node_set import NodeSpec, Options, node_set, stop_order
 from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted
 from pma_common import experiment
+from pma_common.commands import ExecutableNotFoundError, installed_executable
 
-READY_TIMEOUT_S = 30.0
 # Per process: how long each signal is given before the next (the driver vents on SIGINT).
 STOP_STEPS = ((signal.SIGINT, 10.0), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0))
 LOG_TAIL_LINES = 15
 POLL_S = 0.2
-
-
-def add_arguments(p: argparse.ArgumentParser, quantity) -> None:
-    """`pma up`'s own flags (main.parser adds --namespace); `quantity` parses a time."""
-    p.add_argument('--port', default='', help='serial port of the rig, e.g. /dev/pma0 (default '
-                   '/dev/ttyACM0); with --simulated the path of the simulated device (default '
-                   '/tmp/pma_<namespace>, /tmp/pma_muscle)')
-    p.add_argument('--simulated', action='store_true',
-                   help='also start fake_arduino, a simulated rig on a pty at --port')
-    p.add_argument('--seed', default='0', help='--simulated: seed of the sensor noise')
-    p.add_argument('--no-control', action='store_true', help='no length controller')
-    p.add_argument('--record', nargs='?', const='', default=None, metavar='DIR',
-                   help='also run the recorder into this bag (no DIR: '
-                        'pma_bag_[<namespace>_]<date-time> here)')
-    p.add_argument('--live', action='store_true', help='also run foxglove_live, the live view '
-                   f'(ws://{LIVE_HOST}:{LIVE_PORT}; docs/live-view.md)')
-    p.add_argument('--live-host', default=LIVE_HOST, help='address the live view listens on '
-                   f'(default {LIVE_HOST}: this machine only; 0.0.0.0: the lab network too)')
-    p.add_argument('--live-port', type=int, default=LIVE_PORT,
-                   help=f'TCP port of the live view (default {LIVE_PORT})')
-    for option, node in (('driver', 'driver_node'), ('model', 'model_node'),
-                         ('control', 'length_controller'), ('recorder', 'the recorder')):
-        p.add_argument(f'--{option}-params', type=Path, metavar='FILE',
-                       help=f'{node} parameters file (default: its package\'s config/)')
-    p.add_argument('--refit-params', type=Path, metavar='FILE',
-                   help='a refit --params-out file for model_node (hot-reloaded)')
-    experiment.add_arguments(p)
-    p.add_argument('--note', default='', help='with --record: a free note for every bag')
-    p.add_argument('--runs-dir', type=Path, default=Path('runs'),
-                   help='where the run directory with the logs goes (default ./runs)')
-    p.add_argument('--wait', type=quantity, default=READY_TIMEOUT_S, metavar='TIME',
-                   help=f'how long the rig may take to come up (default {READY_TIMEOUT_S:g}s)')
 
 
 def _absolute(path: Path | None) -> str:
@@ -93,9 +60,11 @@ def options_from_args(args) -> Options:
 
 def command(spec: NodeSpec) -> list[str]:
     """The argv `ros2 run PKG EXE ARGS --ros-args ...` would execute for `spec`."""
-    from pma_cli.main import installed_executable
-    return [str(installed_executable(spec.package, spec.executable)), *spec.arguments,
-            *spec.ros_arguments()]
+    try:
+        path = installed_executable(spec.package, spec.executable)
+    except ExecutableNotFoundError as error:
+        raise CliError(str(error), USAGE) from None
+    return [str(path), *spec.arguments, *spec.ros_arguments()]
 
 
 def commands(options: Options) -> list[tuple[NodeSpec, list[str]]]:

@@ -21,6 +21,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from pma_common.commands import ExecutableNotFoundError, installed_executable
+
 ROOT = Path(__file__).resolve().parents[2]
 WORKSPACE = ROOT / 'ros2_ws'
 INSTALL = WORKSPACE / 'install'
@@ -67,10 +69,10 @@ def kill_leftovers() -> None:
 
 def executable(package: str, name: str) -> Path:
     """Path of an installed node executable, as `ros2 run` resolves it."""
-    path = INSTALL / package / 'lib' / package / name
-    if not path.exists():
-        raise FileNotFoundError(f'{path} not found: run `make setup` to build the workspace')
-    return path
+    try:
+        return installed_executable(package, name)
+    except ExecutableNotFoundError as error:
+        raise FileNotFoundError(f'{error}: run `make setup` to build the workspace') from None
 
 
 class Proc:
