@@ -23,6 +23,7 @@ import sys
 import time
 from pathlib import Path
 
+from pma_common import names
 from pma_common.commands import installed_executable as executable
 from pma_common.stop import STOP_SIGNALS, ignore_stop_signals
 
@@ -205,7 +206,7 @@ class ServiceClients:
 
         from pma_interfaces.srv import PressureForLength, StartRecording, StopRecording
 
-        self.pressure_for_length = node.create_client(PressureForLength, 'pressure_for_length')
+        self.pressure_for_length = node.create_client(PressureForLength, names.PRESSURE_FOR_LENGTH)
         self.start_recording = node.create_client(StartRecording, 'recorder/start')
         self.stop_recording = node.create_client(StopRecording, 'recorder/stop')
         self.model_parameters = node.create_client(SetParameters, 'model_node/set_parameters')
@@ -312,9 +313,9 @@ def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv
     stroke_m = paper_table1().stroke_m
     steps: list = []
     seqs: dict[int, int] = {}
-    node.create_subscription(ControlState, 'pma/control_state', steps.append, 1000)
+    node.create_subscription(ControlState, names.CONTROL_STATE, steps.append, 1000)
     node.create_subscription(
-        PmaState, 'pma/state',
+        PmaState, names.STATE,
         lambda s: seqs.__setitem__(s.header.stamp.sec * 10**9 + s.header.stamp.nanosec, s.seq),
         qos_profile_sensor_data)
     if not client.wait_for_server(timeout_sec=20):
@@ -327,7 +328,7 @@ def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv
         say(f'   move_to_length {move_to(spin, client, length_m)}')
     say('   following a streamed sine, 25.0 <-> 29.5 cm at 0.1 Hz, for 25 s '
         '(pma/length_setpoint at 50 Hz)')
-    setpoints = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
+    setpoints = node.create_publisher(LengthSetpoint, names.LENGTH_SETPOINT, 10)
     start = time.time()
     while (now := time.time()) - start < 25.0:
         phase = 2 * math.pi * 0.1 * (now - start)
@@ -423,8 +424,8 @@ def main(argv: list[str] | None = None) -> int:
         # as it does: rclpy (Jazzy) can break the wait when one is created or destroyed under
         # it (ros2/rclpy#1589, #1385; seen under load: "action client pointer is invalid"
         # after the first sweep, which was the last; pma_common.background).
-        sweeps = ActionClient(node, Sweep, 'pma/sweep')
-        moves = ActionClient(node, MoveToLength, 'pma/move_to_length')
+        sweeps = ActionClient(node, Sweep, names.SWEEP)
+        moves = ActionClient(node, MoveToLength, names.MOVE_TO_LENGTH)
         services = ServiceClients(node)
         spin = BackgroundSpin(node)   # its callbacks only collect
 
@@ -434,9 +435,9 @@ def main(argv: list[str] | None = None) -> int:
         from pma_model.detector import BRANCH_NAMES
 
         states: list = []
-        node.create_subscription(PmaState, 'pma/state', states.append, qos_profile_sensor_data)
+        node.create_subscription(PmaState, names.STATE, states.append, qos_profile_sensor_data)
         model_params: list = []
-        node.create_subscription(ModelParams, 'pma/model_params', model_params.append,
+        node.create_subscription(ModelParams, names.MODEL_PARAMS, model_params.append,
                                  QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         deadline = time.monotonic() + 30
         while len(states) < 10:

@@ -26,6 +26,7 @@ from rosbags.interfaces import Nodetype
 from rosbags.typesys import get_types_from_msg
 
 from pma_bag.schemas import message_definition
+from pma_common import names
 
 pytestmark = pytest.mark.in_process
 
@@ -74,6 +75,16 @@ def check_settings(settings: dict, model: type, nested: dict, where: str) -> lis
     return errors
 
 
+def topic_name(argument: ast.expr) -> str | None:
+    """A topic argument's name: a literal, or a constant of pma_common.names."""
+    if isinstance(argument, ast.Constant):
+        return argument.value
+    if (isinstance(argument, ast.Attribute) and isinstance(argument.value, ast.Name)
+            and argument.value.id == 'names'):
+        return getattr(names, argument.attr)
+    return None
+
+
 def published_topics() -> dict[str, str]:
     """{'/pma/state': 'pma_interfaces/msg/PmaState', ...}: what the project's nodes publish."""
     found = {}
@@ -89,10 +100,10 @@ def published_topics() -> dict[str, str]:
             if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
                     and node.func.attr in ('create_publisher', 'create_lifecycle_publisher')
                     and len(node.args) >= 2 and isinstance(node.args[0], ast.Name)
-                    and isinstance(node.args[1], ast.Constant)
                     and node.args[0].id in classes):
-                topic = node.args[1].value
-                found['/' + topic.lstrip('/')] = classes[node.args[0].id]
+                topic = topic_name(node.args[1])
+                if topic is not None:
+                    found['/' + topic.lstrip('/')] = classes[node.args[0].id]
     return found
 
 

@@ -30,6 +30,7 @@ from pma_cli import calibration as cal
 from pma_cli import quantities as q
 from pma_cli.commands import DRIVER, Parameters, Setpoints
 from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted, Session
+from pma_common import names
 from pma_driver.parameters import PARAMETERS
 
 MEASURE_S = 2.0
@@ -262,7 +263,7 @@ def calibrate(session: Session, *, params_out: Path, check_pa: float | None, ski
             data['calibration_params_file'] = str(params_out.resolve())
             data['note'] = 'pma calibrate'
             try:
-                write_bag(bag, session.resolve('pma/state'), run.recorded, data)
+                write_bag(bag, session.resolve(names.STATE), run.recorded, data)
             except BagWriteError as error:
                 raise CliError(f'applied and wrote {params_out}, but the bag failed: '
                                f'{error}') from None

@@ -22,14 +22,15 @@ from std_srvs.srv import Trigger
 from pma_cli import quantities as q
 from pma_cli.observe import BRANCHES, PARTICIPANT_ANNOUNCEMENT_S
 from pma_cli.session import NO_ANSWER, OK, CliError, Latest, Session
+from pma_common import names
 from pma_driver.parameters import PARAMETERS, device_ceiling_pa
 from pma_driver.setpoint import setpoint_refusal
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
 
 DRIVER = 'driver_node'
-SETPOINT_TOPIC = 'pma/pressure_setpoint'
-CONTROL_TOPIC = 'pma/control_state'
+SETPOINT_TOPIC = names.PRESSURE_SETPOINT
+CONTROL_TOPIC = names.CONTROL_STATE
 ROSOUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 ABSENT_AFTER_S = 4.0        # a node not in the graph by then (which shows others) is not running
 REST_PA = 25_000.0          # below this a vented muscle may be tared (the device's own bound)
@@ -59,7 +60,7 @@ class Setpoints:
         self.ceiling_from = ''          # where ceiling_pa came from, said beside a refusal
         self.ceiling_read = False       # from the driver itself
         self.publisher = session.node.create_publisher(Float64, SETPOINT_TOPIC, 10)
-        self.state = session.latest(PmaState, 'pma/state', keep=200)
+        self.state = session.latest(PmaState, names.STATE, keep=200)
         self.control = session.latest(ControlState, CONTROL_TOPIC)
         self.refusals: list[tuple[float, str]] = []
         namespace = session.namespace.strip('/').replace('/', '.')
@@ -84,7 +85,7 @@ class Setpoints:
 
         if not self.session.spin_until(matched, timeout_s, waiting_for=DRIVER):
             raise CliError(f'no driver takes setpoints on {topic} (waited {timeout_s:g} s): '
-                           + self.session.where_hint('pma/state', DRIVER)
+                           + self.session.where_hint(names.STATE, DRIVER)
                            + f' Start it: {self.session.start_hint(DRIVER)}', NO_ANSWER)
 
     def read_ceiling(self, timeout_s: float, absent_after_s: float | None = None) -> bool:
@@ -322,7 +323,7 @@ def release_controller(session: Session, control: ControlState, timeout_s: float
 
     from pma_interfaces.action import MoveToLength
 
-    client = ActionClient(session.node, MoveToLength, 'pma/move_to_length')
+    client = ActionClient(session.node, MoveToLength, names.MOVE_TO_LENGTH)
     try:
         if not session.spin_until(client.server_is_ready, timeout_s):
             return False
@@ -373,7 +374,7 @@ def vent(session: Session, wait: bool, timeout_s: float) -> int:
     # What comes before the 0 Pa setpoint must not keep it from being sent: an unanswered
     # cancel or release is reported, and the muscle vented all the same.
     cancelled = {action: cancel_all_goals(session, action)
-                 for action in ('pma/sweep', 'pma/move_to_length')}
+                 for action in (names.SWEEP, names.MOVE_TO_LENGTH)}
     for action, count in cancelled.items():
         if count is None:
             print(f'pma vent: warning: {session.resolve(action)} did not answer the cancel '
@@ -416,7 +417,7 @@ def tare(session: Session, vent_first: bool, timeout_s: float) -> int:
         state = setpoints.steady()
         print(f'settled at {q.kpa(state.gauge_pressure_pa)}')
     response = session.call(client, Trigger.Request(), timeout_s,
-                            session.where_hint('pma/state', DRIVER), node=DRIVER)
+                            session.where_hint(names.STATE, DRIVER), node=DRIVER)
     if not response.success:
         hint = ' (`pma tare --vent` vents and waits first)' if 'not vented' in response.message \
             else ''
@@ -479,10 +480,10 @@ def describe_inverse(answer, length_m: float, branch: str, unit: str = 'cm') -> 
 def pressure_for_length(session: Session, length_m: float, branch: str, si: bool,
                         timeout_s: float, *, unit: str = 'cm') -> int:
     """Ask the inverse model; lengths are printed in `unit` (the one the user typed)."""
-    client = session.node.create_client(PressureForLength, 'pressure_for_length')
+    client = session.node.create_client(PressureForLength, names.PRESSURE_FOR_LENGTH)
     request = PressureForLength.Request(length_m=length_m, branch=BRANCH_CHOICES[branch])
     answer = session.call(client, request, timeout_s,
-                          session.where_hint('pma/prediction', 'model_node')
+                          session.where_hint(names.PREDICTION, 'model_node')
                           + f' Start it: {session.start_hint("model_node")}', query=True,
                           node='model_node')
     if not answer.success:

@@ -44,7 +44,7 @@ from pma_cli.session import (
     Interrupted,
     Session,
 )
-from pma_common import experiment
+from pma_common import experiment, names
 from pma_common.action import ServerWatch
 from pma_driver.sweep import (
     STREAMED_PROFILES,
@@ -352,7 +352,7 @@ def _say_result(line: str, as_asked: bool) -> None:
 def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     """Run the goal; a length controller that holds a target is released first, as `pma vent`
     does, or it would take the muscle back (pressurised) once the sweep ends."""
-    state = session.latest(PmaState, 'pma/state')
+    state = session.latest(PmaState, names.STATE)
     control = session.latest(ControlState, CONTROL_TOPIC)
     progress = Progress()
     unit = 'setpoint' if goal.profile in STREAMED_PROFILES else 'step'
@@ -372,8 +372,8 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     started = time.monotonic()
     try:
         status, result, cancelled = run_goal(
-            session, Sweep, 'pma/sweep', goal, on_feedback=on_feedback, timeout_s=timeout_s,
-            what='driver', hint=session.where_hint('pma/state', 'driver_node'),
+            session, Sweep, names.SWEEP, goal, on_feedback=on_feedback, timeout_s=timeout_s,
+            what='driver', hint=session.where_hint(names.STATE, 'driver_node'),
             lost=SWEEP_LOST, before=lambda: release_holding_controller(session, control,
                                                                         timeout_s),
             server='driver_node')
@@ -445,9 +445,9 @@ def _move(session: Session, goal: MoveToLength.Goal, *, timeout_s: float, unit: 
 
     try:
         status, result, cancelled = run_goal(
-            session, MoveToLength, 'pma/move_to_length', goal, on_feedback=on_feedback,
+            session, MoveToLength, names.MOVE_TO_LENGTH, goal, on_feedback=on_feedback,
             timeout_s=timeout_s, what='length controller',
-            hint=session.where_hint('pma/control_state', 'length_controller'), lost=MOVE_LOST,
+            hint=session.where_hint(names.CONTROL_STATE, 'length_controller'), lost=MOVE_LOST,
             result_within_s=limit + GOAL_LATE_S,
             late=f"{limit + GOAL_LATE_S:g} s (the goal's timeout_s, {limit:g} s, and "
                  f'{GOAL_LATE_S:g} s more)', server='length_controller')

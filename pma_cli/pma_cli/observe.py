@@ -22,6 +22,7 @@ from pma_cli.session import (
     Session,
     ros_time_s,
 )
+from pma_common import names
 from pma_common.sequence import SequenceTracker
 from pma_interfaces.msg import ControlState, ModelParams, PmaPrediction, PmaState
 
@@ -176,10 +177,10 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
     """Print the rig's state; OK when the driver streams without an error."""
     started = time.monotonic()
     diagnostics = Diagnostics(session)
-    state = session.latest(PmaState, 'pma/state')
-    prediction = session.latest(PmaPrediction, 'pma/prediction')
-    control = session.latest(ControlState, 'pma/control_state')
-    params = session.latest(ModelParams, 'pma/model_params', LATCHED_QOS)
+    state = session.latest(PmaState, names.STATE)
+    prediction = session.latest(PmaPrediction, names.PREDICTION)
+    control = session.latest(ControlState, names.CONTROL_STATE)
+    params = session.latest(ModelParams, names.MODEL_PARAMS, LATCHED_QOS)
 
     def streaming() -> bool:
         driver = diagnostics.get('driver_node')
@@ -189,7 +190,7 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
     if wait_s > 0 and not session.spin_until(streaming, wait_s):
         driver = diagnostics.get('driver_node')
         why = (f'the driver says: {driver.message}' if driver is not None else
-               session.where_hint('pma/state', 'driver_node'))
+               session.where_hint(names.STATE, 'driver_node'))
         print(f'pma status: no streaming driver within {wait_s:g} s; {why}', file=sys.stderr)
         return NO_ANSWER
 
@@ -225,7 +226,7 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
             print(line)
     if driver is None:
         others = sorted(diagnostics.namespaces_seen - {session.namespace})
-        hint = session.where_hint('pma/state', 'driver_node')
+        hint = session.where_hint(names.STATE, 'driver_node')
         if others:
             hint += f' (diagnostics came from {", ".join(others)})'
         print(f'pma status: no driver in {session.namespace}: {hint}', file=sys.stderr)
@@ -299,8 +300,8 @@ class Watch:
         self.last_received_at = math.nan
         self.t0: float | None = None
         qos = QoSProfile(depth=200, reliability=qos_profile_sensor_data.reliability)
-        session.node.create_subscription(PmaState, 'pma/state', self._on_state, qos)
-        session.node.create_subscription(PmaPrediction, 'pma/prediction', self._on_prediction,
+        session.node.create_subscription(PmaState, names.STATE, self._on_state, qos)
+        session.node.create_subscription(PmaPrediction, names.PREDICTION, self._on_prediction,
                                          qos)
 
     def _on_state(self, state: PmaState) -> None:
@@ -370,7 +371,7 @@ class Watch:
                 self.flush(limit=count)
                 now = time.monotonic()
                 if self.received == 0 and now - started > first_timeout_s:
-                    hint = self.session.where_hint('pma/state', 'driver_node')
+                    hint = self.session.where_hint(names.STATE, 'driver_node')
                     if count > 0:
                         raise CliError(f'no pma/state within {first_timeout_s:g} s: {hint}',
                                        NO_ANSWER)

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from pma_bringup.node_set import NodeSpec, Options, node_set, stop_order
 from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted
-from pma_common import experiment
+from pma_common import experiment, names
 from pma_common.commands import ExecutableNotFoundError, installed_executable
 
 # Per process: how long each signal is given before the next (the driver vents on SIGINT).
@@ -233,8 +233,8 @@ def wait_until_up(rig: Rig, options: Options, timeout_s: float, stop) -> str:
     import rclpy
     session = Session(options.namespace, stop)
     try:
-        state = session.latest(PmaState, 'pma/state')
-        prediction = session.latest(PmaPrediction, 'pma/prediction')
+        state = session.latest(PmaState, names.STATE)
+        prediction = session.latest(PmaPrediction, names.PREDICTION)
         wanted = {child.name for child in rig.children if child.spec.ros}
         namespace = session.namespace
 

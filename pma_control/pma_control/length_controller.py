@@ -40,6 +40,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from std_msgs.msg import Float64
 
+from pma_common import names
 from pma_common.diagnostics import publish_status
 from pma_common.node import run_single_threaded
 from pma_common.parameters import declare_or_keep_default
@@ -159,21 +160,21 @@ class LengthControllerNode(Node):
         self._sent_counts: collections.Counter[int] = collections.Counter()
         self._device_differs_since: float | None = None
 
-        self._command_pub = self.create_publisher(Float64, 'pma/pressure_setpoint', 10)
-        self._state_pub = self.create_publisher(ControlState, 'pma/control_state', 10)
+        self._command_pub = self.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
+        self._state_pub = self.create_publisher(ControlState, names.CONTROL_STATE, 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
         # One thread runs everything: every sample is one control step, published at once.
-        self.create_subscription(PmaState, 'pma/state', self._on_state, qos_profile_sensor_data)
-        self.create_subscription(LengthSetpoint, 'pma/length_setpoint', self._on_setpoint, 10)
-        self.create_subscription(Float64, 'pma/pressure_setpoint', self._on_pressure_setpoint,
+        self.create_subscription(PmaState, names.STATE, self._on_state, qos_profile_sensor_data)
+        self.create_subscription(LengthSetpoint, names.LENGTH_SETPOINT, self._on_setpoint, 10)
+        self.create_subscription(Float64, names.PRESSURE_SETPOINT, self._on_pressure_setpoint,
                                  10)
         if self.get_parameter('follow_model_node').value:
             latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                  reliability=ReliabilityPolicy.RELIABLE)
-            self.create_subscription(ModelParamsMsg, 'pma/model_params', self._on_model_params,
+            self.create_subscription(ModelParamsMsg, names.MODEL_PARAMS, self._on_model_params,
                                      latched)
         self._action = ActionServer(
-            self, MoveToLength, 'pma/move_to_length',
+            self, MoveToLength, names.MOVE_TO_LENGTH,
             execute_callback=lambda handle: MoveToLength.Result(),   # replaced per goal
             goal_callback=self._on_goal, handle_accepted_callback=self._on_accepted,
             cancel_callback=lambda _: CancelResponse.ACCEPT,

@@ -27,6 +27,7 @@ from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
+from pma_common import names
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_common.parameters import node_or_exit
 from pma_common.service import SERVICE_QOS
@@ -87,7 +88,7 @@ class PmaDriver(Node):
         self._pubs = None
         self._refusal_logged: dict[str, float] = {}
 
-        self._record_pub = self.create_publisher(SweepRecord, 'pma/sweep_record',
+        self._record_pub = self.create_publisher(SweepRecord, names.SWEEP_RECORD,
                                                  SWEEP_RECORD_QOS)
         # A sweep's bag must hold its samples and its records: the recorder's readers of
         # both are heard before the first level.
@@ -101,12 +102,12 @@ class PmaDriver(Node):
                                    now_ns=lambda: self.get_clock().now().nanoseconds)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.create_subscription(Float64, 'pma/pressure_setpoint', self._on_setpoint, 10)
+        self.create_subscription(Float64, names.PRESSURE_SETPOINT, self._on_setpoint, 10)
         # Every goal is accepted: one that cannot run is aborted at once with the reason in
         # its result, which a client at a terminal sees (a rejection carries no reason).
         # Its goal, result and cancel services queue a burst as every service does.
         self._sweep_server = ActionServer(
-            self, Sweep, 'pma/sweep', execute_callback=self._execute_sweep,
+            self, Sweep, names.SWEEP, execute_callback=self._execute_sweep,
             cancel_callback=lambda _: CancelResponse.ACCEPT,
             callback_group=ReentrantCallbackGroup(), goal_service_qos_profile=SERVICE_QOS,
             result_service_qos_profile=SERVICE_QOS, cancel_service_qos_profile=SERVICE_QOS)
@@ -210,9 +211,9 @@ class PmaDriver(Node):
         qos = QoSProfile(depth=values['qos_depth'], reliability=(
             ReliabilityPolicy.RELIABLE if values['qos_reliability'] == 'reliable'
             else ReliabilityPolicy.BEST_EFFORT))
-        self._pubs = (self.create_lifecycle_publisher(PmaState, 'pma/state', qos),
-                      self.create_lifecycle_publisher(FluidPressure, 'pma/pressure', qos),
-                      self.create_lifecycle_publisher(Range, 'pma/range', qos))
+        self._pubs = (self.create_lifecycle_publisher(PmaState, names.STATE, qos),
+                      self.create_lifecycle_publisher(FluidPressure, names.PRESSURE, qos),
+                      self.create_lifecycle_publisher(Range, names.RANGE, qos))
         self._link = self._control.link = link
         link.start()
         self.get_logger().info(f'configured: {values["port"]} open at {values["baud"]} baud')

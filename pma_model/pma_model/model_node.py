@@ -23,6 +23,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
+from pma_common import names
 from pma_common.diagnostics import publish_status
 from pma_common.node import run_single_threaded
 from pma_common.parameters import declare_or_keep_default
@@ -143,8 +144,8 @@ class ModelNode(Node):
 
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE)
-        self._params_pub = self.create_publisher(ModelParamsMsg, 'pma/model_params', latched)
-        self._prediction_pub = self.create_publisher(PmaPrediction, 'pma/prediction',
+        self._params_pub = self.create_publisher(ModelParamsMsg, names.MODEL_PARAMS, latched)
+        self._prediction_pub = self.create_publisher(PmaPrediction, names.PREDICTION,
                                                      PREDICTION_QUEUE_DEPTH)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
         # Sensor-data QoS (best effort, REP-2003), but a deeper queue than its 5: at 1 kHz a
@@ -154,10 +155,10 @@ class ModelNode(Node):
                                reliability=qos_profile_sensor_data.reliability,
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
-        self.create_subscription(PmaState, 'pma/state', self._on_state, state_qos)
+        self.create_subscription(PmaState, names.STATE, self._on_state, state_qos)
         # Queues a burst (pma_common.service.SERVICE_QOS): with the default 10, of 200
         # requests in flight from 4 clients only 11-41 were answered.
-        self.create_service(PressureForLength, 'pressure_for_length',
+        self.create_service(PressureForLength, names.PRESSURE_FOR_LENGTH,
                             self._on_pressure_for_length, qos_profile=SERVICE_QOS)
         self.create_timer(1.0, self._publish_diagnostics)
 

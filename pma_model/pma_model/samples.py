@@ -29,15 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
+from pma_common import names
 from pma_model import units
 from pma_model.detector import BRANCH_INCREASING, DEFAULT_DEADBAND_PA, detect_branches
 from pma_model.params import utf8_error_position
 
-STATE_TOPIC = 'pma/state'
+STATE_TOPIC = names.STATE
 STATE_TYPE = 'pma_interfaces/msg/PmaState'
 # What the Sweep action did, level by level (pma_interfaces/msg/SweepRecord): next to the
 # state topic, in the same namespace.
-SWEEP_RECORD_TOPIC = 'pma/sweep_record'
+SWEEP_RECORD_TOPIC = names.SWEEP_RECORD
 SWEEP_RECORD_TYPE = 'pma_interfaces/msg/SweepRecord'
 SAMPLE_LOG_COLUMNS = ('time_s', 'gauge_pressure_pa', 'length_m')
 BRANCH_TABLE_COLUMNS = ('pressure_kpa', 'length_increasing_cm', 'length_decreasing_cm')

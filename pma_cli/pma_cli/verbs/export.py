@@ -7,6 +7,7 @@ from pathlib import Path
 
 from pma_cli.arguments import output_file
 from pma_cli.session import FAILED, USAGE
+from pma_common import names
 
 NAME = 'export'
 HELP = 'a bag as CSV: one row per pma/state with its prediction, SI columns'
@@ -18,7 +19,7 @@ def add_arguments(p) -> None:
     p.add_argument('--csv', type=output_file, required=True,
                    metavar='OUT', help="CSV file to write, in a directory that exists ('-' = "
                    'standard output)')
-    p.add_argument('--topic', default='pma/state', help='PmaState topic (default pma/state, in '
+    p.add_argument('--topic', default=names.STATE, help='PmaState topic (default pma/state, in '
                    'any namespace)')
     p.add_argument('--no-comments', action='store_true',
                    help='no # metadata lines above the header: the metadata goes to '

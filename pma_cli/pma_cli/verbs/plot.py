@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pma_cli.arguments import output_file
+from pma_common import names
 
 NAME = 'plot'
 HELP = ('a figure of any bag: pressure and length against time (setpoint, the '
@@ -16,7 +17,7 @@ def add_arguments(p) -> None:
     p.add_argument('bag', type=Path, help='bag directory or .mcap (one still being written too)')
     p.add_argument('-o', '--output', type=output_file, metavar='FILE.png',
                    help='PNG to write (default: BAG.png beside the bag)')
-    p.add_argument('--topic', default='pma/state', help='PmaState topic (default pma/state, in '
+    p.add_argument('--topic', default=names.STATE, help='PmaState topic (default pma/state, in '
                    'any namespace)')
     p.add_argument('--show', action='store_true',
                    help='also open it in a window (needs a display)')
