@@ -19,6 +19,9 @@ StartRecording), ~/stop (StopRecording), ~/pause, ~/resume, ~/toggle_paused, ~/s
 records the `topics` parameter as it is then (a run-time set applies to the next bag). A
 refused ~/start is answered and logged (WARN); the open bag, if any, goes on.
 
+The node is the ROS side (parameters, subscriptions and their QoS, services, /diagnostics);
+each bag is a RecordingSession (session.py, no rclpy) that the node hands every message to.
+
 SIGINT, SIGTERM and SIGHUP finish the bag (summary, metadata.yaml); signals during that are
 ignored. A write failure (disk full) is logged and reported on /diagnostics and the node stays
 up; it then exits with code 1 and says how to recover what reached the disk.
@@ -140,7 +143,12 @@ class _Subscribed:
 
 
 class Recorder(Node):
-    """Subscribes the wanted topics as their publishers appear and writes the open bag."""
+    """Subscribes the wanted topics as their publishers appear; the open bag's session writes.
+
+    What happens to a message once received (pause, loss, splits, flushing) is the
+    session's: the node keeps only what outlives a bag (subscriptions, rig info, the last
+    error and the bags that failed).
+    """
 
     def __init__(self, options: RecordOptions, topics: list[str] | None = None,
                  graph_period_s: float = GRAPH_PERIOD_S, **node_kwargs):

@@ -20,6 +20,7 @@ from rosbags.highlevel import AnyReader
 from std_msgs.msg import Header
 
 from pma_bag import BagError, BagReader
+from pma_bag.info import LOSS_KEYS
 from pma_bag.session import (
     EVENT_HISTORY_SLACK_NS,
     STATE_TYPE,
@@ -142,6 +143,7 @@ def test_losses_across_a_gap_and_a_device_restart_and_dds_lost_events(tmp_path):
     session.add_dds_lost('/not/in/this/bag', 5)
     assert session.state_trackers[STATE].stats().restarts == 1
     summary = session.finish()
+    assert tuple(summary.loss) == LOSS_KEYS, 'the keys info lists'
     assert summary.loss == {'lost_messages': 53, 'lost_state_samples': 50,
                             'state_sequence_gaps': 1, 'dds_messages_lost': 3}
     assert summary.lines()[1] == ('53 messages were lost before reaching the recorder '
