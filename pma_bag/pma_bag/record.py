@@ -19,6 +19,9 @@ StartRecording), ~/stop (StopRecording), ~/pause, ~/resume, ~/toggle_paused, ~/s
 records the `topics` parameter as it is then (a run-time set applies to the next bag). A
 refused ~/start is answered and logged (WARN); the open bag, if any, goes on.
 
+The node is the ROS side (parameters, subscriptions and their QoS, services, /diagnostics);
+each bag is a RecordingSession (session.py, no rclpy) that the node hands every message to.
+
 SIGINT, SIGTERM and SIGHUP finish the bag (summary, metadata.yaml); signals during that are
 ignored. A write failure (disk full) is logged and reported on /diagnostics and the node stays
 up; it then exits with code 1 and says how to recover what reached the disk.
@@ -29,11 +32,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
-import struct
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
@@ -48,18 +50,24 @@ from rclpy.serialization import deserialize_message
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
-from pma_bag import BagError, BagWriteError, BagWriter
+from pma_bag import BagError
 from pma_bag.recover import main as recover_main
+from pma_bag.session import (
+    RIG_DIAGNOSTIC_KEYS,
+    STATE_TYPE,
+    RecordingSession,
+    RecordOptions,
+    rig_info_from,
+)
+from pma_bag.state_seq import pma_state_seq, state_seq_reader  # noqa: F401 (re-exported)
 from pma_common import experiment
 from pma_common.commands import run_command
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped, without_ros_args
 from pma_common.parameters import node_or_exit
-from pma_common.sequence import SequenceTracker
 from pma_common.service import SERVICE_QOS
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 
-FLUSH_AGE_S = 0.75
 FLUSH_CHECK_S = 0.25
 GRAPH_PERIOD_S = 0.1         # rosbag2's default --topic-polling-interval
 START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its topics to be heard
@@ -67,7 +75,6 @@ START_POLL_S = 0.01
 DEFAULT_TOPICS = ['pma/state', 'pma/pressure', 'pma/range', 'pma/prediction',
                   'pma/model_params', 'pma/control_state', 'pma/pressure_setpoint',
                   'pma/length_setpoint', 'pma/sweep_record', '/diagnostics']
-STATE_TYPE = 'pma_interfaces/msg/PmaState'
 DIAGNOSTICS_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
 # Types of the PMA topics (and whether they are latched), subscribed before discovery.
 KNOWN_TOPICS = {
@@ -85,33 +92,14 @@ KNOWN_TOPICS = {
 # Transient local too, but records of what happened (a sweep's START, LEVELs, END), not a
 # value in force: a new bag does not get the last one written again, and what a reader
 # matched while a bag is open gets from before it opened (an earlier sweep's records, from
-# the driver's history) is not written into it (EVENT_HISTORY_SLACK_NS: clocks of two hosts).
+# the driver's history) is not written into it (session.EVENT_HISTORY_SLACK_NS).
 EVENT_TOPICS = ('pma/sweep_record',)
-EVENT_HISTORY_SLACK_NS = 1_000_000_000
 # Published with every sample while the rig runs. A reader can match a writer before that
 # writer knows of it (discovery is per side), and only the writer's knowing delivers samples:
 # a message heard is the one proof, so ~/start waits for one on these (waiting for the
 # reader's side only, a bag on a loaded CI machine missed predictions after the sweep began).
 PER_SAMPLE_TOPICS = ('pma/state', 'pma/pressure', 'pma/range', 'pma/prediction')
-# Keys of the driver's /diagnostics copied into custom_data when the bag has none of its own.
-RIG_DIAGNOSTIC_KEYS = ('firmware', 'protocol')
 COMPRESSION_CHOICES = ('none', 'zstd', 'lz4')
-PAUSED_FOREVER = 2 ** 63
-_U32 = struct.Struct('<I')
-
-
-def pma_state_seq(cdr: bytes) -> int:
-    """PmaState.seq read straight from the CDR bytes (0.3 us here; a full decode takes 21 us).
-
-    Layout after the 4-byte encapsulation header: header.stamp (sec, nanosec), the frame_id
-    string (uint32 length incl. NUL, the bytes), then seq aligned to 4.
-    """
-    if cdr[1] != 1:
-        raise ValueError('not little-endian CDR')
-    (length,) = _U32.unpack_from(cdr, 4 + 8)
-    offset = 8 + 4 + length
-    offset += -offset % 4
-    return _U32.unpack_from(cdr, 4 + offset)[0]
 
 
 def message_class(type_name: str):
@@ -143,19 +131,6 @@ def subscription_qos(offered: list[QoSProfile], depth: int) -> QoSProfile:
 
 
 @dataclass
-class RecordOptions:
-    """How bags are written (command line of `record`, the same for every bag of the run)."""
-
-    queue_depth: int = 1000
-    fsync: bool = False
-    compression: str = ''
-    max_bag_size: int = 0
-    max_bag_duration_s: float = 0.0
-    custom_data: dict[str, str] = field(default_factory=dict)
-    start_paused: bool = False
-
-
-@dataclass
 class _Subscribed:
     topic: str
     type_name: str
@@ -167,30 +142,13 @@ class _Subscribed:
     last_latched: tuple[bytes, dict] | None = None   # (data, info) of a latched topic
 
 
-class Bag:
-    """One bag being written, and what was lost before its messages reached the recorder."""
-
-    def __init__(self, path: Path, topics: list[str], writer: BagWriter):
-        self.path = path
-        self.topics = topics
-        self.writer = writer
-        self.opened_ns = time.time_ns()
-        self.state_trackers: dict[str, SequenceTracker] = {}
-        self.dds_lost = 0
-        self.error = ''
-        self.heard: set[str] = set()       # topics with a message since the bag started
-
-    def loss(self) -> dict[str, int]:
-        stats = [t.stats() for t in self.state_trackers.values()]
-        lost_states = sum(s.lost for s in stats)
-        return {'lost_messages': lost_states + self.dds_lost,
-                'lost_state_samples': lost_states,
-                'state_sequence_gaps': sum(s.gaps for s in stats),
-                'dds_messages_lost': self.dds_lost}
-
-
 class Recorder(Node):
-    """Subscribes the wanted topics as their publishers appear and writes the open bag."""
+    """Subscribes the wanted topics as their publishers appear; the open bag's session writes.
+
+    What happens to a message once received (pause, loss, splits, flushing) is the
+    session's: the node keeps only what outlives a bag (subscriptions, rig info, the last
+    error and the bags that failed).
+    """
 
     def __init__(self, options: RecordOptions, topics: list[str] | None = None,
                  graph_period_s: float = GRAPH_PERIOD_S, **node_kwargs):
@@ -200,9 +158,8 @@ class Recorder(Node):
         self.default_topics: list[str] = []
         self.subscribed: dict[str, _Subscribed] = {}
         self.skipped: set[str] = set()
-        self.bag: Bag | None = None
-        self.paused = False
-        self._pause_ns = (0, 0)                # receive-time window of the latest pause
+        self.bag: RecordingSession | None = None
+        self._idle_paused = False              # ~/pause while no bag is open
         self.failed_bags: list[str] = []      # bags that could not be finished (recover them)
         self.error = ''                        # the last error, for /diagnostics
         self.target: Path | None = None        # the bag asked for last (in /diagnostics)
@@ -212,6 +169,10 @@ class Recorder(Node):
         # One thread runs every callback (a two-thread executor doubled the recorder's CPU
         # at 1 kHz); the lock only guards against a signal-time finish_bag.
         self._lock = threading.RLock()
+        # pma/state's seq is read at its byte offset only if that reads a PmaState right.
+        self.read_seq, why = state_seq_reader()
+        if why:
+            self.get_logger().warning(f'pma/state loss accounting: {why}')
         # A set applies to the next bag, as ~/start without topics reads it then; a bad
         # name is refused with the reason (at start: node_or_exit's one line, no start).
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -279,7 +240,8 @@ class Recorder(Node):
     # -- bags ------------------------------------------------------------------------------
 
     def start_bag(self, path: Path | None, topics: list[str] | None = None,
-                  custom_data: dict[str, str] | None = None, paused: bool = False) -> Bag:
+                  custom_data: dict[str, str] | None = None,
+                  paused: bool = False) -> RecordingSession:
         """Open a new bag, then finish the open one, if any.
 
         BagError if the new bag cannot be made (bad topics, a path that holds a bag, ...):
@@ -290,20 +252,14 @@ class Recorder(Node):
         if reason:
             raise BagError(reason)
         with self._lock:
-            data = {**self.options.custom_data, **(custom_data or {})}
-            for key, value in self.rig_info.items():
-                data.setdefault(key, value)
-            writer = BagWriter(path, flush_interval_s=FLUSH_AGE_S, fsync=self.options.fsync,
-                               compression=self.options.compression,
-                               max_bag_size=self.options.max_bag_size,
-                               max_bag_duration_s=self.options.max_bag_duration_s,
-                               custom_data=data)
+            bag = RecordingSession(
+                path, self.resolve_topics(topics) if topics else self.default_topics,
+                self.options, read_seq=self.read_seq, custom_data=custom_data,
+                rig_info=self.rig_info, event_topics=self.event_topics,
+                on_fail=self._report_failure)
             if self.bag is not None:
                 self.finish_bag()
-            bag = Bag(path, self.resolve_topics(topics) if topics else self.default_topics,
-                      writer)
-            self.bag, self.error, self.paused, self.target = bag, '', False, path
-            self._pause_ns = (0, 0)
+            self.bag, self.error, self.target = bag, '', path
             self.set_paused(paused)
             now = time.time_ns()
             for entry in self.subscribed.values():
@@ -312,44 +268,33 @@ class Recorder(Node):
                     if entry.last_latched is not None:
                         # The value in force when the bag started, stamped with the start.
                         data, info = entry.last_latched
-                        self._write(bag, entry, data, {**info, 'received_timestamp': now})
+                        bag.write(entry.topic, data, now, info.get('source_timestamp'))
         self.check_graph()
         return bag
 
-    def finish_bag(self) -> tuple[Bag | None, str]:
+    def finish_bag(self) -> tuple[RecordingSession | None, str]:
         """Close the open bag; (bag, '') or (bag, error) when it could not be finished."""
         with self._lock:
             bag, self.bag = self.bag, None
             if bag is None:
                 return None, ''
-            writer = bag.writer
-            loss = bag.loss()
-            try:
-                if writer.failed is None:
-                    writer.update_custom_data({k: str(v) for k, v in loss.items()})
-                writer.close()
-            except BagError as exc:
-                bag.error = bag.error or str(exc)
-        if bag.error:
+            self._idle_paused = bag.paused
+            summary = bag.finish()
+        if summary.error:
             self.failed_bags.append(str(bag.path))
-            print(f'recorder: ERROR bag {bag.path} is incomplete ({bag.error}); '
-                  f'{writer.messages_flushed} messages reached the disk. Recover them with: '
-                  f'{run_command("pma_bag", "recover", bag.path)}', flush=True)
-        else:
-            print(f'recorder: wrote {writer.message_count} messages to {bag.path}', flush=True)
-        if loss['lost_messages']:
-            print(f'recorder: {loss["lost_messages"]} messages were lost before reaching the '
-                  f'recorder (pma/state sequence: {loss["lost_state_samples"]} in '
-                  f'{loss["state_sequence_gaps"]} gaps; DDS message-lost events: '
-                  f'{loss["dds_messages_lost"]})', flush=True)
-        return bag, bag.error
+        for line in summary.lines():
+            print(f'recorder: {line}', flush=True)
+        return bag, summary.error
 
-    def fail(self, bag: Bag | None, reason: str) -> None:
-        """Stop writing, say why (log + /diagnostics ERROR) and keep the node alive."""
+    def fail(self, bag: RecordingSession | None, reason: str) -> None:
+        """Stop writing `bag` (None: no bag could be opened), say why and stay alive."""
         if bag is not None:
-            if bag.error:
-                return
-            bag.error = reason
+            bag.fail(reason)            # reports through _report_failure, the first time
+        else:
+            self._report_failure(reason)
+
+    def _report_failure(self, reason: str) -> None:
+        """Log it, print it and show it on /diagnostics (ERROR); the node stays up."""
         self.error = reason
         self.get_logger().error(f'recording stopped: {reason}')
         print(f'recorder: ERROR {reason}', flush=True)
@@ -459,20 +404,17 @@ class Recorder(Node):
             f'{qos.durability.name.lower()}'
             + (' (before discovery)' if offered is None else ''))
 
-    def _add_to_bag(self, bag: Bag, entry: _Subscribed) -> None:
+    def _add_to_bag(self, bag: RecordingSession, entry: _Subscribed) -> None:
         """Declare the topic in the bag, with its publishers' QoS (deferred until known)."""
-        if entry.topic not in bag.writer.topics:
-            if entry.offered is None:
-                publishers = [p for p in self.get_publishers_info_by_topic(entry.topic)
-                              if p.topic_type == entry.type_name]
-                if not publishers:
-                    return      # declared when its first message or publisher shows up
-                entry.offered = [p.qos_profile for p in publishers]
-            bag.writer.add_topic(entry.topic, entry.type_name, entry.offered)
-        if entry.type_name == STATE_TYPE:
-            bag.state_trackers.setdefault(entry.topic, SequenceTracker())
+        if not bag.declared(entry.topic) and entry.offered is None:
+            publishers = [p for p in self.get_publishers_info_by_topic(entry.topic)
+                          if p.topic_type == entry.type_name]
+            if not publishers:
+                return      # declared when its first message or publisher shows up
+            entry.offered = [p.qos_profile for p in publishers]
+        bag.declare(entry.topic, entry.type_name, entry.offered)
 
-    def start_status(self, bag: Bag) -> tuple[list[str], list[str]]:
+    def start_status(self, bag: RecordingSession) -> tuple[list[str], list[str]]:
         """(ready, not yet) topics of `bag` whose publishers the graph shows.
 
         Ready: the reader matched every publisher and, for a per-sample topic, a message
@@ -505,39 +447,25 @@ class Recorder(Node):
             self.note_rig_info(data)
         with self._lock:
             bag = self.bag
-            if bag is None or bag.error or entry.topic not in bag.topics:
+            if bag is None or not bag.records(entry.topic):
                 return
-            if entry.topic not in bag.writer.topics:
+            if not bag.declared(entry.topic):
                 try:
                     self._add_to_bag(bag, entry)
                 except BagError as exc:
-                    self.fail(bag, str(exc))
+                    bag.fail(str(exc))
                     return
-                if entry.topic not in bag.writer.topics:
+                if not bag.declared(entry.topic):
                     return
-            bag.heard.add(entry.topic)
-            tracker = bag.state_trackers.get(entry.topic)
-            if tracker is not None:   # counted while paused too: not recorded is not lost
-                tracker.add(pma_state_seq(data))
-            if entry.topic in self.event_topics and (info.get('source_timestamp') or 0) \
-                    < bag.opened_ns - EVENT_HISTORY_SLACK_NS:
-                return          # history from before this bag (module constants)
-            if not self.was_paused_at(info.get('received_timestamp') or time.time_ns()):
-                self._write(bag, entry, data, info)
-
-    def _write(self, bag: Bag, entry: _Subscribed, data: bytes, info: dict) -> None:
-        # log_time = when DDS received it (rosbag2's recv_timestamp), not when this callback
-        # ran: a backlog in the executor must not bunch the timeline up.
-        received_ns = info.get('received_timestamp') or time.time_ns()
-        try:
-            bag.writer.write(entry.topic, data, received_ns, info.get('source_timestamp'))
-        except BagWriteError as exc:
-            self.fail(bag, str(exc))
+            # log_time = when DDS received it (rosbag2's recv_timestamp), not when this
+            # callback ran: a backlog in the executor must not bunch the timeline up.
+            bag.receive(entry.topic, data, info.get('received_timestamp'),
+                        info.get('source_timestamp'))
 
     def on_message_lost(self, entry: _Subscribed, count: int) -> None:
         with self._lock:
-            if self.bag is not None and entry.topic in self.bag.topics:
-                self.bag.dds_lost += count
+            if self.bag is not None:
+                self.bag.add_dds_lost(entry.topic, count)
         self.get_logger().warning(f'{count} messages on {entry.topic} lost before reaching '
                                   'the recorder (DDS message-lost event)')
 
@@ -549,30 +477,19 @@ class Recorder(Node):
             array = deserialize_message(data, DiagnosticArray)
         except Exception:  # the typesupport raises several types; a bad message is not ours
             return
-        found = {}
-        for status in array.status:
-            for item in status.values:
-                if item.key in RIG_DIAGNOSTIC_KEYS and item.value not in ('', '-'):
-                    found.setdefault(item.key, item.value)
-        new = {k: v for k, v in found.items() if k not in self.rig_info}
+        new = {k: v for k, v in rig_info_from(array).items() if k not in self.rig_info}
         if not new:
             return
         with self._lock:
             self.rig_info.update(new)
-            bag = self.bag
-            if bag is not None and bag.writer.failed is None and not bag.writer.closed:
-                bag.writer.update_custom_data(
-                    {k: v for k, v in new.items() if k not in bag.writer.custom_data})
+            if self.bag is not None:
+                self.bag.add_custom_data(new)
 
     def flush(self) -> None:
-        """Push the current chunk to disk once it is FLUSH_AGE_S old (a SIGKILL loses <= 1 s)."""
+        """The session's flush policy, checked every FLUSH_CHECK_S."""
         with self._lock:
-            bag = self.bag
-            if bag is not None and not bag.error:
-                try:
-                    bag.writer.flush_if_due()
-                except BagWriteError as exc:
-                    self.fail(bag, str(exc))
+            if self.bag is not None:
+                self.bag.flush_if_due()
 
     # -- services --------------------------------------------------------------------------
 
@@ -624,43 +541,33 @@ class Recorder(Node):
         if bag is None:
             response.success, response.message = False, 'not recording'
             return response
-        loss = bag.loss()
+        summary = bag.summary()
         response.success = not error
-        response.message = error or f'wrote {bag.writer.message_count} messages to {bag.path}'
+        response.message = error or f'wrote {summary.message_count} messages to {bag.path}'
         response.bag_path = str(bag.path)
-        response.message_count = bag.writer.message_count
-        response.lost_message_count = loss['lost_messages']
+        response.message_count = summary.message_count
+        response.lost_message_count = summary.loss['lost_messages']
         return response
 
     def on_split(self, _request, response):
         with self._lock:
-            bag = self.bag
-            if bag is None or bag.error:
+            if self.bag is None:
                 response.success, response.message = False, 'not recording'
-                return response
-            try:
-                split = bag.writer.split()
-            except BagWriteError as exc:
-                self.fail(bag, str(exc))
-                response.success, response.message = False, str(exc)
-                return response
-        response.success = split
-        response.message = (f'now writing {bag.writer.mcap_path.name}' if split else
-                            f'{bag.writer.mcap_path.name} holds no message yet; not split')
+            else:
+                response.success, response.message = self.bag.split()
         return response
 
-    def was_paused_at(self, received_ns: int) -> bool:
-        """Paused when the message arrived? By receive time, not by when it is handled."""
-        start, end = self._pause_ns
-        return start <= received_ns < end
+    @property
+    def paused(self) -> bool:
+        bag = self.bag
+        return bag.paused if bag is not None else self._idle_paused
 
     def set_paused(self, paused: bool) -> bool:
         with self._lock:
-            changed, self.paused = self.paused != paused, paused
-            if changed and paused:
-                self._pause_ns = (time.time_ns(), PAUSED_FOREVER)
-            elif changed:
-                self._pause_ns = (self._pause_ns[0], time.time_ns())
+            if self.bag is not None:
+                changed = self.bag.set_paused(paused)
+            else:
+                changed, self._idle_paused = self._idle_paused != paused, paused
         if changed:
             self.get_logger().info('paused' if paused else 'resumed')
         return changed
@@ -709,10 +616,7 @@ class Recorder(Node):
             if bag is not None:
                 loss = bag.loss()
                 topics = sum(1 for t in bag.topics if t in self.subscribed)
-                values.update({'bag': str(bag.path),
-                               'file': bag.writer.mcap_path.name,
-                               'messages_written': str(bag.writer.message_count),
-                               **{k: str(v) for k, v in loss.items()}})
+                values.update(bag.status_values())
         if self.error:
             status.level, status.message = DiagnosticStatus.ERROR, self.error
         elif bag is None:

@@ -10,6 +10,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 
 from pma_bag.record import DEFAULT_TOPICS, Recorder, RecordOptions, parse_args
+from pma_bag.state_seq import fast_state_seq
 from pma_common.parameters import refusal_reason
 from pma_interfaces.srv import StartRecording
 
@@ -106,6 +107,18 @@ def test_a_refused_start_is_answered_and_the_recorder_stays_ok(recorder, tmp_pat
     recorder.fail(recorder.bag, 'No space left on device')
     status, _ = recorder.status()
     assert (status.level, status.message) == (DiagnosticStatus.ERROR, 'No space left on device')
+
+
+def test_pause_is_the_open_bags_and_a_new_bag_starts_recording(recorder, tmp_path):
+    """The pause lives in the bag's session; while idle the recorder keeps the last one."""
+    assert recorder.read_seq is fast_state_seq, 'the offset read passed its start-up check'
+    assert recorder.set_paused(True) and recorder.paused and not recorder.set_paused(True)
+    assert start(recorder, tmp_path / 'a').success and not recorder.paused
+    assert recorder.set_paused(True) and recorder.bag.paused
+    assert recorder.status()[1]['state'] == 'paused'
+    recorder.finish_bag()
+    assert recorder.paused and not recorder.set_paused(True)
+    assert recorder.set_paused(False) and not recorder.paused
 
 
 @pytest.mark.parametrize('value', ['nan', 'inf'])
