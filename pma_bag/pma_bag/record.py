@@ -60,7 +60,7 @@ from pma_bag.session import (
     rig_info_from,
 )
 from pma_bag.state_seq import pma_state_seq, state_seq_reader  # noqa: F401 (re-exported)
-from pma_common import experiment
+from pma_common import experiment, names
 from pma_common.commands import run_command
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped, without_ros_args
@@ -72,33 +72,31 @@ FLUSH_CHECK_S = 0.25
 GRAPH_PERIOD_S = 0.1         # rosbag2's default --topic-polling-interval
 START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its topics to be heard
 START_POLL_S = 0.01
-DEFAULT_TOPICS = ['pma/state', 'pma/pressure', 'pma/range', 'pma/prediction',
-                  'pma/model_params', 'pma/control_state', 'pma/pressure_setpoint',
-                  'pma/length_setpoint', 'pma/sweep_record', '/diagnostics']
+DEFAULT_TOPICS = list(names.RECORDED)
 DIAGNOSTICS_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
 # Types of the PMA topics (and whether they are latched), subscribed before discovery.
 KNOWN_TOPICS = {
-    'pma/state': (STATE_TYPE, False),
-    'pma/pressure': ('sensor_msgs/msg/FluidPressure', False),
-    'pma/range': ('sensor_msgs/msg/Range', False),
-    'pma/prediction': ('pma_interfaces/msg/PmaPrediction', False),
-    'pma/model_params': ('pma_interfaces/msg/ModelParams', True),
-    'pma/control_state': ('pma_interfaces/msg/ControlState', False),
-    'pma/pressure_setpoint': ('std_msgs/msg/Float64', False),
-    'pma/length_setpoint': ('pma_interfaces/msg/LengthSetpoint', False),
-    'pma/sweep_record': ('pma_interfaces/msg/SweepRecord', True),
-    '/diagnostics': (DIAGNOSTICS_TYPE, False),
+    names.STATE: (STATE_TYPE, False),
+    names.PRESSURE: ('sensor_msgs/msg/FluidPressure', False),
+    names.RANGE: ('sensor_msgs/msg/Range', False),
+    names.PREDICTION: ('pma_interfaces/msg/PmaPrediction', False),
+    names.MODEL_PARAMS: ('pma_interfaces/msg/ModelParams', True),
+    names.CONTROL_STATE: ('pma_interfaces/msg/ControlState', False),
+    names.PRESSURE_SETPOINT: ('std_msgs/msg/Float64', False),
+    names.LENGTH_SETPOINT: ('pma_interfaces/msg/LengthSetpoint', False),
+    names.SWEEP_RECORD: ('pma_interfaces/msg/SweepRecord', True),
+    names.DIAGNOSTICS: (DIAGNOSTICS_TYPE, False),
 }
 # Transient local too, but records of what happened (a sweep's START, LEVELs, END), not a
 # value in force: a new bag does not get the last one written again, and what a reader
 # matched while a bag is open gets from before it opened (an earlier sweep's records, from
 # the driver's history) is not written into it (session.EVENT_HISTORY_SLACK_NS).
-EVENT_TOPICS = ('pma/sweep_record',)
+EVENT_TOPICS = (names.SWEEP_RECORD,)
 # Published with every sample while the rig runs. A reader can match a writer before that
 # writer knows of it (discovery is per side), and only the writer's knowing delivers samples:
 # a message heard is the one proof, so ~/start waits for one on these (waiting for the
 # reader's side only, a bag on a loaded CI machine missed predictions after the sweep began).
-PER_SAMPLE_TOPICS = ('pma/state', 'pma/pressure', 'pma/range', 'pma/prediction')
+PER_SAMPLE_TOPICS = (names.STATE, names.PRESSURE, names.RANGE, names.PREDICTION)
 COMPRESSION_CHOICES = ('none', 'zstd', 'lz4')
 
 
@@ -181,7 +179,7 @@ class Recorder(Node):
             description='topics a bag records when ~/start names none; relative names '
                         'resolve in the node namespace. A change applies to the next bag; '
                         'the open one keeps its topics'))
-        self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         # ~/start awaits its topics while the messages' callbacks (default group) run on.
         # Every service queues a burst (SERVICE_QOS): with the default 10, of 300 requests
         # sent at once 11-39 were answered, the rest lost without an error.

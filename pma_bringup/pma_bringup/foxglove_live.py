@@ -48,6 +48,7 @@ from pma_bag.errors import SchemaError
 from pma_bag.record import DEFAULT_TOPICS as RECORDED_TOPICS
 from pma_bag.record import message_class, subscription_qos
 from pma_bag.schemas import message_schema
+from pma_common import names
 from pma_common.diagnostics import publish_status
 from pma_common.node import ros_context, spin_until_stopped
 from pma_common.parameters import node_or_exit
@@ -187,7 +188,7 @@ class FoxgloveLive(Node):
             self.server.stop()
             raise RuntimeError(str(exc)) from exc
         self.urls = viewer_urls(host, self.proxy.port)
-        self.diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.create_timer(GRAPH_PERIOD_S, self.check_graph)
         self.create_timer(1.0, self.publish_status)
         self.check_graph()

@@ -88,7 +88,7 @@ class Diagnostics:
         self.namespace = session.namespace
         self.by_node: dict[str, NodeStatus] = {}
         self.namespaces_seen: set[str] = set()
-        session.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_array,
+        session.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_array,
                                          DIAGNOSTICS_QOS)
 
     def _on_array(self, array: DiagnosticArray) -> None:

@@ -162,7 +162,7 @@ class LengthControllerNode(Node):
 
         self._command_pub = self.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
         self._state_pub = self.create_publisher(ControlState, names.CONTROL_STATE, 10)
-        self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 1)
         # One thread runs everything: every sample is one control step, published at once.
         self.create_subscription(PmaState, names.STATE, self._on_state, qos_profile_sensor_data)
         self.create_subscription(LengthSetpoint, names.LENGTH_SETPOINT, self._on_setpoint, 10)

@@ -100,7 +100,7 @@ class PmaDriver(Node):
         self._sweeps = SweepRunner(self._control, recorder=self._recorder,
                                    sample_count=lambda: self._published, on_event=self._log,
                                    now_ns=lambda: self.get_clock().now().nanoseconds)
-        self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 1)
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_subscription(Float64, names.PRESSURE_SETPOINT, self._on_setpoint, 10)
         # Every goal is accepted: one that cannot run is aborted at once with the reason in

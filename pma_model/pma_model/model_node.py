@@ -147,7 +147,7 @@ class ModelNode(Node):
         self._params_pub = self.create_publisher(ModelParamsMsg, names.MODEL_PARAMS, latched)
         self._prediction_pub = self.create_publisher(PmaPrediction, names.PREDICTION,
                                                      PREDICTION_QUEUE_DEPTH)
-        self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 1)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 1)
         # Sensor-data QoS (best effort, REP-2003), but a deeper queue than its 5: at 1 kHz a
         # Python pause of 5 ms would otherwise overwrite samples before they are predicted.
         # Reliable would not help: a keep-last reader overwrites what it has not taken either.
