@@ -24,6 +24,7 @@ settings.register_profile('pma', deadline=None, suppress_health_check=[HealthChe
 settings.load_profile('pma')
 sys.path.insert(0, str(ROOT / 'tests'))
 
+from support import filesystems  # noqa: E402
 from support.domains import another_domain, worker_domains  # noqa: E402
 from support.procs import ProcessGroup  # noqa: E402
 
@@ -113,3 +114,10 @@ def module_procs(tmp_path_factory):
         yield group
     finally:
         group.stop_all()
+
+
+@pytest.fixture
+def small_filesystem():
+    """support.filesystems.small_filesystem (a real tmpfs of a given size), for the packages'
+    own tests, which take the repository's test plumbing as fixtures rather than imports."""
+    return filesystems.small_filesystem

@@ -37,7 +37,6 @@ from pma_bag.state_seq import (
     state_seq_reader,
 )
 from pma_interfaces.msg import PmaState, SweepRecord
-from support.filesystems import small_filesystem
 
 STATE = '/pma/state'
 EVENTS = '/pma/sweep_record'
@@ -200,7 +199,8 @@ def test_a_path_holding_a_bag_is_refused_with_a_bag_error(tmp_path):
         open_session(tmp_path / 'done')
 
 
-def test_a_failed_write_stops_the_session_once_and_says_how_to_recover(tmp_path):
+def test_a_failed_write_stops_the_session_once_and_says_how_to_recover(tmp_path,
+                                                                       small_filesystem):
     """A real 192 KiB tmpfs fills up while the session writes (docs/bags.md, Errors)."""
     failures: list[str] = []
     with small_filesystem(tmp_path / 'small', 192 * 1024) as disk:
