@@ -12,7 +12,6 @@ Every process is stopped on success, failure and Ctrl-C.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import datetime
 import math
 import os
@@ -25,6 +24,7 @@ from pathlib import Path
 
 from pma_common import names
 from pma_common.commands import installed_executable as executable
+from pma_common.processes import STOP_STEPS, Child, start_child, stop_children
 from pma_common.stop import STOP_SIGNALS, ignore_stop_signals
 
 
@@ -32,54 +32,28 @@ def say(text: str) -> None:
     print(f'[demo] {text}', flush=True)
 
 
-PR_SET_PDEATHSIG = 1   # linux/prctl.h
-
-
-def ended_with(parent_pid: int):
-    """A preexec_fn: the child gets SIGTERM when `parent_pid` ends, however it ends.
-
-    The demo's children run in sessions of their own, out of reach of a terminal's Ctrl-C,
-    so that the demo stops them in order; but a demo that crashed or was killed left all six
-    running (seen: an hour at 70 % of a core after a segfault). SIGTERM is a stop request to
-    each of them (the driver vents). Linux only; elsewhere only the demo's cleanup stops them.
-    """
-    if not sys.platform.startswith('linux'):
-        return None
-
-    def arm() -> None:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-        if os.getppid() != parent_pid:     # it ended before the line above
-            os._exit(1)
-
-    return arm
-
-
 class Processes:
     """Children in their own process groups, logs in the run directory, stopped in reverse;
-    each ends with the demo if the demo ends without stopping it (ended_with)."""
+    each ends with the demo if the demo ends without stopping it (pma_common.processes)."""
 
     def __init__(self, log_dir: Path):
         self.log_dir = log_dir
-        self.children: list[tuple[str, subprocess.Popen]] = []
+        self.children: dict[str, Child] = {}
 
     def start(self, name: str, package: str, exe: str, *args: str,
               ros_args: list[str] | None = None) -> subprocess.Popen:
         argv = [str(executable(package, exe)), *args]
         if ros_args:
             argv += ['--ros-args', *ros_args]
-        log = open(self.log_dir / f'{name}.log', 'w')
-        child = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL, start_new_session=True,
-                                 # Every child starts before the demo has a second thread.
-                                 preexec_fn=ended_with(os.getpid()),  # noqa: PLW1509
-                                 env={**os.environ, 'PYTHONUNBUFFERED': '1'})
-        child.log_file = log
-        self.children.append((name, child))
-        return child
+        # Every child starts before the demo has a second thread (die_with_parent's rule).
+        child = start_child(name, argv, log_path=self.log_dir / f'{name}.log',
+                            die_with_parent=True)
+        self.children[name] = child
+        return child.popen
 
     def wait_for_log(self, name: str, text: str, timeout: float) -> str:
         path = self.log_dir / f'{name}.log'
-        child = dict(self.children)[name]
+        child = self.children[name].popen
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             for line in path.read_text(errors='replace').splitlines():
@@ -93,21 +67,13 @@ class Processes:
                            f'(exit code {child.poll()}); its log ({path}) ends:\n{tail}')
 
     def stop(self, name: str, timeout: float = 10.0) -> int | None:
-        child = dict(self.children)[name]
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-            if child.poll() is not None:
-                break
-            try:
-                os.killpg(child.pid, sig)
-                child.wait(wait)
-            except (ProcessLookupError, subprocess.TimeoutExpired):
-                continue
-        child.log_file.close()
-        return child.returncode
+        child = self.children[name]
+        stop_children([child], ((signal.SIGINT, timeout), *STOP_STEPS[1:]))
+        return child.popen.returncode
 
     def stop_all(self) -> None:
-        for name, child in reversed(self.children):
-            if child.poll() is None:
+        for name in reversed(list(self.children)):
+            if self.children[name].running():
                 self.stop(name)
 
 

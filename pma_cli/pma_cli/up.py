@@ -21,19 +21,16 @@ import datetime
 import os
 import shlex
 import signal
-import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 from pma_bringup.node_set import NodeSpec, Options, node_set, stop_order
 from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted
 from pma_common import experiment, names
 from pma_common.commands import ExecutableNotFoundError, installed_executable
+from pma_common.processes import STOP_STEPS, Child, start_child, stop_children
 
-# Per process: how long each signal is given before the next (the driver vents on SIGINT).
-STOP_STEPS = ((signal.SIGINT, 10.0), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0))
 LOG_TAIL_LINES = 15
 POLL_S = 0.2
 
@@ -105,31 +102,6 @@ def tail(path: Path, lines: int = LOG_TAIL_LINES) -> str:
     return '\n'.join(f'    | {line}' for line in text) or '    (the log is empty)'
 
 
-@dataclass
-class Child:
-    spec: NodeSpec
-    popen: subprocess.Popen
-    log_path: Path
-
-    @property
-    def name(self) -> str:
-        return self.spec.name
-
-
-def _signal_group(child: Child, sig: int) -> None:
-    try:
-        os.killpg(child.popen.pid, sig)
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
-def _kill_leftovers(child: Child) -> None:
-    """SIGKILL what is left of the child's group, while the group is still its own: the
-    leader not reaped, or its pid not taken since (see tests/support/procs.kill_own_group)."""
-    if child.popen.poll() is None or not Path(f'/proc/{child.popen.pid}').exists():
-        _signal_group(child, signal.SIGKILL)
-
-
 class Rig:
     """The processes of one `pma up`, started in node_set's order, stopped in stop_order's."""
 
@@ -138,20 +110,15 @@ class Rig:
         self.logs = run_dir / 'logs'
         self.out = out
         self.children: list[Child] = []
+        self.specs: dict[str, NodeSpec] = {}
 
     def start(self, spec: NodeSpec, argv: list[str]) -> Child:
-        from pma_bringup.demo import ended_with
-        log_path = self.logs / f'{spec.name}.log'
-        with open(log_path, 'w') as log:
-            popen = subprocess.Popen(
-                argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                start_new_session=True,      # out of the terminal's reach: stopped in order
-                # Started before this process has a second thread (rclpy comes later).
-                preexec_fn=ended_with(os.getpid()),     # noqa: PLW1509
-                env={**os.environ, 'PYTHONUNBUFFERED': '1', **spec.env})
-        child = Child(spec, popen, log_path)
+        # Started before this process has a second thread (rclpy comes later).
+        child = start_child(spec.name, argv, log_path=self.logs / f'{spec.name}.log',
+                            env=spec.env, die_with_parent=True)
+        self.specs[spec.name] = spec
         self.children.append(child)
-        self.out.log.write(f'{spec.name} (pid {popen.pid}): {shlex.join(argv)}\n')
+        self.out.log.write(f'{spec.name} (pid {child.pid}): {shlex.join(argv)}\n')
         return child
 
     def ended(self) -> list[Child]:
@@ -166,30 +133,24 @@ class Rig:
         """Stop every process, stage by stage; True if each ended at its SIGINT, with 0."""
         by_name = {child.name: child for child in self.children}
         clean = True
-        for stage in stop_order([child.spec for child in self.children]):
+        for stage in stop_order([self.specs[child.name] for child in self.children]):
             clean &= self._stop_together([by_name[spec.name] for spec in stage])
         return clean
 
     def _stop_together(self, children: list[Child]) -> bool:
-        clean = True
         running = [child for child in children if child.popen.poll() is None]
         ended_before = [child for child in children if child not in running]
         started = time.monotonic()
-        for sig, wait_s in STOP_STEPS:
-            if not running:
-                break
-            if sig != signal.SIGINT:
-                clean = False
-                self.out.say(f'pma up: {", ".join(c.name for c in running)} still running: '
-                             f'sending {sig.name}', error=True)
-            for child in running:
-                _signal_group(child, sig)
-            deadline = time.monotonic() + wait_s
-            while running and time.monotonic() < deadline:
-                time.sleep(0.05)
-                running = [child for child in running if child.popen.poll() is None]
+        escalated = []
+
+        def escalating(still_running: list[Child], sig: int) -> None:
+            escalated.append(sig)
+            self.out.say(f'pma up: {", ".join(c.name for c in still_running)} still running: '
+                         f'sending {signal.Signals(sig).name}', error=True)
+
+        stop_children(running, STOP_STEPS, escalating)
+        clean = not escalated
         for child in children:
-            _kill_leftovers(child)
             code = child.popen.poll()
             if child in ended_before:            # reported when it ended
                 self.out.say(f'   {child.name} had ended already ({describe_exit(code)})')
@@ -200,7 +161,7 @@ class Rig:
             else:
                 clean &= code == 0
                 note = ''
-                if child.spec.lifecycle:         # the driver: did it say it vented?
+                if self.specs[child.name].lifecycle:     # the driver: did it say it vented?
                     vented = 'vented' in ''.join(tail(child.log_path, 5))
                     note = ' (it vented)' if vented else ' (its log does not say it vented)'
                 self.out.say(f'   stopped {child.name}: {describe_exit(code)} after '
@@ -235,7 +196,7 @@ def wait_until_up(rig: Rig, options: Options, timeout_s: float, stop) -> str:
     try:
         state = session.latest(PmaState, names.STATE)
         prediction = session.latest(PmaPrediction, names.PREDICTION)
-        wanted = {child.name for child in rig.children if child.spec.ros}
+        wanted = {child.name for child in rig.children if rig.specs[child.name].ros}
         namespace = session.namespace
 
         def in_graph() -> set[str]:

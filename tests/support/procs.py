@@ -22,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pma_common.commands import ExecutableNotFoundError, installed_executable
+from pma_common.processes import Child, stop_children
 
 ROOT = Path(__file__).resolve().parents[2]
 WORKSPACE = ROOT / 'ros2_ws'
@@ -46,13 +47,8 @@ def kill_group(pid: int) -> None:
 
 
 def kill_own_group(popen: subprocess.Popen) -> None:
-    """SIGKILL the group `popen` leads while it is still ours: its leader not yet reaped, or
-    reaped and its pid not taken since. Linux gives no new process a pid still in use as a
-    group's ID, so a group whose leader's pid is free holds only what the leader started;
-    a taken pid means the group ended and the number came round again (pid_max is 32768
-    here, and a long run starts thousands of processes)."""
-    if popen.poll() is None or not Path(f'/proc/{popen.pid}').exists():
-        kill_group(popen.pid)
+    """SIGKILL the group `popen` leads while it is still ours (Child.kill_leftovers)."""
+    Child('', popen).kill_leftovers()
 
 
 @atexit.register
@@ -143,20 +139,8 @@ class Proc:
 
     def stop(self, timeout: float = 5.0) -> int:
         """SIGINT, then SIGTERM, then SIGKILL to the process group; return the exit code."""
-        escalation = ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, 5))
-        for sig, wait in escalation:
-            if not self.alive():
-                break
-            try:
-                os.killpg(self.popen.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                self.popen.wait(wait)
-            except subprocess.TimeoutExpired:
-                continue
-        # Members of the group that outlived the leader (none expected) go too.
-        kill_group(self.popen.pid)
+        stop_children([Child(self.name, self.popen)],
+                      ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, 5)))
         _GROUPS.pop(self.popen.pid, None)
         self._reader.join(2)
         return self.popen.returncode
