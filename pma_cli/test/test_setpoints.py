@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from pma_cli.commands import DEFAULT_CEILING_PA, check_setpoint
 from pma_cli.session import FAILED, CliError
-from pma_driver.control import DeviceControl
+from pma_driver.command_gate import DeviceControl
 from pma_driver.parameters import PARAMETERS, device_ceiling_pa
 
 pytestmark = pytest.mark.in_process

@@ -33,7 +33,7 @@ from pma_common.parameters import node_or_exit
 from pma_common.service import SERVICE_QOS
 from pma_driver import protocol
 from pma_driver.clock_sync import ClockSync
-from pma_driver.control import DeviceControl
+from pma_driver.command_gate import DeviceControl
 from pma_driver.link import PortOpenError, SerialLink
 from pma_driver.messages import FAULT_BITS, link_level, link_values, sample_messages
 from pma_driver.parameters import (

@@ -40,7 +40,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-from pma_driver.control import DeviceControl
+from pma_driver.command_gate import DeviceControl
 from pma_driver.link import LinkError
 from pma_driver.protocol import Ack, Command, Hello
 from pma_driver.sweep import (

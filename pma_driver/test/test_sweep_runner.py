@@ -16,7 +16,7 @@ import pytest
 from sim_link import SimClock, SimLink
 
 from pma_driver.calibration import PressureCalibration
-from pma_driver.control import DeviceControl
+from pma_driver.command_gate import DeviceControl
 from pma_driver.protocol import Command
 from pma_driver.sim.device import DeviceConfig, SimDevice
 from pma_driver.sim.pneumatics import PneumaticParams

@@ -20,7 +20,7 @@ from pma_driver.parameters import device_ceiling_pa
 from pma_driver.protocol import Ack, Command, Hello, Nak, Sample
 from pma_driver.setpoint import setpoint_refusal
 
-_log = logging.getLogger('pma_driver.control')
+_log = logging.getLogger('pma_driver.command_gate')
 
 
 class Link(Protocol):
