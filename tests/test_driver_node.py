@@ -33,8 +33,8 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 
+from pma_common.calibration import PressureCalibration
 from pma_common.commands import has_ros2_cli, run_command
-from pma_driver.calibration import PressureCalibration
 from pma_driver.parameters import PARAMETERS
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
@@ -716,7 +716,7 @@ def test_port_missing_at_start_then_appearing(rig, probe, procs):
                     10, 'diagnostics ERROR: port missing')
     time.sleep(1.5)
     assert driver.alive()
-    fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port))
+    fake = procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port))
     fake.wait_for_line('fake_arduino: device at', 20)
     appeared = time.monotonic()
     probe.wait_states(1, timeout=10)
