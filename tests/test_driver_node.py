@@ -203,7 +203,7 @@ def rig(procs, tmp_path, request):
         port = tmp_path / 'ttyPMA'
         fake = None
         if start_fake:
-            fake = procs.ros2_run('pma_driver', device, '--link', str(port), '--seed', '7',
+            fake = procs.ros2_run('pma_sim', device, '--link', str(port), '--seed', '7',
                                   *(device_args(device, build) if build else build_args),
                                   *fake_args)
             fake.wait_for_line(f'{device}: device at', 20)
