@@ -40,10 +40,10 @@ from pathlib import Path
 import numpy as np
 from benchlib import check, isolate_ros_graph, load_row, print_table, read_line, serve, stop
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
-from support.closed_loop_runs import sine_error_m, sine_profile
-from support.closed_loop_runs import track as run
-from support.muscle_families import SCORED_FAMILIES, STROKE_M, family_argument
+from pma_control.simulated_runs import sine_error_m, sine_profile
+from pma_control.simulated_runs import track as run
+from pma_sim.evaluation import SCORED_FAMILIES, STROKE_M
+from pma_sim.registry import family_argument
 
 ROOT = Path(__file__).resolve().parents[1]
 CONTROLLER = ROOT / 'ros2_ws' / 'install' / 'pma_control' / 'lib' / 'pma_control' / \

@@ -37,7 +37,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile
 from std_msgs.msg import Float64
 
-from pma_driver import protocol
+from pma_common import protocol
 from pma_interfaces.msg import PmaState
 
 ROOT = Path(__file__).resolve().parents[1]

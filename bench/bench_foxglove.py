@@ -6,7 +6,7 @@ tests/helpers/live_publisher.py publishes PmaState on /pma/state and PmaPredicti
 /pma/prediction at 100 Hz each (what driver_node and model_node send at the rig's rate),
 reliable, each header stamped with time.time_ns() at publish. Two readers take them:
 - the bridge, `foxglove_live` (port 0), with two viewers: Foxglove WebSocket protocol clients
-  (tests/support/foxglove_ws.py) in this process, subscribed to both channels, one through
+  (pma_bringup.foxglove_client) in this process, subscribed to both channels, one through
   the handshake layer on the public port offering `foxglove.websocket.v1` (the new path), one
   straight to foxglove-sdk's own server behind it (its loopback port, which the bridge prints:
   today's path before the layer), so both paths carry the same messages in the same run;
@@ -57,12 +57,11 @@ from benchlib import (
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from pma_bringup.foxglove_client import FoxgloveClient
 from pma_bringup.ws_handshake import THREAD_NAME, HandshakeProxy
 from pma_interfaces.msg import PmaPrediction, PmaState
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / 'tests'))
-from support.foxglove_ws import FoxgloveClient  # noqa: E402
 
 BRIDGE = ROOT / 'ros2_ws' / 'install' / 'pma_bringup' / 'lib' / 'pma_bringup' / 'foxglove_live'
 PUBLISHER = ROOT / 'tests' / 'helpers' / 'live_publisher.py'

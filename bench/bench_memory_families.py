@@ -6,7 +6,7 @@ Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid h
 (OMP_NUM_THREADS=1; about 11 minutes a branch form on one core, five muscles). Prints the
 table of docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of
 stroke) and checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
-tests/support/muscle_families.py), path and seed:
+pma_sim.evaluation), path and seed:
   - the default memory ('mix': forecaster.RuleMix, identify and play mixed), from the
     third reversal on: RMSE <= 0.9x and max <= 0.7x the paper's switch;
   - the mix vs the best single fixed rule (static and with the same learning): <= 1.1x RMSE;
@@ -14,13 +14,13 @@ tests/support/muscle_families.py), path and seed:
   - adaptation on vs off without drift: <= 1.05x RMSE;
   - with drift (from 60 s, time constant 30 s): error back to the noise floor (<= 1.1x)
     in the window 120-240 s after the drift started. The floor is what a perfect drift
-    correction of the unadapted model would leave (support.muscle_families
+    correction of the unadapted model would leave (pma_sim.evaluation
     .perfectly_corrected): the stroke grew 8 %, so the same shape error is 1.08x the
     drift-free error in metres; both ratios are printed;
   - the moonshot: minor-loop RMSE <= 1.5 % of stroke.
 Beside them, the oracle: the muscle itself made to keep return-point memory (what a model
 with that property, knowing the muscle exactly, would err; 0 on a muscle that has it;
-support.muscle_families.return_point_oracle), as its max error over the switch's.
+pma_sim.evaluation.return_point_oracle), as its max error over the switch's.
 --against-switch scores the default and the switch alone (a few minutes for eight seeds
 on two cores, where the full table takes hours) and says, for each run, when the default
 errs most and how much the oracle errs at that moment: a miss where the oracle misses too
@@ -28,7 +28,7 @@ is the price of return-point memory, not of what the model has learned. With
 --noise-free-pressure both read the true pressure instead of the sensor's: what is left of
 a miss without the pressure reading's noise (a diagnosis; no rig has that reading). With
 --kinds it runs other paths: `sines` and `damped` are smooth (no holds, slowing into every
-reversal; pma_driver.sim.paths.smooth_path), a way of driving the rig the defaults were not
+reversal; pma_sim.paths.smooth_path), a way of driving the rig the defaults were not
 chosen on.
 The figures are model errors (not speeds), so no in-run baseline is needed; the reference
 is the paper's switch on the same samples.
@@ -41,14 +41,10 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
 
 import numpy as np
 
-from pma_driver.sim.families import FAMILY_NAMES
-from support.muscle_families import (
+from pma_sim.evaluation import (
     ALL_CONFIGS,
     ALL_PATH_KINDS,
     DEFAULT_RATE_HZ,
@@ -62,15 +58,13 @@ from support.muscle_families import (
     STROKE_M,
     Config,
     Scenario,
-    family_argument,
-    held_out_fit_errors_m,
     oracle_error_near_m,
     oracle_score,
     perfectly_corrected,
-    rate_dependent,
     score,
     worst_moment_s,
 )
+from pma_sim.registry import FAMILY_NAMES, family_argument, held_out_fit_errors_m, rate_dependent
 
 # The criteria against the paper's switch, from the third reversal on.
 RMSE_OF_SWITCH = 0.9
@@ -226,9 +220,9 @@ def main() -> int:
                              'duhem:RISING:FALLING (kPa) adds a Duhem muscle with other '
                              'approach scales, fitted to Table 1 (asymmetric is duhem:15:100); '
                              'gpi[:BULGE] a generalized Prandtl-Ishlinskii muscle, asymmetric '
-                             'with return-point memory (tests/support/generalized_play.py); '
+                             'with return-point memory (pma_sim.generalized_play); '
                              'friction[:WIDEST] braid friction growing with the pressure, a '
-                             'late sharp onset (tests/support/friction_muscle.py); '
+                             'late sharp onset (pma_sim.friction); '
                              'creep:INNER:SHARE:TAU narrow, wide or asymmetric with a share of '
                              'every length change lagged by TAU seconds (creep is '
                              'creep:narrow:0.25:0.6)')

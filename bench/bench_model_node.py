@@ -73,7 +73,7 @@ from pma_model.model_node import PREDICTION_QUEUE_DEPTH
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL = ROOT / 'ros2_ws' / 'install'
 MODEL_NODE = INSTALL / 'pma_model' / 'lib' / 'pma_model' / 'model_node'
-FAKE_ARDUINO = INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'fake_arduino'
+FAKE_ARDUINO = INSTALL / 'pma_sim' / 'lib' / 'pma_sim' / 'fake_arduino'
 DRIVER_NODE = INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'driver_node'
 RECORDER = INSTALL / 'pma_bag' / 'lib' / 'pma_bag' / 'record'
 BURST_CLIENT = ROOT / 'tests' / 'helpers' / 'service_burst.py'

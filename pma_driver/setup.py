@@ -14,20 +14,16 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/firmware/pma_firmware', glob('firmware/pma_firmware/*')),
-        ('share/' + package_name + '/firmware/simavr', glob('firmware/simavr/*')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
     maintainer='PMA testbed team',
     maintainer_email='pma-testbed@example.org',
-    description='Serial driver, firmware and simulated rig for the PMA testbed.',
+    description='Serial driver and firmware for the PMA testbed.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
             'driver_node = pma_driver.entry_points:driver_node',
-            'fake_arduino = pma_driver.entry_points:fake_arduino',
-            'simavr_arduino = pma_driver.entry_points:simavr_arduino',
-            'recorder = pma_driver.entry_points:recorder',
         ],
     },
 )

@@ -25,9 +25,9 @@ from rclpy.qos import qos_profile_sensor_data
 from rosbags.highlevel import AnyReader
 from std_msgs.msg import Float64
 
-from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
+from pma_sim.fake_arduino import TruthLog
 from support.procs import INSTALL, ROOT, kill_own_group, popen_in_own_group
 from support.ros import SpinningNode, shutdown, wait_until
 
@@ -89,7 +89,7 @@ def rig(module_procs, tmp_path_factory):
     recorder_cwd.mkdir()
     ns = ['-r', f'__ns:=/{NS}']
     truth = work / 'truth.csv'        # what a reference gauge and a tape would read
-    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed', '5',
+    fake = module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port), '--seed', '5',
                                  '--truth', str(truth))
     fake.wait_for_line('device at', 20)
     driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[*ns, '-p',
@@ -143,7 +143,7 @@ def test_set_refuses_above_the_drivers_ceiling_and_other_scripts_digits_unpublis
     # `٣٠٠` for 300 Pa and `２００kPa` for 200 kPa).
     namespace = 'low_ceiling'
     port = tmp_path / 'pma'
-    procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed', '6'
+    procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port), '--seed', '6'
                    ).wait_for_line('device at', 20)
     procs.ros2_run('pma_driver', 'driver_node', ros_args=[
         '-r', f'__ns:=/{namespace}', '-p', f'port:={port}',
@@ -214,7 +214,7 @@ def test_vent_vents_when_a_goal_server_never_answers_the_cancel(rig, procs, tmp_
     and vented nothing. A rig of its own, in a namespace where the move server is silent."""
     ns = ['-r', '__ns:=/silent']
     port = tmp_path / 'pma'
-    procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+    procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port),
                    name='silent_fake').wait_for_line('device at', 20)
     driver = procs.ros2_run('pma_driver', 'driver_node', name='silent_driver',
                             ros_args=[*ns, '-p', f'port:={port}'])

@@ -56,7 +56,7 @@ def rig(module_procs, tmp_path_factory):
     work = tmp_path_factory.mktemp('plot_rig')
     port = work / 'pma'
     ns = ['-r', f'__ns:=/{NS}']
-    module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed', '7'
+    module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port), '--seed', '7'
                           ).wait_for_line('device at', 20)
     driver = module_procs.ros2_run('pma_driver', 'driver_node',
                                    ros_args=[*ns, '-p', f'port:={port}'])

@@ -36,7 +36,7 @@ SILENT = ROOT / 'tests' / 'helpers' / 'silent_cancel_server.py'
 def rig(module_procs, tmp_path_factory):
     """fake_arduino and driver_node in /gone; each test starts (and kills) its controller."""
     port = tmp_path_factory.mktemp('gone_rig') / 'pma'
-    module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port), '--seed', '7',
+    module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port), '--seed', '7',
                           name='gone_fake').wait_for_line('device at', 20)
     driver = module_procs.ros2_run('pma_driver', 'driver_node', name='gone_driver',
                                    ros_args=['-r', f'__ns:=/{NS}', '-p', f'port:={port}'])
@@ -186,7 +186,7 @@ def test_a_second_ctrl_c_ends_the_wait_for_the_cancel_at_once(procs, stuck_serve
 def test_sweep_exits_3_when_the_driver_is_killed_mid_sweep(procs, tmp_path):
     """A rig of its own: its driver is killed. Before: `pma sweep` waited for ever."""
     port = tmp_path / 'pma'
-    procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+    procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port),
                    name='sweep_fake').wait_for_line('device at', 20)
     driver = procs.ros2_run('pma_driver', 'driver_node', name='sweep_driver',
                             ros_args=['-r', '__ns:=/sweepgone', '-p', f'port:={port}'])

@@ -55,7 +55,7 @@ def wait_for_new_line(proc: Proc, text: str, mark: int, timeout: float) -> None:
 class Rig:
     def __init__(self, procs, work):
         self.procs, self.port = procs, work / 'pma'
-        self.fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(self.port),
+        self.fake = procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(self.port),
                                    '--rate', '50', '--seed', '7', '--echo-timeout-rate',
                                    str(ECHO_TIMEOUT_RATE))
         self.fake.wait_for_line('device at', 20)

@@ -1,7 +1,7 @@
 """The controller's 0.1 Hz target on muscles its defaults were not chosen on.
 
 pma_control's own tests run the simulator's families; these are held out
-(support.muscle_families): the paper's Bouc-Wen model, and muscles creeping more slowly and
+(pma_sim.evaluation): the paper's Bouc-Wen model, and muscles creeping more slowly and
 more than `creep` does (30 % of each change lagged by 1.5-2 s), where a feedforward that
 inverts only the settled curves lags a 0.1 Hz sine by the creep (2.1-2.3 % of stroke before
 it aimed through the learned creep; docs/control.md). bench_control.py runs the same on six
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from support.closed_loop_runs import sine_error_m, sine_profile, track
-from support.muscle_families import BOUC_WEN, STROKE_M
+from pma_control.simulated_runs import sine_error_m, sine_profile, track
+from pma_sim.evaluation import BOUC_WEN, STROKE_M
 
 pytestmark = pytest.mark.in_process
 

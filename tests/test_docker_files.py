@@ -159,7 +159,7 @@ def installed(path: str) -> Path:
 
 
 def test_compose_services_profiles_and_commands(compose):
-    from pma_driver.fake_arduino import parse_args as fake_arduino_args
+    from pma_sim.fake_arduino import parse_args as fake_arduino_args
 
     services = compose['services']
     assert set(services) == {'driver', 'sim', 'model', 'recorder'}
@@ -189,7 +189,7 @@ def test_compose_services_profiles_and_commands(compose):
     assert device.split(':')[-1] == '/dev/ttyACM0'
     assert 'port:=/dev/ttyACM0' in driver['command']
     sim_words = shlex.split(services['sim']['command'][2])
-    fake = sim_words.index('/ws/install/pma_driver/lib/pma_driver/fake_arduino')
+    fake = sim_words.index('/ws/install/pma_sim/lib/pma_sim/fake_arduino')
     link = fake_arduino_args(sim_words[fake + 1:sim_words.index('&')]).link
     assert f'port:={link}' in sim_words, 'the sim driver must open the pty fake_arduino links'
     recorder = services['recorder']

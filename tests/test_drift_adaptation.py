@@ -6,7 +6,7 @@ the memory is sure, slowly, and apart from the shape the identification learns. 
 drift-free muscle adaptation must cost (almost) nothing; on one whose rest length creeps by
 +1.5 mm and whose stroke grows by 8 % (from 60 s on, time constant 30 s, as a muscle warming
 up) it must bring the error back to the noise floor within two minutes: what a perfect drift
-correction would leave (support.muscle_families.perfectly_corrected; the stroke is 8 %
+correction would leave (pma_sim.evaluation.perfectly_corrected; the stroke is 8 %
 longer, so the same shape error is 1.08x the drift-free one in metres).
 """
 
@@ -14,8 +14,7 @@ from __future__ import annotations
 
 import pytest
 
-from pma_driver.sim.families import FAMILY_NAMES
-from support.muscle_families import (
+from pma_sim.evaluation import (
     BOUC_WEN,
     IDENTIFY,
     LEARNED_RULES,
@@ -25,6 +24,7 @@ from support.muscle_families import (
     perfectly_corrected,
     score,
 )
+from pma_sim.registry import FAMILY_NAMES
 
 pytestmark = [pytest.mark.in_process, pytest.mark.slow]
 

@@ -33,8 +33,8 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 
+from pma_common.calibration import PressureCalibration
 from pma_common.commands import has_ros2_cli, run_command
-from pma_driver.calibration import PressureCalibration
 from pma_driver.parameters import PARAMETERS
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
@@ -203,7 +203,7 @@ def rig(procs, tmp_path, request):
         port = tmp_path / 'ttyPMA'
         fake = None
         if start_fake:
-            fake = procs.ros2_run('pma_driver', device, '--link', str(port), '--seed', '7',
+            fake = procs.ros2_run('pma_sim', device, '--link', str(port), '--seed', '7',
                                   *(device_args(device, build) if build else build_args),
                                   *fake_args)
             fake.wait_for_line(f'{device}: device at', 20)
@@ -716,7 +716,7 @@ def test_port_missing_at_start_then_appearing(rig, probe, procs):
                     10, 'diagnostics ERROR: port missing')
     time.sleep(1.5)
     assert driver.alive()
-    fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port))
+    fake = procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port))
     fake.wait_for_line('fake_arduino: device at', 20)
     appeared = time.monotonic()
     probe.wait_states(1, timeout=10)

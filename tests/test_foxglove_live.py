@@ -1,7 +1,7 @@
 """The live view: foxglove_live forwards PMA topics to a Foxglove WebSocket client, unchanged.
 
 The bridge runs as `ros2 run pma_bringup foxglove_live` does; a protocol-level client
-(support/foxglove_ws.py, the Foxglove WebSocket protocol as the app speaks it) subscribes to
+(pma_bringup.foxglove_client, the Foxglove WebSocket protocol as the app speaks it) subscribes to
 the advertised channels and decodes each message twice: with rclpy (the class the advertised
 schema name names) and with rosbags from the advertised `ros2msg` schema text alone, as the
 Foxglove app does. Publishers are real processes: a stand-in whose values follow from the
@@ -36,9 +36,9 @@ from websockets.sync.client import connect
 
 from helpers.live_publisher import prediction_fields, state_fields
 from pma_bag.record import message_class
+from pma_bringup.foxglove_client import FoxgloveClient, Received
 from pma_interfaces.msg import PmaState
 from support.domains import another_domain
-from support.foxglove_ws import FoxgloveClient, Received
 from support.procs import ROOT, children_of, running
 from support.ros import SpinningNode, shutdown, wait_until
 
@@ -267,7 +267,7 @@ def test_viewers_coming_and_going_leave_no_connection_or_thread_behind(procs):
 def rig(module_procs, tmp_path_factory):
     """The simulated rig, driver, model and controller, and the bridge next to them."""
     port = tmp_path_factory.mktemp('rig') / 'pma0'
-    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+    fake = module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port),
                                  '--seed', '3')
     fake.wait_for_line('device at', 20)
     module_procs.ros2_run('pma_driver', 'driver_node',

@@ -460,7 +460,7 @@ def test_bringup_on_hardware_starts_driver_and_model_only(stand_ins, declared):
 def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_ins, declared,
                                                                          tmp_path):
     from pma_bag.record import parse_args as recorder_args
-    from pma_driver.fake_arduino import parse_args as fake_arduino_args
+    from pma_sim.fake_arduino import parse_args as fake_arduino_args
 
     seen = {}
     for side in ('left', 'right'):
@@ -470,7 +470,7 @@ def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_
         assert sorted(nodes) == ['driver_node', 'length_controller', 'model_node', 'record']
         assert {n['namespace'] for n in nodes.values()} == {side}
         [fake] = launched.processes
-        assert fake[0] == str(INSTALL / 'pma_driver' / 'lib' / 'pma_driver' / 'fake_arduino')
+        assert fake[0] == str(INSTALL / 'pma_sim' / 'lib' / 'pma_sim' / 'fake_arduino')
         fake_args = fake_arduino_args(fake[1:])        # fake_arduino's own parser accepts them
         port = parameters_given(nodes['driver_node'])['port']
         assert str(fake_args.link) == port and port.startswith('/tmp/')

@@ -18,10 +18,10 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.action import ActionClient
 from std_msgs.msg import Float64
 
-from pma_driver.fake_arduino import TruthLog
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import ControlState, LengthSetpoint
 from pma_model.params import paper_table1
+from pma_sim.fake_arduino import TruthLog
 from support.control_probe import ControlProbe
 from support.ros import shutdown, wait_for_action_server, wait_until
 
@@ -34,7 +34,7 @@ STROKE_M = paper_table1().stroke_m
 def rig(module_procs, tmp_path_factory):
     work = tmp_path_factory.mktemp('rig')
     port, truth = work / 'pma', work / 'truth.csv'
-    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+    fake = module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port),
                                  '--rate', '50', '--seed', '3', '--truth', str(truth))
     fake.wait_for_line('device at', 20)
     driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=[

@@ -1,10 +1,10 @@
 """Minor loops on every simulated muscle family: the issue's acceptance (docs/model.md §3).
 
-Each family (pma_driver.sim.families) reproduces Table 1, so the major loop cannot tell them
+Each family (pma_sim.families) reproduces Table 1, so the major loop cannot tell them
 apart; they differ after reversals. The model starts from the shipped defaults (sigmoid
 branches fitted to Table 1, no memory data) and runs online along nested and random
 reversal paths of three minutes, seeing the sensors' readings; scores count from the third
-reversal on, against the true length (tests/support/muscle_families.py). The acceptance is
+reversal on, against the true length (pma_sim.evaluation). The acceptance is
 the default memory's, the mix of identify and play (MIXED).
 `bench/bench_memory_families.py` prints the full table (both branch forms, two seeds).
 """
@@ -16,21 +16,16 @@ import itertools
 import numpy as np
 import pytest
 
-from pma_driver import protocol
-from pma_driver.calibration import PressureCalibration
-from pma_driver.sim.device import DeviceConfig, SimDevice
-from pma_driver.sim.families import FAMILY_NAMES, CreepParams, muscle_family
-from pma_driver.sim.paths import SMOOTH_KINDS
+from pma_common import protocol
+from pma_common.calibration import PressureCalibration
 from pma_driver.sweep import plan_sweep
 from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
 from pma_model.params import default_params
-from support.friction_muscle import DEFAULT_WIDEST_BAND
-from support.generalized_play import DEFAULT_BULGE
-from support.muscle_families import (
+from pma_sim.bouc_wen import bouc_wen_fit
+from pma_sim.device import DeviceConfig, SimDevice
+from pma_sim.evaluation import (
     BOUC_WEN,
-    FRICTION,
-    GENERALIZED_PLAY,
     LEARNED_RULES,
     MIXED,
     MIXED_WITHOUT_LOCAL_OFFSET,
@@ -39,20 +34,29 @@ from support.muscle_families import (
     STATIC_RULES,
     Config,
     Scenario,
-    bouc_wen_fit,
+    oracle_error_near_m,
+    oracle_score,
+    predict,
+    return_point_oracle,
+    score,
+    simulate,
+    worst_moment_s,
+)
+from pma_sim.families import CreepParams
+from pma_sim.friction import DEFAULT_WIDEST_BAND
+from pma_sim.generalized_play import DEFAULT_BULGE
+from pma_sim.paths import SMOOTH_KINDS
+from pma_sim.registry import (
+    FAMILY_NAMES,
+    FRICTION,
+    GENERALIZED_PLAY,
     creep_variant,
     duhem_variant_scales_pa,
     friction_widest_band,
     generalized_play_bulge,
     held_out_fit_errors_m,
-    oracle_error_near_m,
-    oracle_score,
-    predict,
+    muscle_family,
     rate_dependent,
-    return_point_oracle,
-    score,
-    simulate,
-    worst_moment_s,
 )
 
 # The module fixture runs every scenario once (about 90 s of one core, more when the
@@ -205,7 +209,7 @@ def test_a_held_out_muscle_is_named_by_its_number(parse, name, default, other, b
 
 
 def test_on_a_held_out_asymmetric_muscle_with_return_point_memory_the_default_meets_the_criteria():
-    # The generalized Prandtl-Ishlinskii muscle (support.generalized_play): rising and falling
+    # The generalized Prandtl-Ishlinskii muscle (pma_sim.generalized_play): rising and falling
     # curves follow different envelopes, as on the Duhem muscle, but its loops close (the
     # oracle test above). Every criterion on seeds 1-2 and the switch criteria on all 48
     # runs of seeds 1-8 at 50 Hz with three asymmetry strengths (docs/model.md §3.1): the
@@ -220,7 +224,7 @@ def test_on_a_held_out_asymmetric_muscle_with_return_point_memory_the_default_me
 
 
 def test_on_a_held_out_muscle_with_a_late_sharp_onset_the_default_meets_the_switch_criteria():
-    # support.friction_muscle: braid friction growing with the pressure. Fitted to Table 1 it
+    # pma_sim.friction: braid friction growing with the pressure. Fitted to Table 1 it
     # leaves its dead zone at 69 kPa with a kink, between Table 1's points at 50 and 100
     # kPa, where a correction following the sigmoid's shape from knot to knot missed it by
     # millimetres: at the driver's 20 Hz, seed 1, nested, 0.77x the switch's max before the
@@ -271,7 +275,7 @@ def test_a_held_out_creep_variant_is_named_by_its_family_share_and_lag():
 
 def test_on_a_held_out_bouc_wen_muscle_the_default_meets_the_switch_criteria():
     # Chosen on none of the families above: the paper's comparison model fitted to Table 1
-    # (support.muscle_families.BOUC_WEN), no return-point memory. bench_memory_families
+    # (pma_sim.evaluation.BOUC_WEN), no return-point memory. bench_memory_families
     # adds the best-fixed-rule criterion and the second seed.
     assert bouc_wen_fit().loop_width_m > 0.003   # a muscle with hysteresis (4.0 mm)
     ours, paper = scores(BOUC_WEN, MIXED), scores(BOUC_WEN, PAPER)
@@ -296,7 +300,7 @@ def test_at_the_drivers_default_20_hz_the_default_meets_the_switch_criteria(fami
 @pytest.mark.parametrize('family', [*FAMILY_NAMES, BOUC_WEN])
 def test_on_smooth_paths_the_default_meets_the_switch_criteria(family):
     # Paths the defaults were not chosen on: no holds, slowing into every reversal, where the
-    # pressure reading's noise makes small false turns (pma_driver.sim.paths.smooth_path).
+    # pressure reading's noise makes small false turns (pma_sim.paths.smooth_path).
     # Seeds 1-8, sigmoid: 80 of 80 runs meet both at 50 Hz, 79 of 80 at 20 Hz
     # (docs/model.md §3.1). Seed 1's largest max: 0.51x the switch's (narrow, sines).
     for kind in SMOOTH_KINDS:

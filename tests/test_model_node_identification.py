@@ -1,7 +1,7 @@
 """model_node learns which muscle it has, says so, and a restart resumes from what it said.
 
 A real model_node process over DDS; the probe plays the driver, publishing PmaState from the
-simulated `wide` muscle family along a path with reversals (pma_driver.sim.paths), with the
+simulated `wide` muscle family along a path with reversals (pma_sim.paths), with the
 rig's sensor noise and the sample's simulated time in the header.
 """
 
@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 import yaml
 
-from pma_driver.sim import families, paths
 from pma_model.identification import CORRECTION_KNOTS_PA
+from pma_sim import paths
+from pma_sim.registry import muscle_family
 from support.ros import SpinningNode, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
@@ -33,7 +34,7 @@ def publish_run(probe, rate_hz=400.0, duration_s=60.0):
     from pma_interfaces.msg import PmaState
 
     path = paths.ramp_path(paths.random_turns(duration_s, seed=4), seed=4)
-    run = paths.simulate(families.muscle_family('wide'), path, seed=4)
+    run = paths.simulate(muscle_family('wide'), path, seed=4)
     publisher = probe.node.create_publisher(PmaState, 'pma/state', 50)
     wait_until(lambda: publisher.get_subscription_count() >= 1, 20, 'model_node subscribed')
     start = time.monotonic()

@@ -183,3 +183,64 @@ def test_every_packages_tests_are_collected_by_make_test():
         if (source / 'test').is_dir():
             assert (source / 'test').resolve() in collected, (
                 f'{package}/test is not in pyproject.toml testpaths: make test skips it')
+
+
+# --- Directions between the packages (docs/development.md, "Where things live") --------------
+
+# pma_driver is the serial driver: pma_bringup starts it (and reads its config), pma_cli is its
+# client (the driver's parameters and sweep goals). Everything else reaches the device through
+# ROS or, for the simulated rig, through pma_common's protocol: so the driver's tests can run
+# against pma_sim without a dependency cycle.
+DRIVER_IMPORTERS = {'pma_driver', 'pma_bringup', 'pma_cli'}
+BENCH = sorted((ROOT / 'bench').glob('*.py'))
+TESTS_ON_PATH = re.compile(r'sys\.path\.(insert|append)\(.*tests')
+
+
+def python_packages() -> list[str]:
+    return [package for package in sorted(PACKAGES) if is_python(package)]
+
+
+def importers_of(module: str, files: list[Path]) -> list[str]:
+    return [str(path.relative_to(ROOT)) for path in files if module in imported_modules([path])]
+
+
+def test_only_the_driver_its_bringup_and_its_client_import_pma_driver():
+    for package in set(python_packages()) - DRIVER_IMPORTERS:
+        files = code_files(package) + files_of_tests(package)
+        assert not importers_of('pma_driver', files), (
+            f'{package} imports pma_driver: {importers_of("pma_driver", files)}')
+    assert not importers_of('pma_driver', BENCH), 'bench/ imports pma_driver'
+
+
+def test_nothing_in_the_packages_or_bench_imports_from_tests():
+    """tests/support is test plumbing: what a bench or a package needs lives in a package."""
+    files = [path for package in python_packages()
+             for path in code_files(package) + files_of_tests(package)] + BENCH
+    for module in ('support', 'helpers'):
+        assert not importers_of(module, files), f'{importers_of(module, files)} import {module}'
+    on_path = [str(path.relative_to(ROOT)) for path in files
+               if TESTS_ON_PATH.search(path.read_text())]
+    assert not on_path, f'{on_path} put tests/ on sys.path'
+
+
+def test_the_model_does_not_import_the_simulator():
+    """pma_sim depends on pma_model (Bouc-Wen, the scoring harness), not the reverse."""
+    assert not importers_of('pma_sim', code_files('pma_model') + files_of_tests('pma_model'))
+    assert 'pma_sim' not in dependencies('pma_model')
+
+
+def test_the_dependencies_have_no_cycle():
+    """colcon orders the packages by every dependency, test ones too, and refuses a cycle."""
+    graph = {package: dependencies(package) & set(PACKAGES) for package in PACKAGES}
+    done: set[str] = set()
+
+    def visit(package: str, path: tuple[str, ...]) -> None:
+        assert package not in path, f'dependency cycle: {" -> ".join((*path, package))}'
+        if package in done:
+            return
+        for needed in sorted(graph[package]):
+            visit(needed, (*path, package))
+        done.add(package)
+
+    for package in sorted(graph):
+        visit(package, ())

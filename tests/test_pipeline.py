@@ -99,7 +99,7 @@ def swept(module_procs, probe, tmp_path_factory):
     """Rig + driver + model; one full 0 -> 500 -> 0 kPa sweep recorded by the action."""
     work = tmp_path_factory.mktemp('pipeline')
     port = work / 'ttyPMA'
-    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', port, '--seed', '3')
+    fake = module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', port, '--seed', '3')
     fake.wait_for_line('fake_arduino: device at', 20)
     # Online identification off, here and in the replay: a learning model's predictions
     # depend on every sample it has seen, so a replay that joins after the live model

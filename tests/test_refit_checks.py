@@ -56,7 +56,7 @@ def sweep(probe, bag, *, start_pressurised: bool) -> None:
 def refits(module_procs, tmp_path_factory):
     work = tmp_path_factory.mktemp('refit_checks')
     port = work / 'ttyPMA'
-    fake = module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', port, '--seed', '4')
+    fake = module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', port, '--seed', '4')
     fake.wait_for_line('fake_arduino: device at', 20)
     recorder = module_procs.ros2_run('pma_bag', 'record', '--idle')
     driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=['-p',

@@ -32,8 +32,8 @@ from rosbags.highlevel import AnyReader
 from std_msgs.msg import Float64
 
 from pma_bag import BagWriter
+from pma_common import protocol
 from pma_common.stop import STOP_SIGNALS
-from pma_driver import protocol
 from pma_interfaces.msg import PmaState
 from support import firmware
 from support.domains import another_domain
@@ -146,7 +146,7 @@ def device_setpoint_pa(port: Path) -> int:
 def test_driver_node_closes_the_port_under_any_burst(procs, tmp_path, seed):
     def trial(k: int, rng: random.Random) -> None:
         port = tmp_path / f'pma{k}'
-        fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port))
+        fake = procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port))
         fake.wait_for_line('device at', 20)
         driver = procs.ros2_run('pma_driver', 'driver_node', name=f'driver{k}',
                                 ros_args=['-r', f'__ns:=/t{seed}_{k}', '-p', f'port:={port}'])
@@ -163,7 +163,7 @@ def test_ctrl_c_under_launch_vents_the_muscle(procs, tmp_path):
     """The reproduction from the report: SIGINT, SIGINT 20 ms later, while at 150 kPa."""
     port = tmp_path / 'pma'
     # Without the device's heartbeat check, only the driver's own VENT brings it to 0 Pa.
-    fake = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(port),
+    fake = procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port),
                           '--no-heartbeat-check')
     fake.wait_for_line('device at', 20)
     probe = SpinningNode('signal_test_probe')
@@ -224,7 +224,7 @@ def test_model_node_and_fake_arduino_exit_quietly(procs, tmp_path, seed):
             proc = procs.ros2_run('pma_model', 'model_node', name=f'model{k}',
                                   ros_args=['-r', f'__ns:=/m{k}'])
         else:
-            proc = procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(tmp_path / f'f{k}'),
+            proc = procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(tmp_path / f'f{k}'),
                                   name=f'fake{k}')
         start_moment(proc, rng, 2.25)
         send(proc, burst(rng))
@@ -240,7 +240,7 @@ def test_simavr_arduino_exits_quietly_and_ends_its_simulator(procs, tmp_path, se
     build = firmware.require_simulator(firmware.session_build())
 
     def trial(k: int, rng: random.Random) -> None:
-        proc = procs.ros2_run('pma_driver', 'simavr_arduino', '--link', str(tmp_path / f's{k}'),
+        proc = procs.ros2_run('pma_sim', 'simavr_arduino', '--link', str(tmp_path / f's{k}'),
                               *build.simavr_args(), name=f'simavr{k}')
         start_moment(proc, rng, 2.25)
         send(proc, burst(rng))

@@ -36,7 +36,7 @@ def rigs(procs, tmp_path):
     drivers, models = [], []
     for seed, side in enumerate(SIDES, start=1):
         link = tmp_path / f'pma_{side}'
-        procs.ros2_run('pma_driver', 'fake_arduino', '--link', str(link), '--seed', str(seed),
+        procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(link), '--seed', str(seed),
                        name=f'fake_arduino_{side}').wait_for_line('device at')
         drivers.append(procs.ros2_run('pma_driver', 'driver_node', name=f'driver_{side}',
                                       ros_args=['-r', f'__ns:=/{side}', '-p', f'port:={link}']))

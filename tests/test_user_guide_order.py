@@ -22,7 +22,7 @@ import yaml
 from rosbags.highlevel import AnyReader
 
 from pma_common import experiment
-from pma_driver.sim.families import muscle_family
+from pma_sim.registry import muscle_family
 from support.procs import INSTALL
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -48,7 +48,7 @@ def test_steps_5_7_and_9_in_order_give_the_rest_length_and_one_sweep(module_proc
     port = tmp_path / 'pma0'
     recorder_cwd = tmp_path / 'recorder'
     recorder_cwd.mkdir()
-    module_procs.ros2_run('pma_driver', 'fake_arduino', '--link', port, '--seed', '7'
+    module_procs.ros2_run('pma_sim', 'fake_arduino', '--link', port, '--seed', '7'
                           ).wait_for_line('device at', 20)
     driver = module_procs.ros2_run('pma_driver', 'driver_node', ros_args=['-p', f'port:={port}'])
     model = module_procs.ros2_run('pma_model', 'model_node')

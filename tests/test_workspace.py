@@ -15,7 +15,8 @@ from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_unt
 
 HELPERS = Path(__file__).parent / 'helpers'
 EXECUTABLES = {
-    'pma_driver': ['driver_node', 'fake_arduino', 'simavr_arduino', 'recorder'],
+    'pma_driver': ['driver_node'],
+    'pma_sim': ['fake_arduino', 'simavr_arduino'],
     'pma_model': ['model_node', 'replay', 'refit'],
     'pma_bag': ['record', 'play', 'recover', 'info'],
     'pma_bringup': ['demo', 'foxglove_live'],
@@ -24,8 +25,8 @@ EXECUTABLES = {
 
 
 def test_workspace_is_built_with_every_package():
-    for package in ('pma_interfaces', 'pma_common', 'pma_driver', 'pma_bag', 'pma_model',
-                    'pma_control', 'pma_bringup'):
+    for package in ('pma_interfaces', 'pma_common', 'pma_driver', 'pma_sim', 'pma_bag',
+                    'pma_model', 'pma_control', 'pma_bringup'):
         index = INSTALL / package / 'share' / 'ament_index' / 'resource_index'
         marker = index / 'packages' / package
         assert marker.exists(), f'{package} is not installed in {INSTALL}'

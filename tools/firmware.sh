@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Compile the Arduino Mega 2560 firmware (pma_driver/firmware/pma_firmware/) with the Debian
 # AVR toolchain and arduino-mk, print its flash and RAM use, then build the simulator that
-# runs that image (pma_driver/firmware/simavr/, against Debian's simavr) for
-# `ros2 run pma_driver simavr_arduino`. Missing packages are installed first with apt-get.
+# runs that image (pma_sim/simavr/, against Debian's simavr) for
+# `ros2 run pma_sim simavr_arduino`. Missing packages are installed first with apt-get.
 # `make firmware` (so `make test`) and the firmware tests run this.
 #
 # Exit status: 0 built; 1 compile or link error (or the image does not fit); 3 the AVR
@@ -12,11 +12,13 @@
 #
 # Environment: PMA_FIRMWARE_BUILD_DIR (default <repo>/build/firmware, git-ignored; the image
 # is pma_firmware.elf, the simulator simavr/pma_simavr) and PMA_FIRMWARE_DIR (default
-# pma_driver/firmware; the tests point it at a broken copy).
+# pma_driver/firmware; the tests point it at a broken copy) and PMA_SIMAVR_DIR (default
+# pma_sim/simavr, the simulator's source).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 FIRMWARE_DIR="${PMA_FIRMWARE_DIR:-${ROOT}/pma_driver/firmware}"
+SIMAVR_DIR="${PMA_SIMAVR_DIR:-${ROOT}/pma_sim/simavr}"
 BUILD_DIR="${PMA_FIRMWARE_BUILD_DIR:-${ROOT}/build/firmware}"
 ARDUINO_DIR=/usr/share/arduino
 APT_PACKAGES=(gcc-avr avr-libc arduino-core-avr arduino-mk)
@@ -126,10 +128,10 @@ elif ! apt_install "simavr" "${SIMAVR_PACKAGES[@]}" || ! simulator_present; then
         "needed for simavr_arduino; the firmware itself built"
     exit "${EXIT_NO_SIMULATOR}"
 fi
-if ! make --no-print-directory -C "${FIRMWARE_DIR}/simavr" OUT="${BUILD_DIR}/simavr" \
+if ! make --no-print-directory -C "${SIMAVR_DIR}" OUT="${BUILD_DIR}/simavr" \
         >"${BUILD_DIR}/simavr-build.log" 2>&1; then
     cat "${BUILD_DIR}/simavr-build.log"
     log "SIMULATOR BUILD FAILED (log: ${BUILD_DIR}/simavr-build.log)"
     exit 1
 fi
-log "simulator: ${BUILD_DIR}/simavr/pma_simavr (ros2 run pma_driver simavr_arduino)"
+log "simulator: ${BUILD_DIR}/simavr/pma_simavr (ros2 run pma_sim simavr_arduino)"

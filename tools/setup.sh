@@ -81,7 +81,7 @@ watched() {
         \( -name package.xml -o -name setup.py -o -name setup.cfg -o -name CMakeLists.txt \
            -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -name '*.txt' \
            -o -path '*/launch*' -o -path '*/config*' -o -path '*/resource*' -o -path '*/firmware*' \
-           -o -path '*/foxglove/*' \
+           -o -path '*/foxglove/*' -o -path '*/simavr/*' \
            -o -name colcon_defaults.yaml \) -type f "$@"
 }
 listing="$(watched -print | LC_ALL=C sort | sha256sum | cut -c1-16)"

@@ -744,13 +744,5 @@ def main(argv: list[str] | None = None) -> int:
     return 1 if failed else 0
 
 
-def legacy_main() -> int:
-    """`ros2 run pma_driver recorder`: the old name, kept for one release."""
-    print(f'recorder: `{run_command("pma_driver", "recorder")}` is now '
-          f'`{run_command("pma_bag", "record")}` (and `... recover`); the old name goes in the '
-          'next release', file=sys.stderr)
-    return main()
-
-
 if __name__ == '__main__':
     sys.exit(main())

@@ -270,10 +270,10 @@ def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv
     from rclpy.qos import qos_profile_sensor_data
 
     from pma_control.plots import plot_control_run
-    from pma_driver.fake_arduino import TruthLog
     from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
     from pma_model.params import paper_table1
     from pma_model.provenance import input_run
+    from pma_sim.fake_arduino import TruthLog
 
     node = spin.node
     stroke_m = paper_table1().stroke_m
@@ -372,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
         say('1/8 starting fake_arduino (simulated rig on a pseudo-terminal)')
         port = run_dir / 'pma0'
         truth_csv = logs / 'true_length.csv'     # the simulated truth, for the control plot
-        procs.start('fake_arduino', 'pma_driver', 'fake_arduino', '--link', str(port),
+        procs.start('fake_arduino', 'pma_sim', 'fake_arduino', '--link', str(port),
                     '--seed', '1', '--max-rate', str(int(args.rate_hz)), '--truth',
                     str(truth_csv))
         procs.wait_for_log('fake_arduino', 'device at', 15)

@@ -193,7 +193,7 @@ def node_set(options: Options, share: Callable[[str], str] = package_share) -> l
     if options.simulated:
         # A plain executable, not a ROS node: no --ros-args.
         specs.append(NodeSpec(
-            name='fake_arduino', package='pma_driver', executable='fake_arduino', ros=False,
+            name='fake_arduino', package='pma_sim', executable='fake_arduino', ros=False,
             arguments=('--link', port, '--seed', str(options.fake_arduino_seed)),
             env={'PYTHONUNBUFFERED': '1'}))
     # The port and autostart given after the file win over the file's.

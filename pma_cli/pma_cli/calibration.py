@@ -1,6 +1,6 @@
 """The arithmetic of `pma calibrate`: span from a reference gauge, length offset from a tape.
 
-No ROS. The sensors' transfer functions are pma_driver.calibration's and the limits are the
+No ROS. The sensors' transfer functions are pma_common.calibration's and the limits are the
 driver's own parameter checks (pma_driver.parameters), so a result the driver would refuse is
 refused here first, with the reason; on top of them, bounds on what a calibration may change
 at all (a 30 % span error is a wrong sensor or a misread gauge, not a calibration).
@@ -20,7 +20,7 @@ import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from pma_driver.calibration import ADC_FULL_SCALE, LengthCalibration
+from pma_common.calibration import ADC_FULL_SCALE, LengthCalibration
 from pma_driver.parameters import PARAMETERS, calibrations, check_parameters
 
 MIN_CHECK_FRACTION = 0.2       # of full scale: below it the span is judged on too few counts

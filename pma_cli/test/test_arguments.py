@@ -208,7 +208,7 @@ def test_a_unit_of_another_kind_typed_apart_is_refused_naming_the_units_taken(ca
 
 
 def test_run_passes_its_arguments_on_untouched():
-    args = parsed('run', 'pma_driver', 'fake_arduino', '--delay', '5', 's')
+    args = parsed('run', 'pma_sim', 'fake_arduino', '--delay', '5', 's')
     assert args.args == ['--delay', '5', 's']
 
 

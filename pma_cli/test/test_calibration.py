@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from pma_cli import calibration as cal
-from pma_driver.calibration import ADC_FULL_SCALE, LengthCalibration, PressureCalibration
+from pma_common.calibration import ADC_FULL_SCALE, LengthCalibration, PressureCalibration
 from pma_driver.parameters import PARAMETERS, calibrations, check_parameters, defaults
 
 pytestmark = pytest.mark.in_process

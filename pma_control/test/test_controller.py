@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pma_control.controller import MODES, ControllerSettings, LengthController
-from pma_driver.sim.closed_loop import run_closed_loop
-from pma_driver.sim.device import DeviceConfig, Rig
-from pma_driver.sim.families import FAMILY_NAMES, muscle_family
 from pma_model.params import default_params, paper_table1
+from pma_sim.closed_loop import run_closed_loop
+from pma_sim.device import DeviceConfig, Rig
+from pma_sim.registry import FAMILY_NAMES, muscle_family
 
 pytestmark = pytest.mark.in_process
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import collections
 import math
 
-from pma_driver.protocol import U32
+from pma_common.protocol import U32
 
 NS_PER_MS = 1_000_000
 NS_PER_S = 1_000_000_000

@@ -28,10 +28,11 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from pma_common import names
+from pma_common import protocol
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_common.parameters import node_or_exit
+from pma_common.protocol import Command, Hello
 from pma_common.service import SERVICE_QOS
-from pma_driver import protocol
 from pma_driver.clock_sync import ClockSync
 from pma_driver.command_gate import DeviceControl
 from pma_driver.link import PortOpenError, SerialLink
@@ -44,7 +45,6 @@ from pma_driver.parameters import (
     stall_timeout_s,
     startup_commands,
 )
-from pma_driver.protocol import Command, Hello
 from pma_driver.recorder_client import RecorderClient
 from pma_driver.sweep_runner import Outcome, SweepGoal, SweepRunner, SweepSettings
 from pma_interfaces.action import Sweep

@@ -23,9 +23,9 @@ from dataclasses import dataclass, field
 
 import serial
 
+from pma_common import protocol
+from pma_common.protocol import Ack, Command, Hello, Nak, Sample
 from pma_common.sequence import SequenceStats, SequenceTracker
-from pma_driver import protocol
-from pma_driver.protocol import Ack, Command, Hello, Nak, Sample
 
 # What a port that goes away can raise from pyserial: a pulled cable between open() and the
 # port's configuration or a flush surfaces as termios.error, which is not an OSError.

@@ -12,8 +12,8 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus
 from sensor_msgs.msg import FluidPressure, Range
 
-from pma_driver import protocol
-from pma_driver.calibration import LengthCalibration, PressureCalibration
+from pma_common import protocol
+from pma_common.calibration import LengthCalibration, PressureCalibration
 from pma_driver.link import LinkState, LinkStats
 from pma_interfaces.msg import PmaState
 

@@ -16,8 +16,8 @@ from rclpy.exceptions import InvalidNodeNameException, InvalidTopicNameException
 from rclpy.validate_node_name import validate_node_name
 from rclpy.validate_topic_name import validate_topic_name
 
-from pma_driver.calibration import LengthCalibration, PressureCalibration
-from pma_driver.protocol import Command, Hello
+from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.protocol import Command, Hello
 
 
 def _floats(low: float, high: float, step: float = 0.0) -> list[FloatingPointRange]:

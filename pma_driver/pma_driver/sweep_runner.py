@@ -40,9 +40,9 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
+from pma_common.protocol import Ack, Command, Hello
 from pma_driver.command_gate import DeviceControl
 from pma_driver.link import LinkError
-from pma_driver.protocol import Ack, Command, Hello
 from pma_driver.sweep import (
     PROFILE_FIELDS,
     StreamPlan,

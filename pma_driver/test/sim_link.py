@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from pma_driver import protocol
+from pma_common import protocol
+from pma_common.protocol import Ack, Command, Hello, Nak, Sample
 from pma_driver.link import LinkError, LinkState
-from pma_driver.protocol import Ack, Command, Hello, Nak, Sample
-from pma_driver.sim.device import SimDevice
+from pma_sim.device import SimDevice
 
 
 class SimLink:

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from pma_common.protocol import U32
 from pma_driver.clock_sync import ClockSync
-from pma_driver.protocol import U32
 
 pytestmark = pytest.mark.in_process
 

@@ -9,9 +9,9 @@ import time
 import pytest
 from sim_link import SimClock, SimLink
 
-from pma_driver.calibration import PressureCalibration
+from pma_common.calibration import PressureCalibration
 from pma_driver.command_gate import DeviceControl
-from pma_driver.sim.device import DeviceConfig, SimDevice
+from pma_sim.device import DeviceConfig, SimDevice
 
 pytestmark = pytest.mark.in_process
 

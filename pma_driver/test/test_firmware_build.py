@@ -4,7 +4,7 @@ Four kinds of check:
 * it compiles for the atmega2560 with the real AVR toolchain (tools/firmware.sh, which installs
   the toolchain when missing), and a broken sketch fails that build;
 * its constants agree with their other homes: the pin table in docs/hardware.md, protocol.py,
-  calibration.py, docs/serial-protocol.md and the simulated rig (sim/device.py);
+  calibration.py (pma_common), docs/serial-protocol.md and the simulated rig (pma_sim/device.py);
 * the unmodified sketch, compiled for the PC against a simulated rig
   (test/firmware_host/), behaves as the protocol says, judged by the host's own parser;
 * the simulated rig (fake_arduino's device) answers the same command lines the same way.
@@ -41,8 +41,8 @@ RIG_DIR = Path(__file__).resolve().parent / 'firmware_host'
 
 
 def _load(name: str):
-    """Import a module of pma_driver from its file, whether or not the package is installed."""
-    path = ROOT / 'pma_driver' / 'pma_driver' / f'{name}.py'
+    """Import a module of pma_common from its file, whether or not the package is installed."""
+    path = ROOT / 'pma_common' / 'pma_common' / f'{name}.py'
     spec = importlib.util.spec_from_file_location(f'_firmware_test_{name}', path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up while being built
@@ -567,7 +567,7 @@ def test_overlong_lines_are_dropped_whole(rig_binary):
 
 @pytest.fixture(scope='module')
 def sim():
-    return pytest.importorskip('pma_driver.sim.device')
+    return pytest.importorskip('pma_sim.device')
 
 
 def test_the_simulated_rig_uses_the_firmware_s_constants(sim):

@@ -39,9 +39,9 @@ from test_firmware_build import (
 )
 
 from pma_common.stop import StopRequest
-from pma_driver import simavr_arduino
-from pma_driver.sim.device import DeviceConfig, Rig
-from pma_driver.simavr_arduino import SimavrDevice
+from pma_sim import simavr_arduino
+from pma_sim.device import DeviceConfig, Rig
+from pma_sim.simavr_arduino import SimavrDevice
 
 MEGA_VARIANT = Path('/usr/share/arduino/hardware/arduino/avr/variants/mega/pins_arduino.h')
 @pytest.fixture(scope='module')

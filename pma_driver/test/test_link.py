@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from pma_driver import protocol
+from pma_common import protocol
+from pma_common.protocol import Ack, Command, Hello, Nak
 from pma_driver.link import LinkError, LinkState, PortOpenError, SerialLink
-from pma_driver.protocol import Ack, Command, Hello, Nak
 
 CEILING_PA = 500_000
 

@@ -8,12 +8,12 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 from sensor_msgs.msg import Range
 
+from pma_common import protocol
+from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.protocol import Hello, Sample
 from pma_common.sequence import SequenceStats
-from pma_driver import protocol
-from pma_driver.calibration import LengthCalibration, PressureCalibration
 from pma_driver.link import LinkState, LinkStats
 from pma_driver.messages import link_level, link_values, sample_messages
-from pma_driver.protocol import Hello, Sample
 
 pytestmark = pytest.mark.in_process
 

@@ -8,9 +8,9 @@ import math
 import pytest
 import yaml
 
-from pma_driver.calibration import LengthCalibration, PressureCalibration
+from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.protocol import Hello
 from pma_driver.parameters import PARAMETERS, check_parameters, defaults
-from pma_driver.protocol import Hello
 
 pytestmark = pytest.mark.in_process
 

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pma_driver import protocol
-from pma_driver.protocol import (
+from pma_common import protocol
+from pma_common.protocol import (
     Ack,
     Command,
     FrameDecoder,

@@ -15,11 +15,9 @@ import math
 import pytest
 from sim_link import SimClock, SimLink
 
-from pma_driver.calibration import PressureCalibration
+from pma_common.calibration import PressureCalibration
+from pma_common.protocol import Command
 from pma_driver.command_gate import DeviceControl
-from pma_driver.protocol import Command
-from pma_driver.sim.device import DeviceConfig, SimDevice
-from pma_driver.sim.pneumatics import PneumaticParams
 from pma_driver.sweep import STREAM_RATE_HZ, plan_goal
 from pma_driver.sweep_runner import (
     PHASE_REST,
@@ -35,6 +33,8 @@ from pma_driver.sweep_runner import (
     SweepRunner,
     SweepSettings,
 )
+from pma_sim.device import DeviceConfig, SimDevice
+from pma_sim.pneumatics import PneumaticParams
 
 pytestmark = pytest.mark.in_process
 

@@ -335,7 +335,7 @@ def virgin_start(time_s, pressure, offset_m=0.003, scale_pa=200e3):
 
 
 def test_a_rested_muscles_first_loading_is_not_learned_as_its_branches(monkeypatch):
-    # The Bouc-Wen muscle starts 5 mm longer than its loop (tests/support/muscle_families);
+    # The Bouc-Wen muscle starts 5 mm longer than its loop (pma_sim.bouc_wen);
     # learned as the rising branch, that first loading misleads every later pass at those
     # pressures. The same model without the virgin term (its end moved to 0) is the
     # comparison.

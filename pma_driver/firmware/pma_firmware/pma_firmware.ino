@@ -7,7 +7,7 @@
 // The device enforces its own safety whatever the host says or does: a ceiling on the
 // setpoint and on the measured pressure (ceiling + OVERPRESSURE_MARGIN_PA), a heartbeat
 // timeout that vents when the host link is lost, and venting when the pressure sensor reads
-// outside its span. The simulated rig (pma_driver/sim/device.py) follows the same rules.
+// outside its span. The simulated rig (pma_sim/pma_sim/device.py) follows the same rules.
 
 #include "pma_protocol.h"
 

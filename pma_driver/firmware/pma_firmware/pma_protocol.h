@@ -1,5 +1,5 @@
 // Serial protocol v1 constants, device side (docs/serial-protocol.md). The host's twin is
-// pma_driver/pma_driver/protocol.py; pma_driver/test/test_firmware_build.py reads both files
+// pma_common/pma_common/protocol.py; pma_driver/test/test_firmware_build.py reads both files
 // and fails when they disagree, so change them together.
 #pragma once
 

@@ -1,7 +1,9 @@
 """The length controller on a simulated muscle family, in simulated time (ROS-free).
 
 Shared by tests/test_control_on_held_out_muscles.py and bench/bench_control.py, so that
-the held-out muscles of support.muscle_families reach the controller the same way in both.
+every muscle family of pma_sim.registry, the held-out ones too, reaches the controller the
+same way in both. It lives in pma_control, not pma_sim, because it runs the controller: the
+simulator does not depend on the controller (pma_control's tests use the simulator).
 """
 
 from __future__ import annotations
@@ -11,10 +13,10 @@ import math
 import numpy as np
 
 from pma_control.controller import ControllerSettings, LengthController
-from pma_driver.sim.closed_loop import run_closed_loop
-from pma_driver.sim.device import DeviceConfig, Rig
 from pma_model.params import default_params
-from support.muscle_families import muscle_for
+from pma_sim.closed_loop import run_closed_loop
+from pma_sim.device import DeviceConfig, Rig
+from pma_sim.registry import muscle_family
 
 SINE_LOW_M, SINE_HIGH_M = 0.25, 0.295    # the tracked sine: 25 <-> 29.5 cm, from the low end
 
@@ -31,7 +33,8 @@ def track(mode: str, family: str, profile, duration_s: float, *, seed: int, rate
         return control.update(t_s, pressure_pa, length_m).command_pa
 
     config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=seed)
-    trace = run_closed_loop(step, duration_s, config=config, rig=Rig(config, muscle_for(family)),
+    rig = Rig(config, muscle_family(family))
+    trace = run_closed_loop(step, duration_s, config=config, rig=rig,
                             command_delay_s=command_delay_s).arrays()
     return trace['t_s'], trace['true_length_m'], np.array([profile(t) for t in trace['t_s']])
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pma_driver.sim.closed_loop import run_closed_loop
+from pma_sim.closed_loop import run_closed_loop
 
 pytestmark = pytest.mark.in_process
 

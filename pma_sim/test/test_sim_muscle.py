@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pma_driver.sim import muscle
-from pma_driver.sim.muscle import PreisachMuscle
+from pma_sim import muscle
+from pma_sim.muscle import PreisachMuscle
 
 pytestmark = pytest.mark.in_process
 

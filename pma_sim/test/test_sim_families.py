@@ -1,7 +1,7 @@
 """The simulated muscle families: each fits Table 1, each behaves differently inside the loop.
 
-docs/simulated-rig.md, "Muscle families". The fits are package data (sim/family_fits.py,
-written by `python -m pma_driver.sim.fit_families --write`); these tests check the shipped
+docs/simulated-rig.md, "Muscle families". The fits are package data (pma_sim/family_fits.py,
+written by `python -m pma_sim.fit_families --write`); these tests check the shipped
 numbers, they do not refit.
 """
 
@@ -11,16 +11,10 @@ import re
 import numpy as np
 import pytest
 
-from pma_driver.sim import families, family_fits, fit_families, paths
-from pma_driver.sim.device import DeviceConfig, Rig
-from pma_driver.sim.families import (
-    FAMILY_NAMES,
-    CreepMuscle,
-    DriftingMuscle,
-    DriftSpec,
-    muscle_family,
-    muscle_from_spec,
-)
+from pma_sim import families, family_fits, fit_families, paths
+from pma_sim.device import DeviceConfig, Rig
+from pma_sim.families import CreepMuscle, DriftingMuscle, DriftSpec
+from pma_sim.registry import FAMILY_NAMES, muscle_family, muscle_from_spec
 
 KPA = 1000.0
 RATE_INDEPENDENT = ('narrow', 'wide', 'asymmetric')
@@ -216,9 +210,9 @@ def test_smooth_paths_start_at_rest_reverse_at_their_extrema_and_keep_to_the_val
 
 
 def test_fake_arduino_runs_the_chosen_family(procs):
-    proc = procs.ros2_run('pma_driver', 'fake_arduino', '--muscle', 'asymmetric+drift',
+    proc = procs.ros2_run('pma_sim', 'fake_arduino', '--muscle', 'asymmetric+drift',
                           '--log-level', 'INFO')
     proc.wait_for_line(lambda text: 'muscle asymmetric+drift' in text, timeout=20)
-    bad = procs.ros2_run('pma_driver', 'fake_arduino', '--muscle', 'preisach2')
+    bad = procs.ros2_run('pma_sim', 'fake_arduino', '--muscle', 'preisach2')
     bad.wait_for_line("unknown muscle family 'preisach2'", timeout=20)
     assert bad.popen.wait(timeout=20) == 2

@@ -1,9 +1,9 @@
 """Fit the muscle families to the paper's Table 1 and write `family_fits.py`.
 
-`python -m pma_driver.sim.fit_families [--write]` (scipy; about a minute on one core).
+`python -m pma_sim.fit_families [--write]` (scipy; about a minute on one core).
 Without --write it prints the fits and the file it would write. The narrow family's fit
 is `muscle.fit_major_loop` (its constants stay in muscle.py, `python -m
-pma_driver.sim.muscle` repeats that one); `creep` is the narrow muscle with a creep element
+pma_sim.muscle` repeats that one); `creep` is the narrow muscle with a creep element
 whose two constants are a design choice (its holds settle on the narrow loop).
 
 - wide: variable projection. For a warp (dead zone, K, n) the weights of 20 plays with
@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pma_driver.sim import families
-from pma_driver.sim.muscle import (
+from pma_sim import families
+from pma_sim.muscle import (
     TABLE1_FIT,
     TABLE1_LENGTH_DECREASING_M,
     TABLE1_LENGTH_INCREASING_M,
@@ -113,7 +113,7 @@ def fit_asymmetric(starts: int = 4, seed: int = 0, rising_scale_pa: float = RISI
     """The Duhem muscle whose steady loop fits Table 1, for the given approach scales.
 
     Other scales than the `asymmetric` family's give other Duhem muscles on the same major
-    loop: held-out variants for judging the model (tests/support/muscle_families.py).
+    loop: held-out variants for judging the model (pma_sim.registry: duhem, gpi, friction).
     """
     from scipy.optimize import least_squares
 
@@ -146,7 +146,9 @@ def duhem_loop_errors_m(params: families.DuhemParams) -> np.ndarray:
 
 def creep_steady_loop_m(hold_s: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
     """The creep family's loop as the paper measured it: the end of a 10 s hold per level."""
-    muscle = families.muscle_family('creep')
+    from pma_sim.registry import muscle_family  # the registry builds on this module
+
+    muscle = muscle_family('creep')
     t = 0.0
     lengths = []
     levels = np.concatenate([TABLE1_PRESSURE_PA, TABLE1_PRESSURE_PA[::-1]])
@@ -192,9 +194,9 @@ def render(wide: families.PlayParams, asymmetric: families.DuhemParams,
            fits: dict[str, str]) -> str:
     wide_dict = _plain(asdict(wide))
     lines = [
-        '"""Fitted constants of the muscle families (sim/families.py); data, not code.',
+        '"""Fitted constants of the muscle families (families.py); data, not code.',
         '',
-        'Written by `python -m pma_driver.sim.fit_families --write` (docs/simulated-rig.md);',
+        'Written by `python -m pma_sim.fit_families --write` (docs/simulated-rig.md);',
         'do not edit by hand. Fit of each family\'s steady major loop to Table 1:',
         '',
         *(f'- {name}: {text}' for name, text in fits.items()),

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pma_driver.protocol import Valve
+from pma_common.protocol import Valve
 
 
 @dataclass(frozen=True)

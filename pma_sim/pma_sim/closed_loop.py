@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pma_driver import protocol
-from pma_driver.calibration import LengthCalibration, PressureCalibration
-from pma_driver.protocol import Command
-from pma_driver.sim.device import DeviceConfig, Rig, SimDevice
+from pma_common import protocol
+from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.protocol import Command
+from pma_sim.device import DeviceConfig, Rig, SimDevice
 
 # (time [s], gauge pressure [Pa], measured length [m] or NaN) -> pressure setpoint [Pa]
 Controller = Callable[[float, float, float], float]

@@ -1,4 +1,5 @@
-"""A Foxglove WebSocket protocol client, as the Foxglove app speaks it, for tests and bench.
+"""A Foxglove WebSocket protocol client, as the Foxglove app speaks it: foxglove_live's tests,
+its bench (bench/bench_foxglove.py) and anyone checking a running live view without the app.
 
 foxglove_live answers subprotocol `foxglove.websocket.v1` (the published spec's name) and
 `foxglove.sdk.v1` (foxglove-sdk's, and foxglove_bridge 3.x's), whichever the client lists first;

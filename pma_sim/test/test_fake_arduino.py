@@ -9,10 +9,11 @@ import time
 import pytest
 import serial
 
+from pma_common import protocol
+from pma_common.calibration import PressureCalibration
+from pma_common.protocol import Ack, FrameDecoder, Hello, Sample
 from pma_common.sequence import SequenceStats, SequenceTracker
-from pma_driver import fake_arduino, protocol
-from pma_driver.calibration import PressureCalibration
-from pma_driver.protocol import Ack, FrameDecoder, Hello, Sample
+from pma_sim import fake_arduino
 
 DEVICE_LINE = re.compile(r'^fake_arduino: device at (/dev/pts/\d+)$')
 STATS_FIELDS = ('sent', 'bad_checksum', 'garbage', 'dropped', 'split', 'echo_timeouts')
@@ -26,7 +27,7 @@ def stats_lines(output: str) -> list[dict[str, int]]:
 
 
 def start(procs, *args):
-    proc = procs.ros2_run('pma_driver', 'fake_arduino', *args)
+    proc = procs.ros2_run('pma_sim', 'fake_arduino', *args)
     line = proc.wait_for_line(lambda text: DEVICE_LINE.match(text) is not None, timeout=20)
     return proc, DEVICE_LINE.match(line).group(1)
 
@@ -301,6 +302,6 @@ def test_disconnect_then_reconnect_on_a_new_pty_with_the_link_re_pointed(procs, 
 
 
 def test_bad_options_exit_with_a_message(procs):
-    proc = procs.ros2_run('pma_driver', 'fake_arduino', '--rate', '2000')
+    proc = procs.ros2_run('pma_sim', 'fake_arduino', '--rate', '2000')
     assert proc.popen.wait(10) == 2
     proc.wait_for_line('rate_hz must be within', timeout=5)

@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pma_driver.sim import families, fit_families
-from pma_driver.sim.muscle import TABLE1_PRESSURE_PA
+from pma_sim import families, fit_families
+from pma_sim.muscle import TABLE1_PRESSURE_PA
 
 DEFAULT_BULGE = 1.0  # the falling envelope up to 0.25 of the warped range above the rising one
 

@@ -2,7 +2,7 @@
 
 One major loop cannot tell hysteresis families apart: they differ inside it, after
 reversals. Each family here reproduces the paper's Table 1 within the HC-SR04's accuracy
-(fits in `family_fits.py`, written by `python -m pma_driver.sim.fit_families`), and
+(fits in `family_fits.py`, written by `python -m pma_sim.fit_families`), and
 each behaves differently after a reversal:
 
 - `narrow`: the Preisach muscle of `muscle.py` (narrow relays). After a reversal the length
@@ -20,7 +20,10 @@ each behaves differently after a reversal:
   on the narrow muscle's (Table 1) loop.
 
 Any family takes `drift=DriftSpec(...)`: rest length and stroke change slowly, as with
-temperature and wear (`muscle_from_spec('wide+drift')` for the default drift).
+temperature and wear (`registry.muscle_from_spec('wide+drift')` for the default drift).
+
+These are the mechanisms; `pma_sim.registry` names every family, the held-out ones of
+other modules (generalized_play, friction, bouc_wen) too, and builds them by name.
 
 The interface (`Muscle`): `update(pressure_pa, t_s) -> length_m` with gauge pressure [Pa]
 and a time [s] that never goes back (rate-independent families ignore it), `length_m`
@@ -35,8 +38,7 @@ from typing import Protocol
 
 import numpy as np
 
-from pma_driver.sim import family_fits
-from pma_driver.sim.muscle import TABLE1_FIT, PreisachMuscle
+from pma_sim import family_fits
 
 SPAN_PA = 700_000.0          # the warped input reaches 1 here: above the 600 kPa supply
 DUHEM_SUBSTEP_PA = 1_000.0   # largest pressure step the Duhem update takes at once
@@ -83,7 +85,7 @@ class PlayParams:
     def envelopes(self, v) -> tuple[np.ndarray, np.ndarray]:
         """(rising, falling) edge of every play's band at warped input v before its half-width,
         shaped v.shape + (plays,): v for both here; a generalized play's differ
-        (tests/support/generalized_play.py)."""
+        (generalized_play.py)."""
         v = np.asarray(v, dtype=float)[..., None]
         edges = np.broadcast_to(v, (*v.shape[:-1], len(self.radii)))
         return edges, edges
@@ -346,11 +348,7 @@ class DriftingMuscle(_Wrapped):
         return self.length_m
 
 
-# --- registry -------------------------------------------------------------------------------
-
-DEFAULT_FAMILY = 'narrow'
-DRIFT_SUFFIX = '+drift'
-
+# --- the fitted parameters of the simulator's own families ----------------------------------
 
 def wide_params() -> PlayParams:
     fit = dict(family_fits.WIDE)
@@ -362,34 +360,3 @@ def asymmetric_params() -> DuhemParams:
     fit = dict(family_fits.ASYMMETRIC)
     return DuhemParams(rising=EnvelopeParams(**fit.pop('rising')),
                        falling=EnvelopeParams(**fit.pop('falling')), **fit)
-
-
-_BUILDERS = {
-    'narrow': lambda: PreisachMuscle(TABLE1_FIT),
-    'wide': lambda: PlayMuscle(wide_params()),
-    'asymmetric': lambda: DuhemMuscle(asymmetric_params()),
-    'creep': lambda: CreepMuscle(PreisachMuscle(TABLE1_FIT), CreepParams(**family_fits.CREEP)),
-}
-FAMILY_NAMES = tuple(_BUILDERS)
-
-
-def muscle_family(name: str = DEFAULT_FAMILY, drift: DriftSpec | None = None) -> Muscle:
-    """A fresh muscle of the named family (relaxed, at 0 Pa), drifting if `drift` is given."""
-    if name not in _BUILDERS:
-        raise ValueError(f'unknown muscle family {name!r}; choose from {", ".join(FAMILY_NAMES)}')
-    muscle = _BUILDERS[name]()
-    return DriftingMuscle(muscle, drift) if drift is not None else muscle
-
-
-def parse_muscle_spec(spec: str) -> tuple[str, DriftSpec | None]:
-    """'wide' -> ('wide', None); 'wide+drift' -> ('wide', DriftSpec()). ValueError if unknown."""
-    name = spec[:-len(DRIFT_SUFFIX)] if spec.endswith(DRIFT_SUFFIX) else spec
-    if name not in FAMILY_NAMES:
-        raise ValueError(f'unknown muscle family {name!r}; choose from {", ".join(FAMILY_NAMES)}'
-                         f' (add {DRIFT_SUFFIX!r} for a drifting one)')
-    return name, (DriftSpec() if name != spec else None)
-
-
-def muscle_from_spec(spec: str) -> Muscle:
-    """The muscle a `parse_muscle_spec` string names: the fake_arduino --muscle syntax."""
-    return muscle_family(*parse_muscle_spec(spec))

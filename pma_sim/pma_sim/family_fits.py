@@ -1,6 +1,6 @@
-"""Fitted constants of the muscle families (sim/families.py); data, not code.
+"""Fitted constants of the muscle families (families.py); data, not code.
 
-Written by `python -m pma_driver.sim.fit_families --write` (docs/simulated-rig.md);
+Written by `python -m pma_sim.fit_families --write` (docs/simulated-rig.md);
 do not edit by hand. Fit of each family's steady major loop to Table 1:
 
 - narrow: RMSE 0.067 cm, max 0.176 cm over 22 points

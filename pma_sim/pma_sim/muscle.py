@@ -19,7 +19,7 @@ Structure (every pressure is gauge, in Pa; lengths in m):
 length = rest_length - stroke_hyst * hysteretic - stroke_rev * reversible.
 
 `fit_major_loop` identified the constants in `TABLE1_FIT` from the paper's Table 1
-(`python -m pma_driver.sim.muscle` repeats the fit and prints them).
+(`python -m pma_sim.muscle` repeats the fit and prints them).
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ class MuscleParams:
     dead_zone_pa: float
 
 
-# Fitted to Table 1 by fit_major_loop (`python -m pma_driver.sim.muscle`): RMSE 0.067 cm over
+# Fitted to Table 1 by fit_major_loop (`python -m pma_sim.muscle`): RMSE 0.067 cm over
 # the 22 points. The narrow reversible term near 370 kPa reproduces the measured plateau
 # at 300-350 kPa followed by the drop to 400 kPa.
 TABLE1_FIT = MuscleParams(

@@ -3,15 +3,16 @@
 data/online_reference.npz holds what the model computed *before* issue 47's speed work:
 generated with the code of commit fe8fd9f (the identification and mix of 2026-11-29) by
 
-    python pma_model/test/test_online_equivalence.py --write
+    python tests/test_online_equivalence.py --write
 
 run on that commit's pma_model (this file's `reference_runs`, then unchanged code). Every
 later change to the model's speed must give the same predictions to 1e-6 m and the same
 inverse answers to 1 Pa on these recorded paths, for every memory rule; a change meant to
 alter the model's accuracy regenerates the file and says so (docs/model.md §7).
 
-The paths: the simulated rig's muscles (pma_driver.sim) on seeded reversal-rich pressure
-paths at 50 Hz, measured through the rig's sensor models (noise, NaN echoes).
+The paths: the simulated rig's muscles (pma_sim) on seeded reversal-rich pressure
+paths at 50 Hz, measured through the rig's sensor models (noise, NaN echoes). Here in tests/,
+not in pma_model/test: pma_sim depends on pma_model, so pma_model's own tests do not use it.
 """
 
 from __future__ import annotations
@@ -23,8 +24,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pma_driver.sim import families, paths
 from pma_model.params import default_params
+from pma_sim import paths
+from pma_sim.registry import muscle_family
 
 pytestmark = pytest.mark.in_process
 
@@ -40,7 +42,7 @@ TARGETS_M = (0.250, 0.262, 0.275, 0.288, 0.297)
 
 
 def _run(family: str, kind: str, seed: int):
-    muscle = families.muscle_family(family)
+    muscle = muscle_family(family)
     if kind == 'sines':
         path = paths.smooth_path('sines', SECONDS, seed=seed)
     else:

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pma_driver.calibration import LengthCalibration, PressureCalibration
-from pma_driver.sim.device import DeviceConfig, Rig, SimDevice
-from pma_driver.sim.families import Muscle
+from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_sim.device import DeviceConfig, Rig, SimDevice
+from pma_sim.families import Muscle
 
 TOP_PA = 500_000.0
 MAX_SLEW_PA_PER_S = 250e3   # the ramps' fastest: what the valves reach

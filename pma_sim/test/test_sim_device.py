@@ -4,11 +4,11 @@ import itertools
 
 import pytest
 
-from pma_driver import protocol
-from pma_driver.calibration import LengthCalibration, PressureCalibration
-from pma_driver.protocol import Ack, FrameDecoder, Hello, Nak, Sample, Valve
-from pma_driver.sim import device as sim
-from pma_driver.sim.device import DeviceConfig, LinkFaultConfig, LinkFaults, SimDevice, bang_bang
+from pma_common import protocol
+from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.protocol import Ack, FrameDecoder, Hello, Nak, Sample, Valve
+from pma_sim import device as sim
+from pma_sim.device import DeviceConfig, LinkFaultConfig, LinkFaults, SimDevice, bang_bang
 
 pytestmark = pytest.mark.in_process
 

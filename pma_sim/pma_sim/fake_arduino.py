@@ -28,10 +28,11 @@ import tty
 from collections.abc import Callable
 from pathlib import Path
 
+from pma_common import protocol
+from pma_common.protocol import Valve
 from pma_common.stop import StopRequest, stop_request
-from pma_driver import protocol
-from pma_driver.protocol import Valve
-from pma_driver.sim.device import (
+from pma_sim import registry
+from pma_sim.device import (
     COMPILED_CEILING_PA,
     DeviceConfig,
     LinkFaultConfig,
@@ -39,7 +40,7 @@ from pma_driver.sim.device import (
     Rig,
     SimDevice,
 )
-from pma_driver.sim.families import DEFAULT_FAMILY, DRIFT_SUFFIX, FAMILY_NAMES
+from pma_sim.registry import DEFAULT_FAMILY, DRIFT_SUFFIX
 
 log = logging.getLogger('fake_arduino')
 
@@ -54,6 +55,17 @@ ATTACH_SETTLE_S = 0.05
 
 
 MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
+
+
+class _ListMuscles(argparse.Action):
+    """--list-muscles: like --help, it prints and exits before other options are checked."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(registry.describe(), flush=True)
+        parser.exit(0)
 
 
 def parse_args(argv: list[str] | None = None, prog: str = 'fake_arduino',
@@ -73,9 +85,11 @@ def parse_args(argv: list[str] | None = None, prog: str = 'fake_arduino',
         help='never vent on heartbeat loss (manual play only)')
     add('--seed', type=int, default=0, help='seed for sensor noise and faults (default 0)')
     add('--muscle', default=DEFAULT_FAMILY, metavar='FAMILY[+drift]',
-        help=f'simulated muscle family: {", ".join(FAMILY_NAMES)} (default {DEFAULT_FAMILY}); '
+        help=f'simulated muscle family, any of --list-muscles (default {DEFAULT_FAMILY}); '
         f'append {DRIFT_SUFFIX} for one whose rest length and stroke drift as it warms up '
         '(docs/simulated-rig.md)')
+    add('--list-muscles', action=_ListMuscles,
+        help='print every muscle family, one a line (what it models, its Table 1 fit), and exit')
     add('--echo-timeout-rate', type=float, default=0.0, help='share of samples without echo')
     add('--garbage-rate', type=float, default=0.0, help='share of lines preceded by garbage')
     add('--bad-checksum-rate', type=float, default=0.0, help='share of lines with a bad checksum')

@@ -4,7 +4,7 @@
  * simavr (Debian: libsimavr-dev) runs the unmodified .elf at 16 MHz, cycle by cycle: the
  * Arduino core's timers, interrupts, ADC, pulseInLong's micros() and the UART at its baud
  * rate. This program owns only the board's wiring and never reads a clock: it runs the AVR
- * for as many cycles as it is told and asks its controller (pma_driver.simavr_arduino, which
+ * for as many cycles as it is told and asks its controller (pma_sim.simavr_arduino, which
  * keeps the rig's physics and the USB-serial pty in the same simulated time) whenever the
  * firmware samples the world. docs/hardware.md ("Firmware in the loop") describes the whole.
  *

@@ -2,7 +2,7 @@
 
 fake_arduino re-implements the firmware in Python; this runs the firmware itself: the .elf
 that `make firmware` builds for the Mega executes on simavr at 16 MHz (the C program
-`pma_simavr`, pma_driver/firmware/simavr/), so 16-bit `int`, the 8 KiB of RAM, the Arduino
+`pma_simavr`, pma_sim/simavr/), so 16-bit `int`, the 8 KiB of RAM, the Arduino
 core's timers and interrupts, `pulseInLong` and the UART at its baud rate all behave as on the
 board. Everything around the board is fake_arduino's: the pty, `--link`, the link faults, the
 stalls and unplugs, and the rig (`sim.device.Rig`: pneumatics, muscle, sensor noise), so the
@@ -36,11 +36,11 @@ import sys
 import time
 from pathlib import Path
 
+from pma_common.calibration import PressureCalibration
+from pma_common.protocol import Valve
 from pma_common.stop import StopRequest, stop_request
-from pma_driver import fake_arduino
-from pma_driver.calibration import PressureCalibration
-from pma_driver.protocol import Valve
-from pma_driver.sim.device import ECHO_START_US, DeviceConfig, Rig
+from pma_sim import fake_arduino
+from pma_sim.device import ECHO_START_US, DeviceConfig, Rig
 
 log = logging.getLogger('simavr_arduino')
 

@@ -23,11 +23,12 @@ import random
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from pma_driver import protocol
-from pma_driver.calibration import LengthCalibration, PressureCalibration
-from pma_driver.protocol import Command, NakReason, Valve
-from pma_driver.sim.families import DEFAULT_FAMILY, Muscle, muscle_from_spec, parse_muscle_spec
-from pma_driver.sim.pneumatics import PneumaticParams, Pneumatics
+from pma_common import protocol
+from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.protocol import Command, NakReason, Valve
+from pma_sim.families import Muscle
+from pma_sim.pneumatics import PneumaticParams, Pneumatics
+from pma_sim.registry import DEFAULT_FAMILY, muscle_from_spec, parse_muscle_spec
 
 FIRMWARE_NAME = 'fake_arduino'
 FIRMWARE_VERSION = '0.1.0'
@@ -66,7 +67,7 @@ class DeviceConfig:
     echo_timeout_rate: float = 0.0             # probability a sample has no echo
     seed: int = 0
     pneumatics: PneumaticParams = field(default_factory=PneumaticParams)
-    muscle: str = DEFAULT_FAMILY               # sim.families: a family name, '+drift' optional
+    muscle: str = DEFAULT_FAMILY               # pma_sim.registry: a family, '+drift' optional
 
     def __post_init__(self):
         if not 1 <= self.max_rate_hz <= 1000:

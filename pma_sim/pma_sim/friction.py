@@ -8,7 +8,7 @@ y_j = clip(y_j, v (1 - k_j), v (1 + k_j)), zero at 0 Pa (every loop closes there
 length = rest - sum_j w_j y_j. Like any play it wipes out, so the muscle keeps return-point
 memory; unlike the `wide` family its loops narrow toward 0 Pa.
 
-It is a generalized play (support.generalized_play) with half-width k_j and envelopes
+It is a generalized play (pma_sim.generalized_play) with half-width k_j and envelopes
 v (1 - k_j) + 2 k_j (rising) and v (1 + k_j) (falling): shifted by k_j, so that the relaxed
 state is y_j = k_j as families.PlayParams has it. So the simulator's play muscle runs it
 and fit_families.fit_plays fits it to Table 1 (warp: dead zone, K, n; weights by
@@ -25,9 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pma_driver.sim import families, fit_families
-from pma_driver.sim.muscle import TABLE1_PRESSURE_PA
-from support.generalized_play import GeneralizedPlayMuscle
+from pma_sim import families, fit_families
+from pma_sim.generalized_play import GeneralizedPlayMuscle
+from pma_sim.muscle import TABLE1_PRESSURE_PA
 
 DEFAULT_WIDEST_BAND = 0.9   # k of the widest fibre: its band is v (1 -/+ 0.9)
 
