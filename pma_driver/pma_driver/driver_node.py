@@ -27,8 +27,7 @@ from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from pma_common import names
-from pma_common import protocol
+from pma_common import names, protocol
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_common.parameters import node_or_exit
 from pma_common.protocol import Command, Hello
