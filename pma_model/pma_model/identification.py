@@ -54,14 +54,15 @@ import math
 import operator
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 import numpy as np
 
 from pma_model.adaptation import AdaptationSettings, Drift
 from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
+from pma_model.curves import MID_DEPTH, play_share_at
 from pma_model.detector import BRANCH_AUTO, DEFAULT_DEADBAND_PA
-from pma_model.memory import MID_DEPTH, HysteresisModel, InverseResult, play_share_at
+from pma_model.memory import HysteresisModel, InverseResult
 
 # Every 50 kPa (Table 1's pressures) and 75 kPa: between 50 and 100 kPa the muscle leaves its
 # dead zone (Table 1: flat to 50 kPa, then 9-15 mm of its 59 mm stroke by 100 kPa), where the
@@ -139,7 +140,7 @@ class IdentificationSettings:
     branch_difference_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
     creep_gains: tuple[float, ...] = (0.0,) * len(CREEP_TIME_CONSTANTS_S)
     length_noise_m: float = 0.0017   # HC-SR04: 1.5 mm noise and 3 mm steps
-    # The 'mix' memory's play rule learns a correction and creep of its own (forecaster.py);
+    # The 'mix' memory's play rule learns a correction and creep of its own (mix.py);
     # its weight against 'identify' follows how much more squared error it made recently
     # (the weights' whole state, saved exactly: a weight near 0 or 1 would round).
     play_rule_correction_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
@@ -491,6 +492,64 @@ class Prediction:
     local_offset_m: float = 0.0   # the mix's local offset (local_offset.py), in length_m
 
 
+class OnlineRule(Protocol):
+    """An online model of the memory: OnlineModel (one rule) or mix.RuleMix (rules mixed by
+    their recent error, a rule built from rules). What model_node, the length controller and
+    the refit use of either."""
+
+    increasing: Branch
+    decreasing: Branch
+    max_gauge_pressure_pa: float
+
+    def step(self, pressure_pa: float, measured_length_m: float = math.nan,
+             t_s: float | None = None) -> Prediction:
+        """Predict this sample, then learn from its measured length."""
+
+    def pressure_for_length(self, length_m: float, branch: int = BRANCH_AUTO) -> InverseResult:
+        """The pressure at which the muscle settles at length_m (the inverse)."""
+
+    def settled_aim_m(self, length_m: float, max_creep_share: float) -> float:
+        """The settled length to ask the inverse for, to be length_m long now."""
+
+    def learned(self) -> IdentificationSettings:
+        """What has been learned, as the settings a restart resumes from."""
+
+    def resume_from(self, other: OnlineRule) -> None:
+        """Continue `other`'s pressure history with these settings."""
+
+    def weights_by_rule(self) -> dict[str, float]:
+        """{rule: weight} of a mix; empty for one rule."""
+
+    def without_local_offset(self) -> OnlineRule:
+        """This model without a local offset (for a caller feeding the residual back)."""
+
+    @property
+    def experts(self) -> tuple[OnlineModel, ...]:
+        """The online models of its rules (one rule: itself)."""
+
+    @property
+    def drift(self) -> Drift: ...
+
+    @property
+    def branch(self) -> int: ...
+
+    @property
+    def samples_learned(self) -> int: ...
+
+    @property
+    def samples_rejected(self) -> int: ...
+
+    @property
+    def virgin_term_m(self) -> float: ...
+
+    @property
+    def first_loading_ended(self) -> bool: ...
+
+    @property
+    def local_offset_m(self) -> float:
+        """The mix's local offset here (0 for one rule)."""
+
+
 @dataclass
 class _Filter:
     """Kalman filter over [shape coordinates, branch difference, creep gains, shift, gain - 1]."""
@@ -556,10 +615,12 @@ class OnlineModel:
         # reversal, so the 'identify' shapes measure the memory's doubt there. With
         # identification on, the exact derivative places such a residual itself.
         self._doubt = None if self._learning or not self._drifting else (
-            self.model if self.memory == 'identify' else
+            self.model if self.model.has_play_share else
             HysteresisModel(*branches, memory='identify', deadband_pa=self.deadband_pa,
                             max_gauge_pressure_pa=self.max_gauge_pressure_pa,
                             play_shares=shares, share_slopes=slopes))
+        # Only a rule with a play share ('identify') learns one.
+        self._learns_share = self._learning and self.model.has_play_share
         self._lag_values: list[float] | None = None   # the creep lags (_advance_lags)
         self._time = None
         self._static = math.nan
@@ -672,6 +733,19 @@ class OnlineModel:
     def samples_learned(self) -> int:
         return self._filter.samples
 
+    # As a mix has them (OnlineRule): one rule, no weights, no local offset.
+    @property
+    def experts(self) -> tuple[OnlineModel, ...]:
+        return (self,)
+
+    def weights_by_rule(self) -> dict[str, float]:
+        return {}
+
+    local_offset_m: ClassVar[float] = 0.0
+
+    def without_local_offset(self) -> OnlineModel:
+        return self
+
     @property
     def samples_rejected(self) -> int:
         return self._filter.rejected
@@ -750,7 +824,7 @@ class OnlineModel:
         measured_length_m = float(measured_length_m)
         if (self._learning or self._drifting) and math.isfinite(measured_length_m):
             shape_difference = 0.0          # what the share learns from: only 'identify' has one
-            if self._learning and self.memory == 'identify':
+            if self._learns_share:
                 play, madelung = self.model.expert_lengths()
                 shape_difference = play - madelung
             self._learn(measured_length_m - predicted, creep=creep, undrifted=undrifted,
@@ -804,7 +878,7 @@ class OnlineModel:
             state.rejected += 1
             return
         noise = self.identification.length_noise_m ** 2
-        if self._learning and self.memory == 'identify':
+        if self._learns_share:
             self._learn_share(residual, shape_difference * gain, noise, dt)
         knots = len(CORRECTION_KNOTS_PA)
         # d length / d knots, exact through the memory's turning points: on a scanning curve
@@ -1003,11 +1077,10 @@ class OnlineModel:
 
     # --- run-time parameter changes -------------------------------------------------
 
-    def resume_from(self, other) -> None:
+    def resume_from(self, other: OnlineRule) -> None:
         """Continue `other`'s pressure history (and its creep lags) with these settings;
-        from a forecaster.RuleMix, its first rule's."""
-        if not isinstance(other, OnlineModel):
-            other = other.experts[0]
+        from a mix.RuleMix, its first rule's."""
+        other = other.experts[0]
         self.model.resume_from(other.model)
         if self._doubt is not None and self._doubt is not self.model:
             self._doubt.resume_from(other._doubt if other._doubt is not None else other.model)

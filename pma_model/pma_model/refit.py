@@ -33,9 +33,11 @@ from pathlib import Path
 from pma_common.commands import run_command
 from pma_common.console import closed_pipe_ends_quietly
 from pma_model.detector import DEFAULT_DEADBAND_PA
+from pma_model.params import MEMORIES
 from pma_model.provenance import input_run
 from pma_model.report import (
     BRANCH_MODEL_FORMS,
+    FORM_MODELS,
     MIN_POINTS_PER_BRANCH,
     MODEL_NAMES,
     ONLINE_MEMORIES,
@@ -76,7 +78,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument('--deadband-pa', type=float, default=DEFAULT_DEADBAND_PA, metavar='X',
                         help=f'branch detector deadband [Pa] (default {DEFAULT_DEADBAND_PA:g})')
     parser.add_argument('--memory-check', type=Path, metavar='BAG_OR_CSV',
-                        help='also run each memory (mix, identify, switch, madelung, play) '
+                        help=f'also run each memory ({", ".join(MEMORIES)}) '
                         'with the fitted branches along this recorded path (minor loops, e.g. '
                         'a Sweep with reversal_pressures_pa) and score it; mix and identify '
                         'learn online as model_node does; --params-out then also sets memory '
@@ -128,8 +130,7 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
     from pma_model.params import default_params
 
     params = default_params()
-    other = {'sigmoid': 'sigmoid_fixed_c', 'hill': 'hill'}
-    for form, model_name in other.items():
+    for form, model_name in FORM_MODELS.items():
         chosen = name if BRANCH_MODEL_FORMS[name] == form else model_name
         if chosen in fitted:
             branches = fitted[chosen].branches

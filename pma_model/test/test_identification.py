@@ -60,7 +60,7 @@ def path_through(points, step_pa):
 
 def online(**identification):
     """The defaults with the 'identify' rule alone (the 'mix' memory runs it beside 'play':
-    test_forecaster.py)."""
+    test_mix.py)."""
     params = default_params()
     return replace(params, memory='identify',
                    identification=replace(params.identification, **identification))

@@ -39,8 +39,8 @@ import numpy as np
 
 from pma_driver.sim import families, fit_families, paths
 from pma_model.boucwen import BoucWenModel, fit_bouc_wen
-from pma_model.forecaster import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel, run_online
+from pma_model.mix import MIX_MEMORY, RuleMix
 from pma_model.params import ModelParams, default_params, paper_table1
 from support import friction_muscle, generalized_play
 

@@ -1,4 +1,4 @@
-"""A forecaster over whole online models: weight the memory rules by their recent error.
+"""The `mix` memory: a rule built from rules, whole online models weighted by their recent error.
 
 'identify' learns a continuous share between Madelung's rescaled branch and a curve that
 holds, then runs parallel to the branch into the previous reversal T (it must end at T:
@@ -37,7 +37,13 @@ from scipy.optimize import brentq
 
 from pma_model.adaptation import Drift
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING, BRANCH_NAMES
-from pma_model.identification import IdentificationSettings, OnlineModel, Prediction, elapsed_s
+from pma_model.identification import (
+    IdentificationSettings,
+    OnlineModel,
+    OnlineRule,
+    Prediction,
+    elapsed_s,
+)
 from pma_model.local_offset import LocalOffset
 from pma_model.memory import InverseResult
 
@@ -72,6 +78,7 @@ class RuleMix:
     # own measured-minus-model feedback (the length controller) turns it off.
     local_offset: bool = True
     memory: ClassVar[str] = MIX_MEMORY
+    label: ClassVar[str] = 'learned mix of scanning curves and friction band'   # legends
 
     def __post_init__(self):
         if len(self.experts) < 1:
@@ -267,7 +274,11 @@ class RuleMix:
                               xtol=PRESSURE_TOLERANCE_PA)
         return InverseResult(True, f'on the mixed {where}', float(pressure), code, low, high)
 
-    def resume_from(self, other: RuleMix | OnlineModel) -> None:
+    @property
+    def local_offset_m(self) -> float:
+        return self.local.offset_m
+
+    def resume_from(self, other: OnlineRule) -> None:
         """Continue `other`'s pressure history with these rules' settings (and its weights,
         when it is a mix of the same rules)."""
         if isinstance(other, RuleMix) and other.rules == self.rules:
@@ -278,7 +289,7 @@ class RuleMix:
                 self.local = replace(other.local, noise_m=self.local.noise_m,
                                      outlier_m=self.local.outlier_m)
         else:
-            source = other.experts[0] if isinstance(other, RuleMix) else other
+            source = other.experts[0]
             for mine in self.experts:
                 mine.resume_from(source)
 
