@@ -35,14 +35,9 @@ from pma_model.branches import (
     SigmoidBranch,
     branch_class,
 )
+from pma_model.correction import LEGACY_CORRECTION_KNOTS_PA, refine_corrections
 from pma_model.detector import DEFAULT_DEADBAND_PA
-from pma_model.identification import (
-    LEGACY_CORRECTION_KNOTS_PA,
-    IdentificationSettings,
-    OnlineModel,
-    OnlineRule,
-    refine_corrections,
-)
+from pma_model.identification import IdentificationSettings, OnlineModel, OnlineRule
 from pma_model.memory import MEMORY_MODES, HysteresisModel
 from pma_model.mix import MIX_MEMORY, MIX_RULES, RuleMix
 

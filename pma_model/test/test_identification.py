@@ -16,16 +16,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pma_model import identification
-from pma_model.identification import (
+from pma_model.correction import (
     CORRECTION_KNOTS_PA,
     LEGACY_CORRECTION_KNOTS_PA,
     CorrectedBranch,
-    IdentificationSettings,
-    OnlineModel,
     correction_caps,
     knot_sensitivity,
     monotone_correction,
     refine_corrections,
+)
+from pma_model.identification import (
+    IdentificationSettings,
+    OnlineModel,
     run_online,
     virgin_knot_weights,
 )

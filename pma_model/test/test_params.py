@@ -11,7 +11,7 @@ import yaml
 
 from pma_model import units
 from pma_model.branches import HillBranch, SigmoidBranch, fit_branch
-from pma_model.identification import CORRECTION_KNOTS_PA, LEGACY_CORRECTION_KNOTS_PA
+from pma_model.correction import CORRECTION_KNOTS_PA, LEGACY_CORRECTION_KNOTS_PA
 from pma_model.memory import HysteresisModel
 from pma_model.params import (
     MAX_PARAMS_FILE_BYTES,
