@@ -306,8 +306,8 @@ def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv
     from pma_control.plots import plot_control_run
     from pma_driver.fake_arduino import TruthLog
     from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+    from pma_model.offline.provenance import input_run
     from pma_model.params import paper_table1
-    from pma_model.provenance import input_run
 
     node = spin.node
     stroke_m = paper_table1().stroke_m

@@ -32,9 +32,9 @@ from matplotlib.lines import Line2D
 
 from pma_model import units
 from pma_model.mix import MIX_MEMORY, RuleMix
-from pma_model.report import BRANCH_MODEL_FORMS, DIRECTIONS, REPORT_MODELS, FittedModel
+from pma_model.offline.report import BRANCH_MODEL_FORMS, DIRECTIONS, REPORT_MODELS, FittedModel
+from pma_model.offline.samples import BranchData, Samples, settled_holds
 from pma_model.rules import MEMORY_RULES
-from pma_model.samples import BranchData, Samples, settled_holds
 
 PRESSURE_LABEL = 'gauge pressure P [kPa]'
 LENGTH_LABEL = 'muscle length L [cm]'

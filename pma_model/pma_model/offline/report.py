@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pma_common import experiment
-from pma_model import checks, units
+from pma_model import units
 from pma_model.boucwen import BoucWenFit, fit_bouc_wen, minor_loop_drift
 from pma_model.branches import BRANCH_FORMS, Branch
 from pma_model.detector import DEFAULT_DEADBAND_PA, detect_branches
@@ -32,8 +32,9 @@ from pma_model.identification import OnlineModel
 from pma_model.memory import HysteresisModel
 from pma_model.metrics import fit_metrics
 from pma_model.mix import MIX_MEMORY, RuleMix
+from pma_model.offline import checks
+from pma_model.offline.samples import BranchData, Samples, hold_runs, settled_holds
 from pma_model.params import MEMORIES
-from pma_model.samples import BranchData, Samples, hold_runs, settled_holds
 
 PAPER_C = 6.214
 
@@ -470,7 +471,7 @@ def _clean(value):
 
 def data_checks(data: BranchData, samples: Samples | None, fitted: dict[str, FittedModel],
                 deadband_pa: float = DEFAULT_DEADBAND_PA) -> dict:
-    """pma_model.checks on this refit: the levels (the sweep's records when the bag has
+    """pma_model.offline.checks on this refit: the levels (the sweep's records when the bag has
     them, else the trace's holds, as the steady-state reduction finds them), the length
     noise, and every warning. JSON-ready (kPa, cm), the report's `data_checks`."""
     fit = checks.FitView(
