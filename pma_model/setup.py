@@ -26,7 +26,6 @@ setup(
         'console_scripts': [
             'model_node = pma_model.entry_points:model_node',
             'refit = pma_model.offline.refit:main',
-            'replay = pma_model.entry_points:replay',
         ],
     },
 )

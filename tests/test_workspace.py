@@ -16,7 +16,7 @@ from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_unt
 HELPERS = Path(__file__).parent / 'helpers'
 EXECUTABLES = {
     'pma_driver': ['driver_node', 'fake_arduino', 'simavr_arduino', 'recorder'],
-    'pma_model': ['model_node', 'replay', 'refit'],
+    'pma_model': ['model_node', 'refit'],
     'pma_bag': ['record', 'play', 'recover', 'info'],
     'pma_bringup': ['demo', 'foxglove_live'],
     'pma_control': ['length_controller'],

@@ -26,9 +26,6 @@ from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
 # (docs/model.md §5, "The knots").
 CORRECTION_KNOTS_PA = (0.0, 50_000.0, 75_000.0, *(float(p) for p in range(100_000, 500_001,
                                                                             50_000)))
-# The knots of files written before 2026-11-29 (every 50 kPa): params.py refines their
-# corrections onto CORRECTION_KNOTS_PA (refine_corrections), so a saved model still loads.
-LEGACY_CORRECTION_KNOTS_PA = tuple(float(p) for p in range(0, 500_001, 50_000))
 MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
 MAX_DIFFERENCE_M = 2 * MAX_CORRECTION_M   # each branch's own correction stays within the above
 # knot_sensitivity's layout: [increasing knots, decreasing knots, rising share, falling share].
@@ -221,30 +218,6 @@ def monotone_correction(offsets, caps) -> tuple[float, ...]:
         previous = cap if bounded > cap else bounded
         result.append(previous)
     return tuple(result)
-
-
-def refine_corrections(mean_m, difference_m, increasing: Branch, decreasing: Branch
-                       ) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """A correction's mean and difference given at LEGACY_CORRECTION_KNOTS_PA, on
-    CORRECTION_KNOTS_PA.
-
-    Between knots each branch's correction follows its base's own length (CorrectedBranch),
-    so a knot inserted with the value the correction already had there leaves both corrected
-    branches as they were: a model saved before the knot was added loads unchanged.
-    """
-    mean, difference = np.asarray(mean_m, dtype=float), np.asarray(difference_m, dtype=float)
-    refined = []
-    for sign, base in ((1.0, increasing), (-1.0, decreasing)):
-        offsets = mean + sign * 0.5 * difference
-        at_legacy = base.length(np.array(LEGACY_CORRECTION_KNOTS_PA))
-        lengths = base.length(np.array(CORRECTION_KNOTS_PA))
-        refined.append(np.array([
-            _interpolated(offsets, *_knot_share(p_pa, length_m, at_legacy,
-                                                LEGACY_CORRECTION_KNOTS_PA))
-            for p_pa, length_m in zip(CORRECTION_KNOTS_PA, lengths, strict=True)]))
-    increasing_m, decreasing_m = refined
-    return (tuple(float(v) for v in 0.5 * (increasing_m + decreasing_m)),
-            tuple(float(v) for v in increasing_m - decreasing_m))
 
 
 def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:

@@ -35,7 +35,6 @@ from pma_model.branches import (
     SigmoidBranch,
     branch_class,
 )
-from pma_model.correction import LEGACY_CORRECTION_KNOTS_PA, refine_corrections
 from pma_model.detector import DEFAULT_DEADBAND_PA
 from pma_model.identification import IdentificationSettings, OnlineModel, OnlineRule
 from pma_model.memory import MEMORY_MODES, HysteresisModel
@@ -213,9 +212,6 @@ class ModelParams:
                 except ValueError as error:
                     raise ParamsError(f'{prefix}{error}') from None
             pairs[direction] = BranchParams(forms)
-        if merged['branch_form'] in BRANCH_FORMS:
-            _refine_legacy_corrections(merged, pairs['increasing'].of_form(merged['branch_form']),
-                                       pairs['decreasing'].of_form(merged['branch_form']))
         groups = {}
         for group, settings in (('adaptation', AdaptationSettings),
                                 ('identification', IdentificationSettings)):
@@ -392,23 +388,6 @@ def _coerce(name: str, value, template):
     if not math.isfinite(value):
         raise ParamsError(f'{name} must be finite, got {value!r}')
     return float(value)
-
-
-# The learned corrections (mean, difference) of the model and of the mix's play rule.
-_CORRECTION_PAIRS = (('identification.branch_correction_m', 'identification.branch_difference_m'),
-                     ('identification.play_rule_correction_m',
-                      'identification.play_rule_difference_m'))
-
-
-def _refine_legacy_corrections(merged: dict, increasing: Branch, decreasing: Branch) -> None:
-    """Corrections saved at the knots before 75 kPa was added (11 values), in place on
-    today's knots, unchanged in effect (identification.refine_corrections)."""
-    legacy = len(LEGACY_CORRECTION_KNOTS_PA)
-    for mean_name, difference_name in _CORRECTION_PAIRS:
-        if len(merged[mean_name]) == legacy and len(merged[difference_name]) == legacy:
-            merged[mean_name], merged[difference_name] = (
-                list(values) for values in refine_corrections(
-                    merged[mean_name], merged[difference_name], increasing, decreasing))
 
 
 def _flatten(nested: dict, prefix: str = '') -> dict:
