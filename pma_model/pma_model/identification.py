@@ -38,7 +38,7 @@ delta and creep nearly static, drift moving over adaptation.time_constant_s; dri
 0 with no prior spread, so how the muscle differs from Table 1 is learned as shape and later
 change as drift). Its measurement noise is the sensor's, also after a reversal: the exact
 derivative says which knots, turning points and share a residual there belongs to, and
-trusting those samples less (until 2026-11-27) only slowed learning (docs/model.md §5).
+trusting those samples less only slowed learning (docs/model-history.md).
 Only where drift alone learns (identification off) is a residual the memory could explain
 trusted less, by how far the two memory shapes disagree: nothing else could take it up.
 The learned numbers are applied to the memory model when they have moved enough to matter
@@ -90,30 +90,26 @@ MAX_STEP_S = 1.0             # a longer gap between samples counts as this (a pa
 GAIN_WALK_LENGTH_M = 0.03    # the gain may move as fast as the shift does at this |L - L_ref|
 
 # Kalman filter priors (standard deviations) and random-walk rates (per second).
-# The branch difference's prior. Measured on seeds 3-4 of every family (sigmoid): 0.5, 1 and
-# 1.5 mm give minor-loop RMSE 0.90, 0.87 and 0.90 % of stroke (1.13 % with no difference);
-# looser, it trades off against the play shares: 2 mm 0.93 %, 4 mm 1.17 %.
+# The priors were chosen by measurement; the figures are in docs/model-history.md ("The
+# constants' figures").
+# The branch difference's prior: looser, it trades off against the play shares.
 DIFFERENCE_PRIOR_M = 0.001
-# The mean correction's prior: about the size of what it has to learn (Table 1's branches miss
-# the steady loops of the simulated muscles by 1.8 mm RMS at the knots with the sigmoid, up to
-# 4.2 mm; 1.0 mm with Hill). A wider one lets a few noisy samples near a knot the path has
-# barely reached move it by millimetres, and the first excursion past that pressure errs by as
-# much (4 mm at 444 kPa: wide/random/seed 2, Hill, 20 Hz). Measured on every muscle at 20 and
-# 50 Hz (docs/model.md §3.1): 2 mm against 4 mm, minor-loop RMSE 0.97-0.99x on average.
+# The mean correction's prior: about the size of what it has to learn (how far Table 1's
+# branches miss the simulated muscles). A wider one lets a few noisy samples near a knot the
+# path has barely reached move it by millimetres, and the first excursion past that pressure
+# errs by as much.
 CORRECTION_PRIOR_M = 0.002
 # Drift has none: it starts at 0 (OnlineModel._new_filter).
 # The first loading of a rested muscle (its virgin curve) can lie off the loop it settles into
-# (the Bouc-Wen muscle starts 5 mm longer). It is learned as its own term, a function of the
+# (the Bouc-Wen muscle's does). It is learned as its own term, a function of the
 # pressure travelled since start given at VIRGIN_TRAVEL_KNOTS_PA and 0 from VIRGIN_END_PA on,
 # so the first rise is not learned as the rising branch; once the muscle has travelled that
 # far the term is gone and leaves the filter (marginalised: its rows and columns dropped).
 VIRGIN_TRAVEL_KNOTS_PA = tuple(float(p) for p in np.linspace(0.0, 400_000.0, 5))
 VIRGIN_END_PA = 500_000.0
 # On the first loading a virgin offset and a branch misfit look alike; the priors split a
-# residual between them until the muscle comes back. Measured on every muscle, 20 Hz, seeds
-# 1-2 (docs/model.md §5): against no term, minor-loop RMSE on the four families without a
-# virgin curve 1.03-1.04x (5 mm prior), 1.01-1.02x (2 mm), 0.99-1.01x (1 mm), 0.99-1.01x
-# (0.5 mm); on Bouc-Wen 0.835x, 0.83x, 0.86x, 0.925x.
+# residual between them until the muscle comes back: a wide prior costs the muscles without a
+# virgin curve, a narrow one gives up most of the gain on the one with.
 VIRGIN_PRIOR_M = 0.001
 _PRIOR = {'correction': CORRECTION_PRIOR_M, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5,
           'share': 1.0, 'share_slope': 0.5}
@@ -457,8 +453,7 @@ class OnlineModel:
         out of the two directions drift moves the knots in, with a prior on drift as wide
         as the shape's: then the filter had to explain the muscle's rest length and stroke
         misfit as drift, and any local correction had to be balanced elsewhere, so the
-        knots zigzagged to their limits (play memory on the Bouc-Wen muscle: 20 mm errors
-        with adaptation on, 3.4 mm off; docs/model.md §5).
+        knots zigzagged to their limits (docs/model-history.md).
         """
         knots = len(CORRECTION_KNOTS_PA)
         creeps, virgins = len(CREEP_TIME_CONSTANTS_S), len(VIRGIN_TRAVEL_KNOTS_PA)
@@ -691,8 +686,8 @@ class OnlineModel:
         blocks = state.blocks
         # d length / d knots, exact through the memory's turning points: on a scanning curve
         # the length is pinned to them, and their lengths came from earlier curves, often of
-        # the other branch (the branch's own weights at this pressure, used until
-        # 2026-11-26, had the difference's sign wrong just after a reversal: docs/model.md §5).
+        # the other branch (the branch's own weights at this pressure had the difference's
+        # sign wrong just after a reversal: docs/model-history.md).
         gradient = self.model.length_gradient(knot_sensitivity)
         size = state.mean.size
         regressor = np.empty(size)

@@ -4,7 +4,7 @@
 holds, then runs parallel to the branch into the previous reversal T (it must end at T:
 return-point memory). The 'play' rule (hold, then rejoin the major branch itself) is not in
 that family, and on nested paths of Preisach-type muscles (narrow relays, creep) it is the
-better rule: up to 13 % lower RMSE with sigmoid branches, 27 % with Hill ones (docs/model.md).
+better rule (docs/model.md §3).
 No single rule wins on every family, so RuleMix runs the candidates side by side, each a whole
 OnlineModel learning its own branch correction from the same samples, and predicts their
 mixture with exponential weights
@@ -15,11 +15,9 @@ mixture with exponential weights
 e_i a rule's out-of-sample error against the measured length (each bounded by the outlier
 limit, so one bad echo cannot decide). Discounted, this is the exponentially weighted average
 forecaster, whose loss stays near the better rule's (Cesa-Bianchi and Lugosi, Prediction,
-Learning, and Games, ch. 2-3). Measured on the families with the rules' predictions mixed
-offline (sigmoid seeds 1-4, Hill seeds 1-2; docs/model.md §3.1): no run more than 1.1x the
-best fixed rule's RMSE, and the max-error criterion missed on no more runs than identify
-alone (a faster forgetting, 20 s, let the play rule's large errors on the asymmetric muscle
-into the mix).
+Learning, and Games, ch. 2-3). The time constant and temperature were chosen on the families
+(docs/model-history.md, "The constants' figures": a faster forgetting let the play rule's
+large errors on the asymmetric muscle into the mix).
 
 The inverse (`pressure_for_length`) has no closed form: the mixture of monotone lengths along
 the path is monotone, so it is bracketed and solved (scipy's brentq) on the lengths each rule

@@ -54,10 +54,8 @@ _DESCRIPTIONS = {
     'max_gauge_pressure_pa': 'highest gauge pressure the inverse may answer with [Pa]',
 }
 # Queues sized in time at the driver's top rate (1 kHz), so that a stall of the node or of a
-# subscriber loses nothing while it lasts less than this. In a 1 kHz soak on a loaded 2-core
-# machine (bench_model_node.py) the executor stalled for up to 0.5 s: the old 200 lost 0.3-5 %
-# of the states, and a reliable writer keeping only 10 predictions could not resend the
-# ones the recorder missed while it stalled (~0.4 %).
+# subscriber loses nothing while it lasts less than this (stalls measured in the soak of
+# bench/bench_model_node.py: docs/model.md §7-8).
 STATE_QUEUE_DEPTH = 2000        # 2 s
 PREDICTION_QUEUE_DEPTH = 1000   # 1 s
 
