@@ -7,7 +7,7 @@ Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid h
 table of docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of
 stroke) and checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
 pma_sim.evaluation), path and seed:
-  - the default memory ('mix': forecaster.RuleMix, identify and play mixed), from the
+  - the default memory ('mix': mix.RuleMix, identify and play mixed), from the
     third reversal on: RMSE <= 0.9x and max <= 0.7x the paper's switch;
   - the mix vs the best single fixed rule (static and with the same learning): <= 1.1x RMSE;
   (the same for identify alone, the default before the mix);

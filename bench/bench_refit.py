@@ -84,8 +84,8 @@ def time_it(function):
 
 def main() -> int:
     from pma_bag import BagReader
-    from pma_model import refit
-    from pma_model.samples import read_bag
+    from pma_model.offline import refit
+    from pma_model.offline.samples import read_bag
 
     with tempfile.TemporaryDirectory() as tmp:
         bag = Path(tmp) / 'hour'

@@ -25,8 +25,7 @@ setup(
     entry_points={
         'console_scripts': [
             'model_node = pma_model.entry_points:model_node',
-            'refit = pma_model.refit:main',
-            'replay = pma_model.entry_points:replay',
+            'refit = pma_model.offline.refit:main',
         ],
     },
 )

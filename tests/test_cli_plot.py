@@ -24,7 +24,7 @@ from rclpy.serialization import deserialize_message
 
 from pma_bag import BagReader
 from pma_interfaces.msg import ControlState, PmaState
-from pma_model.bag_plot import RANGES_KEY
+from pma_model.offline.bag_plot import RANGES_KEY
 from support.procs import INSTALL
 from support.ros import SpinningNode, shutdown, wait_until
 

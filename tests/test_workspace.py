@@ -17,7 +17,7 @@ HELPERS = Path(__file__).parent / 'helpers'
 EXECUTABLES = {
     'pma_driver': ['driver_node'],
     'pma_sim': ['fake_arduino', 'simavr_arduino'],
-    'pma_model': ['model_node', 'replay', 'refit'],
+    'pma_model': ['model_node', 'refit'],
     'pma_bag': ['record', 'play', 'recover', 'info'],
     'pma_bringup': ['demo', 'foxglove_live'],
     'pma_control': ['length_controller'],

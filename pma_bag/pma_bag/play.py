@@ -388,13 +388,5 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def legacy_main() -> int:
-    """`ros2 run pma_model replay`: the old name, kept for one release."""
-    print(f'replay: `{run_command("pma_model", "replay")}` is now '
-          f'`{run_command("pma_bag", "play")}`; the old name goes in the next release',
-          file=sys.stderr)
-    return main()
-
-
 if __name__ == '__main__':
     sys.exit(main())

@@ -271,8 +271,8 @@ def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv
 
     from pma_control.plots import plot_control_run
     from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
+    from pma_model.offline.provenance import input_run
     from pma_model.params import paper_table1
-    from pma_model.provenance import input_run
     from pma_sim.fake_arduino import TruthLog
 
     node = spin.node

@@ -20,7 +20,7 @@ from pathlib import Path
 import yaml
 
 from pma_bag import BagError, BagReader
-from pma_model.samples import STATE_TOPIC, SamplesError, state_topic_in
+from pma_model.offline.samples import STATE_TOPIC, SamplesError, state_topic_in
 
 PREDICTION_TYPE = 'pma_interfaces/msg/PmaPrediction'
 

@@ -1,4 +1,5 @@
-"""`pma plot BAG [-o FILE.png] [--show]`: the bag's figure (pma_model.bag_plot), no ROS graph."""
+"""`pma plot BAG [-o FILE.png] [--show]`: the bag's figure (pma_model.offline.bag_plot), no ROS
+graph."""
 
 from __future__ import annotations
 
@@ -39,7 +40,7 @@ def plot(bag: Path, out: Path | None, topic: str, show_it: bool) -> int:
     if not bag.exists():              # before matplotlib and the model are imported (~2 s)
         print(f'pma plot: {bag}: no such bag', file=sys.stderr)
         return FAILED
-    from pma_model.bag_plot import BagPlotError, default_output, plot_bag
+    from pma_model.offline.bag_plot import BagPlotError, default_output, plot_bag
 
     target = out if out is not None else default_output(bag)
     if not target.parent.is_dir():

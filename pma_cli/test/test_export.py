@@ -10,7 +10,7 @@ from rclpy.serialization import serialize_message
 from pma_bag import BagWriter
 from pma_cli.export import COLUMNS, ExportError, export_csv
 from pma_interfaces.msg import PmaPrediction, PmaState
-from pma_model.samples import read_sample_log
+from pma_model.offline.samples import read_sample_log
 
 T0_NS = 1_790_000_000_123_456_789
 

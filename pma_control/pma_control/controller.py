@@ -36,8 +36,7 @@ import math
 from dataclasses import dataclass, fields
 
 from pma_model.detector import BRANCH_AUTO
-from pma_model.forecaster import RuleMix
-from pma_model.identification import OnlineModel
+from pma_model.identification import OnlineRule
 
 MODES = ('ff_fb', 'ff', 'fb')
 MAX_CREEP_LEAD_SHARE = 0.9
@@ -101,17 +100,17 @@ class ControlOutput:
     rate_limited: bool
 
 
-def _feedback_only_here(model: OnlineModel | RuleMix) -> OnlineModel | RuleMix:
+def _feedback_only_here(model: OnlineRule) -> OnlineRule:
     """The model without the mix's local offset: the bias filter below is this controller's
     measured-minus-model feedback, and the offset would learn the same residual a second time
     (measured: 0.1 Hz tracking 4-14 % worse with both, docs/control.md)."""
-    return model.without_local_offset() if isinstance(model, RuleMix) else model
+    return model.without_local_offset()
 
 
 class LengthController:
     """Feed it every sample (`update`); aim it with `set_target`."""
 
-    def __init__(self, model: OnlineModel, settings: ControllerSettings | None = None):
+    def __init__(self, model: OnlineRule, settings: ControllerSettings | None = None):
         self.settings = settings or ControllerSettings()
         self.model = _feedback_only_here(model)
         self.reset()
@@ -131,7 +130,7 @@ class LengthController:
         self._last_t: float | None = None
         self._dt = 0.0
 
-    def replace_model(self, model: OnlineModel) -> None:
+    def replace_model(self, model: OnlineRule) -> None:
         """A new fit (a refit was loaded): keep the muscle's history and the learned bias."""
         model = _feedback_only_here(model)
         model.resume_from(self.model)

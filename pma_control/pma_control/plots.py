@@ -13,12 +13,12 @@ def plot_control_run(path: Path, *, t_s, target_m, measured_m, command_pa, press
                      true_m=None, title: str = 'length control',
                      run: Mapping | None = None) -> Path:
     """Write a two-panel PNG; `true_m` (a simulation's truth) is drawn when given; `run`
-    (pma_model.provenance.run_info) is the footer, as on the refit's figures."""
+    (pma_model.offline.provenance.run_info) is the footer, as on the refit's figures."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    from pma_model.plots import save
+    from pma_model.offline.plots import save
 
     t = np.asarray(t_s, dtype=float)
     figure, (lengths, pressures) = plt.subplots(2, 1, sharex=True, figsize=(10, 6.5))

@@ -281,12 +281,42 @@ class HillBranch(Branch):
         return (np.array([1e-3, 1e-6, MIN_K_PA, 0.1]), np.array([MAX_L0_M, MAX_L0_M, 1e7, 20.0]))
 
 
-BRANCH_FORMS: dict[str, type[Branch]] = {'sigmoid': SigmoidBranch, 'hill': HillBranch}
+@dataclass(frozen=True)
+class BranchForm:
+    """A registered branch form: its class and what the node, the refit and the figures say
+    of it. Adding a form is one Branch subclass and one `register_branch_form` call."""
+
+    cls: type[Branch]
+    label: str      # in legends and messages ('Hill branches')
+    colour: str     # in figures (plots.py): the colour of the report model fitting it freely
+    formula: str    # in model_node's parameter description
+    seed: Branch    # placeholder numbers (params.py merges the data file into them)
+
+    @property
+    def name(self) -> str:
+        return self.cls.form
+
+
+# The one registry of branch forms, by name (the `branch_form` setting), in menu order.
+BRANCH_FORMS: dict[str, BranchForm] = {}
+
+
+def register_branch_form(form: BranchForm) -> BranchForm:
+    BRANCH_FORMS[form.name] = form
+    return form
+
+
+register_branch_form(BranchForm(
+    SigmoidBranch, "paper's sigmoid", '#0072B2', "the paper's L0 - a*L0/(1+exp(-b*P))^c",
+    SigmoidBranch(0.3, 0.2, 1e-5, 6.0)))
+register_branch_form(BranchForm(
+    HillBranch, 'Hill branches', '#117733', 'L0 - dL*P^n/(P^n+K^n)',
+    HillBranch(0.3, 0.06, 2e5, 2.0)))
 
 
 def branch_class(form: str) -> type[Branch]:
     try:
-        return BRANCH_FORMS[form]
+        return BRANCH_FORMS[form].cls
     except KeyError:
         raise ValueError(f'branch form must be one of {sorted(BRANCH_FORMS)}, got {form!r}') \
             from None

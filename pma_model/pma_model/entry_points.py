@@ -6,4 +6,3 @@
 from pma_common.stop import entry_point
 
 model_node = entry_point('pma_model.model_node:main')
-replay = entry_point('pma_bag.play:legacy_main')        # old name of `pma_bag play`

@@ -38,7 +38,7 @@ delta and creep nearly static, drift moving over adaptation.time_constant_s; dri
 0 with no prior spread, so how the muscle differs from Table 1 is learned as shape and later
 change as drift). Its measurement noise is the sensor's, also after a reversal: the exact
 derivative says which knots, turning points and share a residual there belongs to, and
-trusting those samples less (until 2026-11-27) only slowed learning (docs/model.md §5).
+trusting those samples less only slowed learning (docs/model-history.md).
 Only where drift alone learns (identification off) is a residual the memory could explain
 trusted less, by how far the two memory shapes disagree: nothing else could take it up.
 The learned numbers are applied to the memory model when they have moved enough to matter
@@ -49,33 +49,32 @@ function of the pressure history and the learned numbers.
 from __future__ import annotations
 
 import bisect
-import functools
 import math
 import operator
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 import numpy as np
 
 from pma_model.adaptation import AdaptationSettings, Drift
 from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
+from pma_model.correction import (
+    CORRECTION_KNOTS_PA,
+    DECREASING_KNOTS,
+    INCREASING_KNOTS,
+    MAX_CORRECTION_M,
+    MAX_DIFFERENCE_M,
+    CorrectedBranch,
+    correction_caps,
+    knot_sensitivity,
+    monotone_correction,
+)
+from pma_model.curves import MID_DEPTH, play_share_at
 from pma_model.detector import BRANCH_AUTO, DEFAULT_DEADBAND_PA
-from pma_model.memory import MID_DEPTH, HysteresisModel, InverseResult, play_share_at
+from pma_model.memory import HysteresisModel, InverseResult
 
-# Every 50 kPa (Table 1's pressures) and 75 kPa: between 50 and 100 kPa the muscle leaves its
-# dead zone (Table 1: flat to 50 kPa, then 9-15 mm of its 59 mm stroke by 100 kPa), where the
-# slope changes most and where the onset lies differs from muscle to muscle; a correction that
-# follows the sigmoid's own shape across that interval misses a sharp onset by millimetres
-# (docs/model.md §5, "The knots").
-CORRECTION_KNOTS_PA = (0.0, 50_000.0, 75_000.0, *(float(p) for p in range(100_000, 500_001,
-                                                                            50_000)))
-# The knots of files written before 2026-11-29 (every 50 kPa): params.py refines their
-# corrections onto CORRECTION_KNOTS_PA (refine_corrections), so a saved model still loads.
-LEGACY_CORRECTION_KNOTS_PA = tuple(float(p) for p in range(0, 500_001, 50_000))
 CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
-MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
-MAX_DIFFERENCE_M = 2 * MAX_CORRECTION_M   # each branch's own correction stays within the above
 MAX_CREEP_GAIN = 1.0
 ROUNDING_M = 1e-12           # a bound missed by less than this is met (float rounding)
 # Far beyond any loss difference of the mix (errors are capped at adaptation.outlier_m, at
@@ -91,30 +90,26 @@ MAX_STEP_S = 1.0             # a longer gap between samples counts as this (a pa
 GAIN_WALK_LENGTH_M = 0.03    # the gain may move as fast as the shift does at this |L - L_ref|
 
 # Kalman filter priors (standard deviations) and random-walk rates (per second).
-# The branch difference's prior. Measured on seeds 3-4 of every family (sigmoid): 0.5, 1 and
-# 1.5 mm give minor-loop RMSE 0.90, 0.87 and 0.90 % of stroke (1.13 % with no difference);
-# looser, it trades off against the play shares: 2 mm 0.93 %, 4 mm 1.17 %.
+# The priors were chosen by measurement; the figures are in docs/model-history.md ("The
+# constants' figures").
+# The branch difference's prior: looser, it trades off against the play shares.
 DIFFERENCE_PRIOR_M = 0.001
-# The mean correction's prior: about the size of what it has to learn (Table 1's branches miss
-# the steady loops of the simulated muscles by 1.8 mm RMS at the knots with the sigmoid, up to
-# 4.2 mm; 1.0 mm with Hill). A wider one lets a few noisy samples near a knot the path has
-# barely reached move it by millimetres, and the first excursion past that pressure errs by as
-# much (4 mm at 444 kPa: wide/random/seed 2, Hill, 20 Hz). Measured on every muscle at 20 and
-# 50 Hz (docs/model.md §3.1): 2 mm against 4 mm, minor-loop RMSE 0.97-0.99x on average.
+# The mean correction's prior: about the size of what it has to learn (how far Table 1's
+# branches miss the simulated muscles). A wider one lets a few noisy samples near a knot the
+# path has barely reached move it by millimetres, and the first excursion past that pressure
+# errs by as much.
 CORRECTION_PRIOR_M = 0.002
 # Drift has none: it starts at 0 (OnlineModel._new_filter).
 # The first loading of a rested muscle (its virgin curve) can lie off the loop it settles into
-# (the Bouc-Wen muscle starts 5 mm longer). It is learned as its own term, a function of the
+# (the Bouc-Wen muscle's does). It is learned as its own term, a function of the
 # pressure travelled since start given at VIRGIN_TRAVEL_KNOTS_PA and 0 from VIRGIN_END_PA on,
 # so the first rise is not learned as the rising branch; once the muscle has travelled that
 # far the term is gone and leaves the filter (marginalised: its rows and columns dropped).
 VIRGIN_TRAVEL_KNOTS_PA = tuple(float(p) for p in np.linspace(0.0, 400_000.0, 5))
 VIRGIN_END_PA = 500_000.0
 # On the first loading a virgin offset and a branch misfit look alike; the priors split a
-# residual between them until the muscle comes back. Measured on every muscle, 20 Hz, seeds
-# 1-2 (docs/model.md §5): against no term, minor-loop RMSE on the four families without a
-# virgin curve 1.03-1.04x (5 mm prior), 1.01-1.02x (2 mm), 0.99-1.01x (1 mm), 0.99-1.01x
-# (0.5 mm); on Bouc-Wen 0.835x, 0.83x, 0.86x, 0.925x.
+# residual between them until the muscle comes back: a wide prior costs the muscles without a
+# virgin curve, a narrow one gives up most of the gain on the one with.
 VIRGIN_PRIOR_M = 0.001
 _PRIOR = {'correction': CORRECTION_PRIOR_M, 'difference': DIFFERENCE_PRIOR_M, 'creep': 0.5,
           'share': 1.0, 'share_slope': 0.5}
@@ -139,7 +134,7 @@ class IdentificationSettings:
     branch_difference_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
     creep_gains: tuple[float, ...] = (0.0,) * len(CREEP_TIME_CONSTANTS_S)
     length_noise_m: float = 0.0017   # HC-SR04: 1.5 mm noise and 3 mm steps
-    # The 'mix' memory's play rule learns a correction and creep of its own (forecaster.py);
+    # The 'mix' memory's play rule learns a correction and creep of its own (mix.py);
     # its weight against 'identify' follows how much more squared error it made recently
     # (the weights' whole state, saved exactly: a weight near 0 or 1 would round).
     play_rule_correction_m: tuple[float, ...] = (0.0,) * len(CORRECTION_KNOTS_PA)
@@ -251,234 +246,6 @@ def _checked_vector(name: str, values, size: int, limit: float) -> tuple[float, 
     return vector
 
 
-# --- the branch correction ------------------------------------------------------------------
-
-def _knot_position(p_pa: float, knots=CORRECTION_KNOTS_PA) -> tuple[int, bool]:
-    """(interval k, inside) for a pressure: knots k and k + 1 bracket it when inside."""
-    if p_pa <= knots[0]:
-        return 0, False
-    if p_pa >= knots[-1]:
-        return len(knots) - 1, False
-    return bisect.bisect_right(knots, p_pa) - 1, True
-
-
-def _knot_share(p_pa: float, base_length_m: float, at_knots,
-                knots=CORRECTION_KNOTS_PA) -> tuple[int, float]:
-    """(k, share): the correction at p_pa is d_k + (d_{k+1} - d_k) * share, interpolated
-    along the base branch's own length (`at_knots`: its lengths at the knots); share is 0
-    beyond the knots and on an interval where the base does not fall."""
-    k, inside = _knot_position(p_pa, knots)
-    if not inside:
-        return k, 0.0
-    drop = at_knots[k] - at_knots[k + 1]
-    return k, ((at_knots[k] - base_length_m) / drop if drop > 0.0 else 0.0)
-
-
-def _interpolated(offsets, k: int, share: float) -> float:
-    """The correction d_k + (d_{k+1} - d_k) * share (`_knot_share`'s k and share)."""
-    if share == 0.0:
-        return offsets[k]
-    return offsets[k] + (offsets[k + 1] - offsets[k]) * share
-
-
-_MAX_KNOWN_LENGTHS = 256     # single-pressure lengths a CorrectedBranch keeps
-
-
-@functools.lru_cache(maxsize=64)
-def _lengths_at_knots(branch: Branch) -> tuple[float, ...]:
-    """The branch's lengths at the knots: every commit makes new corrected branches over the
-    same two base branches, so this is computed once per base, not once per commit."""
-    return tuple(float(v) for v in branch.length(np.array(CORRECTION_KNOTS_PA)))
-
-
-_MAX_BASE_POINTS = 4096      # single-pressure entries a base branch keeps (_base_point)
-
-
-def _base_point(branch: Branch, p_pa: float) -> tuple[float, int, float]:
-    """(base length, knot interval k, share) at one pressure: what a corrected branch's
-    length and its knot sensitivity are made of, independent of the learned offsets. Kept
-    on the base branch, so shared by every corrected branch over it: a commit makes new
-    corrected branches and its replay asks for the same turning pressures again, and a
-    sample's pressure is asked for by the length, the two shapes and the regressor."""
-    memo = branch.__dict__.get('_points')
-    if memo is None:   # a memo, not a field (frozen); with the knots' lengths (no hashing)
-        memo = ({}, _lengths_at_knots(branch))
-        object.__setattr__(branch, '_points', memo)
-    points = memo[0]
-    point = points.get(p_pa)
-    if point is None:
-        base = float(branch.length(p_pa))
-        point = (base, *_knot_share(p_pa, base, memo[1]))
-        if len(points) >= _MAX_BASE_POINTS:   # a long noisy run: start again
-            points.clear()
-        points[p_pa] = point
-    return point
-
-
-@dataclass(frozen=True)
-class CorrectedBranch(Branch):
-    """`base` plus a correction given at CORRECTION_KNOTS_PA, flat beyond them.
-
-    Between two knots the correction is interpolated along the base branch's own length,
-    not along pressure: with B_k the base length at knot k,
-        delta(P) = d_k + (d_{k+1} - d_k) * (B_k - B(P)) / (B_k - B_{k+1}).
-    So the corrected branch stays monotone exactly when d_{k+1} - d_k <= B_k - B_{k+1}
-    (`monotone_correction`), it can go flat where the muscle is (the sigmoid's slope in the
-    0-50 kPa dead zone), and its inverse is closed form: on interval k,
-        B(P) = (L - d_k - r B_k) / (1 - r),  r = (d_{k+1} - d_k) / (B_k - B_{k+1}),
-    then P = B^-1.
-    """
-
-    form: ClassVar[str] = 'corrected'
-
-    base: Branch
-    offsets_m: tuple[float, ...]
-
-    @functools.cached_property
-    def _base_at_knots(self) -> tuple[float, ...]:
-        return _lengths_at_knots(self.base)
-
-    def __post_init__(self):
-        # Lengths already computed at single pressures. A sample asks for the same few (its
-        # pressure for the length, the two memory shapes and the regressor; the knots around
-        # it), and a commit's replay asks for each turning pressure three times; a commit
-        # makes new branches, so this never goes stale.
-        object.__setattr__(self, '_known_lengths', {})
-        if len(self.offsets_m) != len(CORRECTION_KNOTS_PA):
-            raise ValueError(f'a branch correction needs {len(CORRECTION_KNOTS_PA)} values '
-                             f'(one per knot), got {len(self.offsets_m)}')
-
-    def correction_at(self, p_pa: float, base_length_m: float) -> float:
-        """delta at one pressure, given the base length there."""
-        return _interpolated(self.offsets_m,
-                             *_knot_share(p_pa, base_length_m, self._base_at_knots))
-
-    def length(self, p_pa):
-        if isinstance(p_pa, float):   # the online path: one sample, no numpy round trip
-            known = self._known_lengths
-            length = known.get(p_pa)
-            if length is None:
-                base, k, share = _base_point(self.base, p_pa)
-                length = base + _interpolated(self.offsets_m, k, share)
-                if len(known) >= _MAX_KNOWN_LENGTHS:   # a long noisy hold: start again
-                    known.clear()
-                known[p_pa] = length
-            return length
-        p = np.asarray(p_pa, dtype=float)
-        base = np.asarray(self.base.length(p))
-        result = base + np.vectorize(self.correction_at, otypes=[float])(p, base)
-        return float(result) if np.ndim(result) == 0 else result
-
-    def inverse_unchecked(self, length_m):
-        lengths = np.asarray(length_m, dtype=float)
-        result = np.vectorize(self._inverse_one, otypes=[float])(lengths)
-        return float(result) if result.ndim == 0 else result
-
-    def _inverse_one(self, length_m: float) -> float:
-        if not math.isfinite(length_m):
-            return math.nan
-        base, offsets = self._base_at_knots, self.offsets_m
-        corrected = [b + d for b, d in zip(base, offsets, strict=True)]
-        if length_m > corrected[0]:
-            return math.nan    # longer than at 0 Pa (flat below: the least pressure is 0)
-        if length_m <= corrected[-1]:
-            return float(self.base.inverse_unchecked(length_m - offsets[-1]))
-        first = next(i for i, value in enumerate(corrected) if value <= length_m)
-        if corrected[first] == length_m:
-            return CORRECTION_KNOTS_PA[first]   # the least pressure of a flat stretch too
-        k = first - 1
-        drop = base[k] - base[k + 1]
-        ratio = (offsets[k + 1] - offsets[k]) / drop if drop > 0.0 else 1.0
-        if ratio >= 1.0:       # a flat interval: its lowest pressure
-            return CORRECTION_KNOTS_PA[k]
-        target = (length_m - offsets[k] - ratio * base[k]) / (1.0 - ratio)
-        return float(self.base.inverse_unchecked(target))
-
-    def invertible_pressure_limit(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
-        """The base branch's: a learned flat stretch (a plateau) is answered with its least
-        pressure, it does not end the range the inverse answers for."""
-        return self.base.invertible_pressure_limit(p_max_pa)
-
-    def stroke_m(self) -> float:
-        return self.base.stroke_m() + self.offsets_m[0] - self.offsets_m[-1]
-
-    def saturation_length_m(self) -> float:
-        return self.base.saturation_length_m() + self.offsets_m[-1]
-
-    @classmethod
-    def bounds(cls):
-        raise TypeError('a corrected branch is learned online, not fitted')
-
-
-def correction_caps(branch: Branch) -> np.ndarray:
-    """Per knot interval: how much the correction may rise and keep the branch monotone."""
-    return np.maximum(-np.diff(_lengths_at_knots(branch)), 0.0)
-
-
-def monotone_correction(offsets, caps) -> tuple[float, ...]:
-    """The offsets, bounded, each knot lowered only as needed (from 0 Pa upward) so that
-    the corrected branch stays non-increasing. `caps`: correction_caps, as an array or a
-    tuple of floats."""
-    # Plain floats: it runs on every sample, where numpy's per-call cost dominates.
-    if isinstance(offsets, list):
-        values = offsets
-    elif isinstance(offsets, np.ndarray) and offsets.dtype == float:
-        values = offsets.tolist()
-    else:
-        values = np.asarray(offsets, dtype=float).tolist()
-    rises = caps if isinstance(caps, tuple) else np.asarray(caps, dtype=float).tolist()
-    low, high = -MAX_CORRECTION_M, MAX_CORRECTION_M
-    previous = min(max(values[0], low), high)
-    result = [previous]
-    # min(max(value, low), high, previous + rise) as comparisons (they select, so exact; a
-    # builtin call each cost more than the rest of the loop).
-    for value, rise in zip(values[1:], rises, strict=False):   # rises: one per interval
-        cap = previous + rise
-        bounded = low if value < low else (high if value > high else value)
-        previous = cap if bounded > cap else bounded
-        result.append(previous)
-    return tuple(result)
-
-
-def refine_corrections(mean_m, difference_m, increasing: Branch, decreasing: Branch
-                       ) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """A correction's mean and difference given at LEGACY_CORRECTION_KNOTS_PA, on
-    CORRECTION_KNOTS_PA.
-
-    Between knots each branch's correction follows its base's own length (CorrectedBranch),
-    so a knot inserted with the value the correction already had there leaves both corrected
-    branches as they were: a model saved before the knot was added loads unchanged.
-    """
-    mean, difference = np.asarray(mean_m, dtype=float), np.asarray(difference_m, dtype=float)
-    refined = []
-    for sign, base in ((1.0, increasing), (-1.0, decreasing)):
-        offsets = mean + sign * 0.5 * difference
-        at_legacy = base.length(np.array(LEGACY_CORRECTION_KNOTS_PA))
-        lengths = base.length(np.array(CORRECTION_KNOTS_PA))
-        refined.append(np.array([
-            _interpolated(offsets, *_knot_share(p_pa, length_m, at_legacy,
-                                                LEGACY_CORRECTION_KNOTS_PA))
-            for p_pa, length_m in zip(CORRECTION_KNOTS_PA, lengths, strict=True)]))
-    increasing_m, decreasing_m = refined
-    return (tuple(float(v) for v in 0.5 * (increasing_m + decreasing_m)),
-            tuple(float(v) for v in increasing_m - decreasing_m))
-
-
-def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
-    """d branch length(p_pa) / d [increasing knots, decreasing knots, the two play shares]
-    (memory.BranchSensitivity): the interpolation weights of the branch's own correction,
-    whichever branch of the pair `rising` says it is."""
-    knots = len(CORRECTION_KNOTS_PA)
-    gradient = np.zeros(2 * knots + 2)
-    start = 0 if rising else knots
-    base = branch.base if isinstance(branch, CorrectedBranch) else branch
-    _, k, share = _base_point(base, p_pa)
-    gradient[start + k] = 1.0 - share
-    if share != 0.0:
-        gradient[start + k + 1] = share
-    return gradient
-
-
 # --- the online model -----------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -491,13 +258,116 @@ class Prediction:
     local_offset_m: float = 0.0   # the mix's local offset (local_offset.py), in length_m
 
 
+class OnlineRule(Protocol):
+    """An online model of the memory: OnlineModel (one rule) or mix.RuleMix (rules mixed by
+    their recent error, a rule built from rules). What model_node, the length controller and
+    the refit use of either."""
+
+    increasing: Branch
+    decreasing: Branch
+    max_gauge_pressure_pa: float
+
+    def step(self, pressure_pa: float, measured_length_m: float = math.nan,
+             t_s: float | None = None) -> Prediction:
+        """Predict this sample, then learn from its measured length."""
+
+    def pressure_for_length(self, length_m: float, branch: int = BRANCH_AUTO) -> InverseResult:
+        """The pressure at which the muscle settles at length_m (the inverse)."""
+
+    def settled_aim_m(self, length_m: float, max_creep_share: float) -> float:
+        """The settled length to ask the inverse for, to be length_m long now."""
+
+    def learned(self) -> IdentificationSettings:
+        """What has been learned, as the settings a restart resumes from."""
+
+    def resume_from(self, other: OnlineRule) -> None:
+        """Continue `other`'s pressure history with these settings."""
+
+    def weights_by_rule(self) -> dict[str, float]:
+        """{rule: weight} of a mix; empty for one rule."""
+
+    def without_local_offset(self) -> OnlineRule:
+        """This model without a local offset (for a caller feeding the residual back)."""
+
+    @property
+    def experts(self) -> tuple[OnlineModel, ...]:
+        """The online models of its rules (one rule: itself)."""
+
+    @property
+    def drift(self) -> Drift: ...
+
+    @property
+    def branch(self) -> int: ...
+
+    @property
+    def samples_learned(self) -> int: ...
+
+    @property
+    def samples_rejected(self) -> int: ...
+
+    @property
+    def virgin_term_m(self) -> float: ...
+
+    @property
+    def first_loading_ended(self) -> bool: ...
+
+    @property
+    def local_offset_m(self) -> float:
+        """The mix's local offset here (0 for one rule)."""
+
+
+@dataclass(frozen=True)
+class StateBlocks:
+    """Where each named block of the filter's state lies: the mean branch correction and the
+    branch difference at CORRECTION_KNOTS_PA, the creep gains, the virgin term at
+    VIRGIN_TRAVEL_KNOTS_PA (None once it has ended and left the state), drift's shift and
+    its gain - 1."""
+
+    correction: slice
+    difference: slice
+    creep: slice
+    virgin: slice | None
+    shift: int
+    gain: int
+
+    @classmethod
+    def laid_out(cls, knots: int, creeps: int, virgins: int) -> StateBlocks:
+        """The blocks one after the other in that order (no virgin block if `virgins` is 0)."""
+        ends = np.cumsum([knots, knots, creeps, virgins]).tolist()
+        return cls(slice(0, ends[0]), slice(ends[0], ends[1]), slice(ends[1], ends[2]),
+                   slice(ends[2], ends[3]) if virgins else None, ends[3], ends[3] + 1)
+
+    def without_virgin(self) -> StateBlocks:
+        return StateBlocks.laid_out(_length(self.correction), _length(self.creep), 0)
+
+    @property
+    def size(self) -> int:
+        return self.gain + 1
+
+    @property
+    def shape(self) -> slice:
+        """The mean correction and the difference: what the branches are built from."""
+        return slice(self.correction.start, self.difference.stop)
+
+    @property
+    def bounded(self) -> slice:
+        """Everything after the mean correction, bounded value by value (_state_bounds); the
+        mean correction is kept monotone instead (_project_shape)."""
+        return slice(self.correction.stop, self.size)
+
+
+def _length(block: slice) -> int:
+    return block.stop - block.start
+
+
 @dataclass
 class _Filter:
-    """Kalman filter over [shape coordinates, branch difference, creep gains, shift, gain - 1]."""
+    """Kalman filter over the blocks of `blocks` (StateBlocks)."""
 
     mean: np.ndarray
     covariance: np.ndarray
     walk_per_s: np.ndarray    # random-walk variance added per second
+    blocks: StateBlocks
     samples: int = 0
     rejected: int = 0
 
@@ -545,7 +415,7 @@ class OnlineModel:
         self._filter = self._new_filter(settings, priors)
         # What the model was last built with (_commit_if_moved), as plain floats: the filter's
         # [mean correction, difference] and the shares [rising share, slope, falling ...].
-        self._committed_raw = self._filter.mean[:2 * len(CORRECTION_KNOTS_PA)].tolist()
+        self._committed_raw = self._filter.mean[self._filter.blocks.shape].tolist()
         self._committed_shares = self._shares.ravel().tolist()
         branches = self._corrected(self._branch_offsets())
         self.model = HysteresisModel(*branches, memory=self.memory,
@@ -556,10 +426,12 @@ class OnlineModel:
         # reversal, so the 'identify' shapes measure the memory's doubt there. With
         # identification on, the exact derivative places such a residual itself.
         self._doubt = None if self._learning or not self._drifting else (
-            self.model if self.memory == 'identify' else
+            self.model if self.model.has_play_share else
             HysteresisModel(*branches, memory='identify', deadband_pa=self.deadband_pa,
                             max_gauge_pressure_pa=self.max_gauge_pressure_pa,
                             play_shares=shares, share_slopes=slopes))
+        # Only a rule with a play share ('identify') learns one.
+        self._learns_share = self._learning and self.model.has_play_share
         self._lag_values: list[float] | None = None   # the creep lags (_advance_lags)
         self._time = None
         self._static = math.nan
@@ -581,8 +453,7 @@ class OnlineModel:
         out of the two directions drift moves the knots in, with a prior on drift as wide
         as the shape's: then the filter had to explain the muscle's rest length and stroke
         misfit as drift, and any local correction had to be balanced elsewhere, so the
-        knots zigzagged to their limits (play memory on the Bouc-Wen muscle: 20 mm errors
-        with adaptation on, 3.4 mm off; docs/model.md §5).
+        knots zigzagged to their limits (docs/model-history.md).
         """
         knots = len(CORRECTION_KNOTS_PA)
         creeps, virgins = len(CREEP_TIME_CONSTANTS_S), len(VIRGIN_TRAVEL_KNOTS_PA)
@@ -596,19 +467,17 @@ class OnlineModel:
         walk = np.concatenate([np.full(2 * knots, learn * _WALK_PER_S['correction'] ** 2),
                                np.full(creeps, learn * _WALK_PER_S['creep'] ** 2),
                                np.zeros(virgins), [0.0, 0.0]])
-        # Where the creep gains and the virgin term sit in the state (None once it ended).
-        self._creep_gains = slice(2 * knots, 2 * knots + creeps)
-        self._virgin = slice(2 * knots + creeps, 2 * knots + creeps + virgins)
-        return _Filter(mean, np.diag(prior), walk)
+        return _Filter(mean, np.diag(prior), walk, StateBlocks.laid_out(knots, creeps, virgins))
 
     def _end_virgin_term(self) -> None:
         """Drop the virgin term from the filter: marginalising a Gaussian is deleting its
         rows and columns, so what it taught the rest through their covariance is kept."""
-        state, rows = self._filter, np.arange(self._filter.mean.size)[self._virgin]
+        state = self._filter
+        rows = np.arange(state.mean.size)[state.blocks.virgin]
         state.mean = np.delete(state.mean, rows)
         state.covariance = np.delete(np.delete(state.covariance, rows, axis=0), rows, axis=1)
         state.walk_per_s = np.delete(state.walk_per_s, rows)
-        self._virgin = None
+        state.blocks = state.blocks.without_virgin()
 
     def _drift_directions(self) -> np.ndarray:
         """How a shift and a stroke gain move the knots: columns 1 and B(knots) - L_ref,
@@ -648,7 +517,8 @@ class OnlineModel:
 
     @property
     def drift(self) -> Drift:
-        shift, gain_excess = self._filter.mean[-2:]
+        mean, blocks = self._filter.mean, self._filter.blocks
+        shift, gain_excess = mean[blocks.shift], mean[blocks.gain]
         return Drift(self.reference_length_m, float(shift), 1.0 + float(gain_excess))
 
     @property
@@ -658,19 +528,33 @@ class OnlineModel:
     @property
     def first_loading_ended(self) -> bool:
         """True once the muscle has travelled VIRGIN_END_PA since start."""
-        return self._virgin is None
+        return self._filter.blocks.virgin is None
 
     @property
     def virgin_term_m(self) -> float:
         """What the model adds for a rested muscle's first loading at the pressure travelled
         so far (0 once it has ended)."""
-        if self._virgin is None:
+        virgin = self._filter.blocks.virgin
+        if virgin is None:
             return 0.0
-        return float(virgin_knot_weights(self._travel_pa) @ self._filter.mean[self._virgin])
+        return float(virgin_knot_weights(self._travel_pa) @ self._filter.mean[virgin])
 
     @property
     def samples_learned(self) -> int:
         return self._filter.samples
+
+    # As a mix has them (OnlineRule): one rule, no weights, no local offset.
+    @property
+    def experts(self) -> tuple[OnlineModel, ...]:
+        return (self,)
+
+    def weights_by_rule(self) -> dict[str, float]:
+        return {}
+
+    local_offset_m: ClassVar[float] = 0.0
+
+    def without_local_offset(self) -> OnlineModel:
+        return self
 
     @property
     def samples_rejected(self) -> int:
@@ -682,7 +566,9 @@ class OnlineModel:
         The drift at this moment is folded into the correction (it is this muscle, now);
         a model built from these settings starts from there with no drift.
         """
-        correction, difference, creep, shift, gain_excess = self._parts()
+        state, blocks = self._filter.mean, self._filter.blocks
+        correction, difference = state[blocks.correction], state[blocks.difference]
+        creep, shift, gain_excess = state[blocks.creep], state[blocks.shift], state[blocks.gain]
         mean = correction + self._drift_directions() @ np.array([shift, gain_excess])
         increasing, decreasing = self._branch_offsets(mean, difference)
         if not (np.allclose(increasing, mean + 0.5 * difference, rtol=0.0, atol=ROUNDING_M)
@@ -702,18 +588,10 @@ class OnlineModel:
                        branch_difference_m=tuple(float(v) for v in difference),
                        creep_gains=tuple(float(v) for v in creep))
 
-    def _parts(self):
-        """(mean correction, difference, creep gains, shift, gain - 1) at the knots, from the
-        filter's state."""
-        knots = len(CORRECTION_KNOTS_PA)
-        mean = self._filter.mean
-        return (mean[:knots], mean[knots:2 * knots], mean[self._creep_gains], mean[-2],
-                mean[-1])
-
     def _raw_corrections(self) -> tuple[np.ndarray, np.ndarray]:
         """(mean correction, difference) as the filter has them (no drift, no limits)."""
-        correction, difference, *_ = self._parts()
-        return correction, difference.copy()
+        mean, blocks = self._filter.mean, self._filter.blocks
+        return mean[blocks.correction], mean[blocks.difference].copy()
 
     # --- the online order -----------------------------------------------------------
 
@@ -736,21 +614,20 @@ class OnlineModel:
             held, rescaled = self._doubt.expert_lengths()
             confidence = 1.0 / (1.0 + ((held - rescaled) / SPREAD_SCALE_M) ** 2)
         dt = self._advance_lags(static, t_s)
-        mean = self._filter.mean
+        mean, blocks = self._filter.mean, self._filter.blocks
         creep = [lag - static for lag in self._lag_values]
         undrifted = static + sum(
-            gain * lag for gain, lag in zip(mean[self._creep_gains].tolist(), creep,
-                                            strict=True))
+            gain * lag for gain, lag in zip(mean[blocks.creep].tolist(), creep, strict=True))
         if virgin_weights is not None:
             k, share = virgin_weights
-            virgin = mean[self._virgin]
+            virgin = mean[blocks.virgin]
             undrifted += (1.0 - share) * float(virgin[k]) + (
                 share * float(virgin[k + 1]) if share != 0.0 and k + 1 < virgin.size else 0.0)
         predicted = float(drift.correct(undrifted))
         measured_length_m = float(measured_length_m)
         if (self._learning or self._drifting) and math.isfinite(measured_length_m):
             shape_difference = 0.0          # what the share learns from: only 'identify' has one
-            if self._learning and self.memory == 'identify':
+            if self._learns_share:
                 play, madelung = self.model.expert_lengths()
                 shape_difference = play - madelung
             self._learn(measured_length_m - predicted, creep=creep, undrifted=undrifted,
@@ -761,7 +638,7 @@ class OnlineModel:
     def _advance_travel(self, pressure_pa: float) -> tuple[int, float] | None:
         """Advance the pressure travelled since start; the virgin term's knot interval and
         share there (virgin_knot_weights' two weights), or None once it has ended."""
-        if self._virgin is None:
+        if self._filter.blocks.virgin is None:
             return None
         half_width = 0.5 * self.deadband_pa
         if math.isnan(self._play_pa):
@@ -804,39 +681,41 @@ class OnlineModel:
             state.rejected += 1
             return
         noise = self.identification.length_noise_m ** 2
-        if self._learning and self.memory == 'identify':
+        if self._learns_share:
             self._learn_share(residual, shape_difference * gain, noise, dt)
-        knots = len(CORRECTION_KNOTS_PA)
+        blocks = state.blocks
         # d length / d knots, exact through the memory's turning points: on a scanning curve
         # the length is pinned to them, and their lengths came from earlier curves, often of
-        # the other branch (the branch's own weights at this pressure, used until
-        # 2026-11-26, had the difference's sign wrong just after a reversal: docs/model.md §5).
+        # the other branch (the branch's own weights at this pressure had the difference's
+        # sign wrong just after a reversal: docs/model-history.md).
         gradient = self.model.length_gradient(knot_sensitivity)
         size = state.mean.size
         regressor = np.empty(size)
         # gain * (increasing + decreasing), (gain / 2) * (increasing - decreasing), filled in
         # place (numpy's per-call cost is most of a step's: as few calls as possible).
-        head = regressor[:knots]
-        np.add(gradient[:knots], gradient[knots:2 * knots], out=head)
-        head *= gain
-        difference = regressor[knots:2 * knots]
-        np.subtract(gradient[:knots], gradient[knots:2 * knots], out=difference)
+        increasing, decreasing = gradient[INCREASING_KNOTS], gradient[DECREASING_KNOTS]
+        correction = regressor[blocks.correction]
+        np.add(increasing, decreasing, out=correction)
+        correction *= gain
+        difference = regressor[blocks.difference]
+        np.subtract(increasing, decreasing, out=difference)
         difference *= 0.5 * gain
-        regressor[self._creep_gains] = [gain * lag for lag in creep]
+        regressor[blocks.creep] = [gain * lag for lag in creep]
         if virgin_weights is not None:
             k, share = virgin_weights
-            virgin = regressor[self._virgin]
+            virgin = regressor[blocks.virgin]
             virgin[:] = 0.0
             virgin[k] = gain * (1.0 - share)
             if share != 0.0 and k + 1 < virgin.size:
                 virgin[k + 1] = gain * share
-        regressor[-2], regressor[-1] = 1.0, undrifted - self.reference_length_m
+        regressor[blocks.shift] = 1.0
+        regressor[blocks.gain] = undrifted - self.reference_length_m
         walk = state.walk_per_s * dt
         if self._drifting:
             # A random walk whose steady Kalman gain remembers about time_constant_s.
             samples = self.adaptation.time_constant_s / max(dt, 1e-3)
-            walk[-2] = noise / samples ** 2
-            walk[-1] = walk[-2] / GAIN_WALK_LENGTH_M ** 2
+            walk[blocks.shift] = noise / samples ** 2
+            walk[blocks.gain] = walk[blocks.shift] / GAIN_WALK_LENGTH_M ** 2
         covariance = state.covariance
         covariance.flat[::size + 1] += walk   # the diagonal, in place
         spread = covariance @ regressor
@@ -851,8 +730,8 @@ class OnlineModel:
         mean = state.mean
         # Every bound at once (min/max select: the same as bounding each part).
         low, high = self._state_bounds(size)
-        tail = mean[knots:]
-        np.minimum(np.maximum(tail, low, out=tail), high, out=tail)
+        bounded = mean[blocks.bounded]
+        np.minimum(np.maximum(bounded, low, out=bounded), high, out=bounded)
         state.samples += 1
         self._commit_if_moved()
 
@@ -866,7 +745,7 @@ class OnlineModel:
         limits = self.adaptation
         low = [-MAX_DIFFERENCE_M] * knots + [-MAX_CREEP_GAIN] * len(CREEP_TIME_CONSTANTS_S)
         high = [MAX_DIFFERENCE_M] * knots + [MAX_CREEP_GAIN] * len(CREEP_TIME_CONSTANTS_S)
-        if self._virgin is not None:     # as large as a knot's correction may be
+        if self._filter.blocks.virgin is not None:   # as large as a knot's correction may be
             virgins = len(VIRGIN_TRAVEL_KNOTS_PA)
             low += [-MAX_CORRECTION_M] * virgins
             high += [MAX_CORRECTION_M] * virgins
@@ -883,11 +762,11 @@ class OnlineModel:
         binds only where the data ask for a branch that rises with pressure (noise, early
         on); the mean is moved back inside, the covariance is left alone.
         """
-        knots = len(CORRECTION_KNOTS_PA)
-        shape = state.mean[:knots].tolist()
+        correction = state.blocks.correction
+        shape = state.mean[correction].tolist()
         projected = self._monotone(shape)
         if projected != tuple(shape):   # usually equal: compared as plain floats
-            state.mean[:knots] = projected
+            state.mean[correction] = projected
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
         """RLS on the current direction's play share and its slope across the loop (the
@@ -932,7 +811,7 @@ class OnlineModel:
         # Plain floats: this runs on every sample, and numpy's per-call cost on 13 values
         # was most of it. The same test as comparing each part's largest change.
         knots = len(CORRECTION_KNOTS_PA)
-        raw = self._filter.mean[:2 * knots].tolist()
+        raw = self._filter.mean[self._filter.blocks.shape].tolist()
         shares = self._shares.ravel().tolist()
         if max(map(abs, map(operator.sub, raw, self._committed_raw))) < COMMIT_M and \
                 max(map(abs, map(operator.sub, shares, self._committed_shares))) < COMMIT_SHARE:
@@ -981,7 +860,7 @@ class OnlineModel:
         the remaining change; a learned share near 1 is more likely a mistake than a muscle)
         and a negative G as none. Drift applied as in the inverse.
         """
-        gains = self._filter.mean[self._creep_gains]
+        gains = self._filter.mean[self._filter.blocks.creep]
         share = float(gains.sum())
         if self._lags is None or not share > 0.0 or not math.isfinite(length_m):
             return length_m
@@ -1003,11 +882,10 @@ class OnlineModel:
 
     # --- run-time parameter changes -------------------------------------------------
 
-    def resume_from(self, other) -> None:
+    def resume_from(self, other: OnlineRule) -> None:
         """Continue `other`'s pressure history (and its creep lags) with these settings;
-        from a forecaster.RuleMix, its first rule's."""
-        if not isinstance(other, OnlineModel):
-            other = other.experts[0]
+        from a mix.RuleMix, its first rule's."""
+        other = other.experts[0]
         self.model.resume_from(other.model)
         if self._doubt is not None and self._doubt is not self.model:
             self._doubt.resume_from(other._doubt if other._doubt is not None else other.model)
@@ -1016,14 +894,8 @@ class OnlineModel:
         # How far the muscle has travelled is its history too (what the old model learned of
         # a virgin term is not carried over: it lasts one loading).
         self._travel_pa, self._play_pa = other._travel_pa, other._play_pa
-        if self._virgin is not None and self._travel_pa >= VIRGIN_END_PA:
+        if self._filter.blocks.virgin is not None and self._travel_pa >= VIRGIN_END_PA:
             self._end_virgin_term()
-
-
-def _bound_in_place(values: np.ndarray, limit: float) -> None:
-    """Clamp a view of the filter's state to +/-limit. np.minimum/maximum: the same bounds
-    as np.clip, at a third of its cost per call (every sample runs this)."""
-    np.minimum(np.maximum(values, -limit, out=values), limit, out=values)
 
 
 _VIRGIN_KNOTS = (*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA)

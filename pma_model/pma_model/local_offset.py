@@ -15,10 +15,8 @@ is counted through a play of PLAY_PA, so the pressure reading's noise is not tak
 It changes only the predicted length (and the inverse along the current path, which sees the
 offset fade the same way), never what the rules learn.
 
-Chosen on the mix's predictions on every family (docs/model-history.md, 2026-11-28): RMSE
-against the mix without it, per family, seeds 1-8, sigmoid: 0.83-1.03x at 50 Hz, 0.89-1.02x
-at 20 Hz; on eight held-out muscles 0.81-0.96x. A faster walk follows the sensor's noise
-(5e-12 m^2/Pa: 1.08x on `wide`); fading faster leaves more of the Duhem muscle's gaps.
+Chosen on the mix's predictions on every family (the figures: docs/model-history.md): a
+faster walk follows the sensor's noise; fading faster leaves more of the Duhem muscle's gaps.
 """
 
 from __future__ import annotations

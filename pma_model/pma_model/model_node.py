@@ -32,8 +32,8 @@ from pma_common.service import SERVICE_QOS
 from pma_interfaces.msg import ModelParams as ModelParamsMsg
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
+from pma_model.branches import BRANCH_FORMS
 from pma_model.detector import BRANCH_NAMES
-from pma_model.forecaster import RuleMix
 from pma_model.identification import (
     CORRECTION_KNOTS_PA,
     CREEP_TIME_CONSTANTS_S,
@@ -42,8 +42,8 @@ from pma_model.identification import (
 from pma_model.params import ModelParams, ParamsError, default_params
 
 _DESCRIPTIONS = {
-    'branch_form': "branch shape: 'sigmoid' (the paper's L0 - a*L0/(1+exp(-b*P))^c) or "
-                   "'hill' (L0 - dL*P^n/(P^n+K^n))",
+    'branch_form': 'branch shape: ' + ' or '.join(
+        f"'{name}' ({form.formula})" for name, form in BRANCH_FORMS.items()),
     'memory': "minor-loop memory: 'mix' ('identify' and 'play' side by side, each learning, "
               "weighted by their recent errors), 'identify' (learned blend of Madelung and "
               "play-like scanning curves), 'play' (friction band between the branches), "
@@ -54,10 +54,8 @@ _DESCRIPTIONS = {
     'max_gauge_pressure_pa': 'highest gauge pressure the inverse may answer with [Pa]',
 }
 # Queues sized in time at the driver's top rate (1 kHz), so that a stall of the node or of a
-# subscriber loses nothing while it lasts less than this. In a 1 kHz soak on a loaded 2-core
-# machine (bench_model_node.py) the executor stalled for up to 0.5 s: the old 200 lost 0.3-5 %
-# of the states, and a reliable writer keeping only 10 predictions could not resend the
-# ones the recorder missed while it stalled (~0.4 %).
+# subscriber loses nothing while it lasts less than this (stalls measured in the soak of
+# bench/bench_model_node.py: docs/model.md §7-8).
 STATE_QUEUE_DEPTH = 2000        # 2 s
 PREDICTION_QUEUE_DEPTH = 1000   # 1 s
 
@@ -278,7 +276,7 @@ class ModelNode(Node):
             learned = self._model.learned()
             drift = self._model.drift
             counts = (self._model.samples_learned, self._model.samples_rejected)
-            mix = _mix_weights(self._model)
+            mix = self._model.weights_by_rule()
         # What this message says was learned: the diagnostics tick republishes only when more
         # has been (the start-up message must not be sent twice, unchanged).
         self._published_learning = counts[0]
@@ -396,8 +394,8 @@ class ModelNode(Node):
             drift = self._model.drift
             learned = self._model.learned()
             learned_count = self._model.samples_learned
-            mix = _mix_weights(self._model)
-            local_offset_m = self._model.local.offset_m if mix else math.nan
+            mix = self._model.weights_by_rule()
+            local_offset_m = self._model.local_offset_m if mix else math.nan
             first_loading = 'ended' if self._model.first_loading_ended else \
                 f'{1e3 * self._model.virgin_term_m:.2f}'
         status = DiagnosticStatus()
@@ -461,11 +459,6 @@ class ModelNode(Node):
 
 def _millimetres(values) -> str:
     return ' '.join(f'{1e3 * v:.2f}' for v in values)
-
-
-def _mix_weights(model) -> dict[str, float]:
-    """{rule: weight} of the 'mix' memory; empty for a single rule."""
-    return model.weights_by_rule() if isinstance(model, RuleMix) else {}
 
 
 def main(args=None) -> int:

@@ -15,6 +15,7 @@ import io
 import math
 import os
 import stat
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
@@ -25,6 +26,7 @@ import yaml
 from pma_model import units
 from pma_model.adaptation import AdaptationSettings
 from pma_model.branches import (
+    BRANCH_FORMS,
     MAX_B_PER_PA,
     MAX_L0_M,
     MIN_K_PA,
@@ -34,17 +36,12 @@ from pma_model.branches import (
     branch_class,
 )
 from pma_model.detector import DEFAULT_DEADBAND_PA
-from pma_model.forecaster import MIX_MEMORY, MIX_RULES, RuleMix
-from pma_model.identification import (
-    LEGACY_CORRECTION_KNOTS_PA,
-    IdentificationSettings,
-    OnlineModel,
-    refine_corrections,
-)
+from pma_model.identification import IdentificationSettings, OnlineModel, OnlineRule
 from pma_model.memory import MEMORY_MODES, HysteresisModel
+from pma_model.mix import MIX_MEMORY, MIX_RULES, RuleMix
 
-BRANCH_FORM_NAMES = ('sigmoid', 'hill')
-# The memory setting: one rule of memory.py, or the rules mixed by their recent error.
+# The memory setting: a registered rule (rules.MEMORY_RULES), or the rules mixed by their
+# recent error (mix.py).
 MEMORIES = (MIX_MEMORY, *MEMORY_MODES)
 DIRECTIONS = ('increasing', 'decreasing')
 
@@ -60,13 +57,32 @@ class ParamsError(ValueError):
 
 @dataclass(frozen=True)
 class BranchParams:
-    """Both forms' parameters for one direction (increasing or decreasing pressure)."""
+    """Every registered form's parameters for one direction (increasing or decreasing
+    pressure): `of_form('hill')`, or as an attribute, `.hill`."""
 
-    sigmoid: SigmoidBranch
-    hill: HillBranch
+    forms: Mapping[str, Branch]
+
+    def __post_init__(self):
+        if set(self.forms) != set(BRANCH_FORMS):
+            raise ParamsError(f'a direction needs the branch forms {tuple(BRANCH_FORMS)}, '
+                              f'got {tuple(self.forms)}')
+        object.__setattr__(self, 'forms', {form: self.forms[form] for form in BRANCH_FORMS})
+
+    def __hash__(self):
+        return hash(tuple(self.forms.items()))
+
+    def __getattr__(self, name: str) -> Branch:
+        forms = self.__dict__.get('forms')
+        if forms is not None and name in forms:
+            return forms[name]
+        raise AttributeError(name)
 
     def of_form(self, form: str) -> Branch:
-        return getattr(self, form)
+        return self.forms[form]
+
+    def with_branch(self, branch: Branch) -> BranchParams:
+        """A copy with `branch` replacing its form's numbers."""
+        return BranchParams({**self.forms, branch.form: branch})
 
 
 @dataclass(frozen=True)
@@ -81,8 +97,8 @@ class ModelParams:
     identification: IdentificationSettings = field(default_factory=IdentificationSettings)
 
     def __post_init__(self):
-        if self.branch_form not in BRANCH_FORM_NAMES:
-            raise ParamsError(f'branch_form must be one of {BRANCH_FORM_NAMES}, '
+        if self.branch_form not in BRANCH_FORMS:
+            raise ParamsError(f'branch_form must be one of {tuple(BRANCH_FORMS)}, '
                               f'got {self.branch_form!r}')
         if self.memory not in MEMORIES:
             raise ParamsError(f'memory must be one of {MEMORIES}, got {self.memory!r}')
@@ -97,7 +113,7 @@ class ModelParams:
                               f'max_gauge_pressure_pa, got {self.deadband_pa!r}')
         for direction in DIRECTIONS:
             pair = getattr(self, direction)
-            for form in BRANCH_FORM_NAMES:
+            for form in BRANCH_FORMS:
                 _check_units(f'{direction}.{form}', pair.of_form(form))
 
     # --- building the pieces --------------------------------------------------------
@@ -122,7 +138,7 @@ class ModelParams:
                                play_shares=self.identification.play_shares,
                                share_slopes=self.identification.share_slopes)
 
-    def build_online(self) -> OnlineModel | RuleMix:
+    def build_online(self) -> OnlineRule:
         """The memory model with what it learns online (identification, drift adaptation);
         for the 'mix' memory, a RuleMix of an OnlineModel per rule, from the saved losses."""
         if self.memory == MIX_MEMORY:
@@ -148,8 +164,8 @@ class ModelParams:
         form = increasing.form
         if decreasing.form != form:
             raise ParamsError('both branches must have the same form')
-        return replace(self, increasing=replace(self.increasing, **{form: increasing}),
-                       decreasing=replace(self.decreasing, **{form: decreasing}))
+        return replace(self, increasing=self.increasing.with_branch(increasing),
+                       decreasing=self.decreasing.with_branch(decreasing))
 
     # --- flat ROS parameters --------------------------------------------------------
 
@@ -166,7 +182,7 @@ class ModelParams:
             for item in fields(settings):
                 flat[f'{group}.{item.name}'] = _ros_value(getattr(settings, item.name))
         for direction in DIRECTIONS:
-            for form in BRANCH_FORM_NAMES:
+            for form in BRANCH_FORMS:
                 for name, value in getattr(self, direction).of_form(form).to_dict().items():
                     flat[f'{direction}.{form}.{name}'] = float(value)
         return flat
@@ -187,7 +203,7 @@ class ModelParams:
         pairs = {}
         for direction in DIRECTIONS:
             forms = {}
-            for form in BRANCH_FORM_NAMES:
+            for form in BRANCH_FORMS:
                 prefix = f'{direction}.{form}.'
                 branch_values = {key[len(prefix):]: value for key, value in merged.items()
                                  if key.startswith(prefix)}
@@ -195,10 +211,7 @@ class ModelParams:
                     forms[form] = branch_class(form).from_dict(branch_values)
                 except ValueError as error:
                     raise ParamsError(f'{prefix}{error}') from None
-            pairs[direction] = BranchParams(**forms)
-        if merged['branch_form'] in BRANCH_FORM_NAMES:
-            _refine_legacy_corrections(merged, pairs['increasing'].of_form(merged['branch_form']),
-                                       pairs['decreasing'].of_form(merged['branch_form']))
+            pairs[direction] = BranchParams(forms)
         groups = {}
         for group, settings in (('adaptation', AdaptationSettings),
                                 ('identification', IdentificationSettings)):
@@ -377,23 +390,6 @@ def _coerce(name: str, value, template):
     return float(value)
 
 
-# The learned corrections (mean, difference) of the model and of the mix's play rule.
-_CORRECTION_PAIRS = (('identification.branch_correction_m', 'identification.branch_difference_m'),
-                     ('identification.play_rule_correction_m',
-                      'identification.play_rule_difference_m'))
-
-
-def _refine_legacy_corrections(merged: dict, increasing: Branch, decreasing: Branch) -> None:
-    """Corrections saved at the knots before 75 kPa was added (11 values), in place on
-    today's knots, unchanged in effect (identification.refine_corrections)."""
-    legacy = len(LEGACY_CORRECTION_KNOTS_PA)
-    for mean_name, difference_name in _CORRECTION_PAIRS:
-        if len(merged[mean_name]) == legacy and len(merged[difference_name]) == legacy:
-            merged[mean_name], merged[difference_name] = (
-                list(values) for values in refine_corrections(
-                    merged[mean_name], merged[difference_name], increasing, decreasing))
-
-
 def _flatten(nested: dict, prefix: str = '') -> dict:
     flat = {}
     for key, value in nested.items():
@@ -455,5 +451,5 @@ def default_params() -> ModelParams:
 _SEED = ModelParams(
     branch_form='sigmoid', memory='identify', deadband_pa=DEFAULT_DEADBAND_PA,
     max_gauge_pressure_pa=500_000.0, adaptation=AdaptationSettings(),
-    increasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)),
-    decreasing=BranchParams(SigmoidBranch(0.3, 0.2, 1e-5, 6.0), HillBranch(0.3, 0.06, 2e5, 2.0)))
+    increasing=BranchParams({name: form.seed for name, form in BRANCH_FORMS.items()}),
+    decreasing=BranchParams({name: form.seed for name, form in BRANCH_FORMS.items()}))

@@ -1,4 +1,4 @@
-"""pma_model.bag_plot: the figure of any bag, from bags written here with pma_bag's writer
+"""pma_model.offline.bag_plot: the figure of any bag, from bags written here with pma_bag's writer
 (the process tests with the real rig are in tests/test_cli_plot.py)."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pma_model import bag_plot, units
-from pma_model.bag_plot import RANGES_KEY, bag_figure, plot_bag, read_bag_series
+from pma_model import units
+from pma_model.offline import bag_plot
+from pma_model.offline.bag_plot import RANGES_KEY, bag_figure, plot_bag, read_bag_series
 
 pytestmark = pytest.mark.in_process
 
@@ -213,7 +214,7 @@ def test_a_long_1khz_bag_reads_in_seconds_and_little_memory(tmp_path):
 
     from pma_bag import BagWriter
     from pma_interfaces.msg import PmaState
-    from pma_model.samples import _field_offsets
+    from pma_model.offline.samples import _field_offsets
 
     n = 300_000
     message = PmaState()

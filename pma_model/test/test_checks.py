@@ -1,4 +1,4 @@
-"""refit checks what it fits (pma_model.checks, issue 46): a sweep started pressurised, a
+"""refit checks what it fits (pma_model.offline.checks, issue 46): a sweep started pressurised, a
 missing top, too few levels, L0 against the rest length, the sweep's own `settled` verdicts;
 the console summary, --strict and the params file's warning header."""
 
@@ -11,10 +11,10 @@ import pytest
 import yaml
 from test_samples import TRUE_DECREASING, TRUE_INCREASING, write_state_bag
 
-from pma_model import checks
 from pma_model.detector import BRANCH_INCREASING, detect_branches
+from pma_model.offline import checks
+from pma_model.offline.samples import Samples, hold_runs, read_bag, split_branches
 from pma_model.params import ModelParams
-from pma_model.samples import Samples, hold_runs, read_bag, split_branches
 
 pytestmark = pytest.mark.in_process
 
@@ -225,7 +225,7 @@ def write_records(bag, records, start, start_s=1_700_000_000.0):
 def test_a_bag_with_sweep_records_is_read_and_checked(tmp_path):
     """read_bag takes pma/sweep_record beside pma/state; refit's checks then use them."""
     from pma_bag import BagReader, BagWriter
-    from pma_model.report import data_checks
+    from pma_model.offline.report import data_checks
 
     t, pressure, setpoint, length = sweep(MAJOR)
     records = records_for(t, setpoint, pressure, unsettled={7})
@@ -246,7 +246,7 @@ def test_a_bag_with_sweep_records_is_read_and_checked(tmp_path):
     assert samples.time_origin_s == pytest.approx(1_700_000_000.0)
     assert read_bag(plain, progress=False).sweep_levels is None
     data = split_branches(samples, DEADBAND_PA, True)
-    from pma_model.report import fit_model
+    from pma_model.offline.report import fit_model
     fitted = {'sigmoid_fixed_c': fit_model('sigmoid_fixed_c', data)}
     report = data_checks(data, samples, fitted, DEADBAND_PA)
     assert report['levels_from'].startswith("the sweep's records")
@@ -267,7 +267,7 @@ def bags(tmp_path_factory):
 
 
 def refit(capsys, *args):
-    from pma_model.refit import main
+    from pma_model.offline.refit import main
 
     code = main([str(a) for a in args])
     captured = capsys.readouterr()
@@ -275,7 +275,7 @@ def refit(capsys, *args):
 
 
 def test_strict_refuses_a_pressurised_sweep(bags, tmp_path, capsys):
-    from pma_model.refit import EXIT_STRICT
+    from pma_model.offline.refit import EXIT_STRICT
 
     code, out, err = refit(capsys, bags['pressurised'], '--no-holdout', '--strict',
                            '--json', tmp_path / 'r.json', '--params-out', tmp_path / 'p.yaml')
@@ -318,7 +318,7 @@ def test_a_sweep_from_rest_is_quiet_and_short(bags, tmp_path, capsys):
 def test_strict_counts_a_truncated_bag(tmp_path, capsys):
     """A bag cut short (its recorder killed) is refitted on what it holds, with a warning;
     --strict makes that warning an error too."""
-    from pma_model.refit import EXIT_STRICT
+    from pma_model.offline.refit import EXIT_STRICT
 
     bag = write_state_bag(tmp_path / 'crashed', *sweep(MAJOR))
     mcap = bag / 'crashed_0.mcap'

@@ -16,16 +16,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pma_model import identification
-from pma_model.identification import (
+from pma_model.correction import (
     CORRECTION_KNOTS_PA,
-    LEGACY_CORRECTION_KNOTS_PA,
     CorrectedBranch,
-    IdentificationSettings,
-    OnlineModel,
     correction_caps,
     knot_sensitivity,
     monotone_correction,
-    refine_corrections,
+)
+from pma_model.identification import (
+    IdentificationSettings,
+    OnlineModel,
     run_online,
     virgin_knot_weights,
 )
@@ -60,7 +60,7 @@ def path_through(points, step_pa):
 
 def online(**identification):
     """The defaults with the 'identify' rule alone (the 'mix' memory runs it beside 'play':
-    test_forecaster.py)."""
+    test_mix.py)."""
     params = default_params()
     return replace(params, memory='identify',
                    identification=replace(params.identification, **identification))
@@ -139,32 +139,6 @@ def test_corrected_branches_stay_monotone_and_invert_in_closed_form(values, form
         if np.any(np.isclose(lengths, target, atol=1e-9) & (np.gradient(lengths) == 0.0)):
             continue   # a flat stretch: any pressure on it is right
         assert float(corrected.length(pressure)) == pytest.approx(target, abs=1e-9)
-
-
-@pytest.mark.parametrize('form', ['sigmoid', 'hill'])
-def test_a_correction_saved_on_the_legacy_knots_is_refined_without_moving_either_branch(form):
-    # Files written before the 75 kPa knot carry 11 values. Within each of their intervals a
-    # branch's correction was linear in the base branch's own length; the refined vectors
-    # must give both corrected branches exactly as that was, everywhere.
-    increasing, decreasing = replace(default_params(), branch_form=form).branches()
-    legacy = np.array(LEGACY_CORRECTION_KNOTS_PA)
-    rng = np.random.default_rng(11)
-    mean = 0.002 * np.sin(np.pi * legacy / 500e3) + rng.normal(0.0, 0.0005, legacy.size)
-    difference = rng.normal(0.0, 0.001, legacy.size)
-    refined = refine_corrections(mean, difference, increasing, decreasing)
-    assert all(len(values) == len(CORRECTION_KNOTS_PA) for values in refined)
-    grid = np.linspace(0.0, 550e3, 1101)
-    for sign, base in ((1.0, increasing), (-1.0, decreasing)):
-        saved = mean + sign * 0.5 * difference
-        at_legacy, lengths = base.length(legacy), base.length(grid)
-        k = np.clip(np.searchsorted(legacy, grid, side='right') - 1, 0, legacy.size - 2)
-        share = np.clip((at_legacy[k] - lengths) / (at_legacy[k] - at_legacy[k + 1]), 0.0, 1.0)
-        as_saved = lengths + saved[k] + (saved[k + 1] - saved[k]) * share
-        offsets = np.array(refined[0]) + sign * 0.5 * np.array(refined[1])
-        assert np.allclose(CorrectedBranch(base, tuple(offsets)).length(grid), as_saved,
-                           rtol=0.0, atol=1e-12)
-    with pytest.raises(ValueError, match='12 values'):
-        CorrectedBranch(increasing, tuple(mean))
 
 
 def test_a_corrected_branch_remembers_lengths_without_changing_them():

@@ -363,7 +363,7 @@ def identify_model(form='sigmoid', shares=(0.5, 0.5), correction=None, slopes=(0
     model = HysteresisModel(*params.branches(), memory='identify', play_shares=shares,
                             share_slopes=slopes)
     if correction is not None:
-        from pma_model.identification import CorrectedBranch
+        from pma_model.correction import CorrectedBranch
 
         model.relearn(*(CorrectedBranch(branch, correction) for branch in params.branches()))
     return model
@@ -444,7 +444,7 @@ def test_relearn_keeps_the_history_and_moves_the_length_a_little():
 def test_identify_inverse_round_trip_with_any_shares_and_a_learned_correction(
         turns, fraction, rising, shares, bump):
     # shares: (rising, falling) mid-loop and (rising, falling) slope across the loop
-    from pma_model.identification import (
+    from pma_model.correction import (
         CORRECTION_KNOTS_PA,
         correction_caps,
         monotone_correction,

@@ -15,7 +15,7 @@ import yaml
 from test_refit import PAPER_TABLE, run_refit
 from test_samples import write_sample_log
 
-from pma_model.identification import (
+from pma_model.correction import (
     CORRECTION_KNOTS_PA,
     CorrectedBranch,
     correction_caps,

@@ -11,7 +11,7 @@ import yaml
 
 from pma_model import units
 from pma_model.branches import HillBranch, SigmoidBranch, fit_branch
-from pma_model.identification import CORRECTION_KNOTS_PA, LEGACY_CORRECTION_KNOTS_PA
+from pma_model.correction import CORRECTION_KNOTS_PA
 from pma_model.memory import HysteresisModel
 from pma_model.params import (
     MAX_PARAMS_FILE_BYTES,
@@ -143,27 +143,10 @@ def test_validation_names_the_bad_field(values, named):
         ModelParams.from_ros_parameters(values)
 
 
-def test_a_file_saved_with_the_legacy_knots_loads_with_its_corrections_refined(defaults,
-                                                                            tmp_path):
-    # refit --params-out and model_node wrote 11 values per correction before the 75 kPa
-    # knot (identification.refine_corrections; exact: test_identification.py). Such a file
-    # loads, keeps its values at the old knots, and a mix of lengths is still refused.
-    legacy = len(LEGACY_CORRECTION_KNOTS_PA)
-    old = [0.001 * k for k in range(legacy)]
-    section = {'identification': {name: list(old) for name in (
-        'branch_correction_m', 'branch_difference_m', 'play_rule_correction_m',
-        'play_rule_difference_m')}}
-    path = tmp_path / 'learned_before_75kpa.yaml'
-    path.write_text(yaml.safe_dump({'/**': {'ros__parameters': section}}))
-    loaded = ModelParams.load_yaml(path).identification
-    kept = [CORRECTION_KNOTS_PA.index(p) for p in LEGACY_CORRECTION_KNOTS_PA]
-    for values in (loaded.branch_correction_m, loaded.play_rule_correction_m,
-                   loaded.branch_difference_m, loaded.play_rule_difference_m):
-        assert len(values) == len(CORRECTION_KNOTS_PA)
-        assert [values[k] for k in kept] == pytest.approx(old, abs=1e-15)
-    middle = loaded.branch_correction_m[CORRECTION_KNOTS_PA.index(75e3)]
-    assert old[1] < middle < old[2]
-    section['identification']['branch_difference_m'] = [0.0] * len(CORRECTION_KNOTS_PA)
+def test_a_correction_of_another_length_is_refused(tmp_path):
+    # Only today's knots are read (no file written before the 75 kPa knot is kept).
+    section = {'identification': {'branch_correction_m': [0.0] * (len(CORRECTION_KNOTS_PA) - 1)}}
+    path = tmp_path / 'other_knots.yaml'
     path.write_text(yaml.safe_dump({'/**': {'ros__parameters': section}}))
     with pytest.raises(ParamsError, match='branch_correction_m must have 12 values'):
         ModelParams.load_yaml(path)

@@ -224,8 +224,8 @@ def test_memory_check_finds_the_rule_behind_a_path_with_minor_loops(procs, tmp_p
 
 
 def test_holdout_levels_survive_the_scatter_of_measured_holds():
-    from pma_model.report import holdout_split
-    from pma_model.samples import BranchData
+    from pma_model.offline.report import holdout_split
+    from pma_model.offline.samples import BranchData
 
     rng = np.random.default_rng(1)
     levels = np.arange(0.0, 500_001.0, 50_000.0)
@@ -246,9 +246,9 @@ def test_a_quick_ramp_is_refused_for_its_holds_and_fitted_without_a_hold_out():
     refusal said as 'only one branch in the data (no increasing points)'; and raw samples
     that all fall in one or two pressure levels left nothing to test a hold-out on, which
     ended the refit in 'the fit did not converge: zero-size array ...'."""
-    from pma_model.refit import check_data
-    from pma_model.report import holdout_report
-    from pma_model.samples import BranchData, SamplesError
+    from pma_model.offline.refit import check_data
+    from pma_model.offline.report import holdout_report
+    from pma_model.offline.samples import BranchData, SamplesError
 
     up, down = np.linspace(0.0, 95e3, 8), np.linspace(67e3, 9e3, 19)
     held = BranchData(up[-1:], 0.29 - up[-1:] * 1e-7, down[:3], 0.29 - down[:3] * 1.1e-7,

@@ -22,8 +22,7 @@ from test_samples import staircase, write_state_bag
 
 from pma_model import units
 from pma_model.detector import DEFAULT_DEADBAND_PA
-from pma_model.params import ModelParams, default_params
-from pma_model.plots import (
+from pma_model.offline.plots import (
     BRANCH_STYLES,
     DATA_STYLES,
     MEMORY_LABELS,
@@ -38,10 +37,11 @@ from pma_model.plots import (
     save,
     timeseries_figure,
 )
-from pma_model.provenance import software_version
-from pma_model.refit import plotted_choice
-from pma_model.report import BRANCH_MODEL_FORMS, MODEL_NAMES, build_report, memory_check
-from pma_model.samples import Samples, read_branch_table, split_branches
+from pma_model.offline.provenance import software_version
+from pma_model.offline.refit import plotted_choice
+from pma_model.offline.report import BRANCH_MODEL_FORMS, MODEL_NAMES, build_report, memory_check
+from pma_model.offline.samples import Samples, read_branch_table, split_branches
+from pma_model.params import ModelParams, default_params
 
 CUSTOM = {'note': 'new muscle, 21 degC', 'sweep.profile': 'staircase',
           'device.firmware': 'fake_arduino',

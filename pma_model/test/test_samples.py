@@ -8,7 +8,7 @@ import pytest
 from pma_model import units
 from pma_model.branches import SigmoidBranch
 from pma_model.detector import BRANCH_INCREASING, detect_branches
-from pma_model.samples import (
+from pma_model.offline.samples import (
     Samples,
     SamplesError,
     hold_runs,

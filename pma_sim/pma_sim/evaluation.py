@@ -25,8 +25,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pma_model.forecaster import MIX_MEMORY, RuleMix
+from pma_model.mix import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel, run_online
+from pma_model.mix import MIX_MEMORY, RuleMix
 from pma_model.params import ModelParams, default_params, paper_table1
 from pma_sim import families, paths
 from pma_sim.registry import FAMILY_NAMES, muscle_family, rate_dependent

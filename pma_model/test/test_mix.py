@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
-from pma_model.forecaster import RuleMix
 from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
+from pma_model.mix import RuleMix
 from pma_model.params import ModelParams, default_params
 
 pytestmark = pytest.mark.in_process

@@ -9,10 +9,10 @@
 - minor_loops.png: the --memory-check path and each branch model's prediction along it
   with its best memory rule.
 
-Every model has one colour and one plain name in every figure (COLOURS, the one registry:
-models and the bag figure's series; MODEL_LABELS, MEMORY_LABELS: legends say 'Hill branches',
-not 'hill'), increasing branches are solid and decreasing ones dashed, and the measured points
-are black and grey, never a model's colour. Every figure carries a footer:
+Every model has one colour and one plain name in every figure (from the registries,
+report.REPORT_MODELS and rules.MEMORY_RULES; COLOURS adds the bag figure's series; legends say
+'Hill branches', not 'hill'), increasing branches are solid and decreasing ones dashed, and the
+measured points are black and grey, never a model's colour. Every figure carries a footer:
 run id, source, recording and plotting dates, software version and the bag's metadata.
 """
 
@@ -31,32 +31,26 @@ import numpy as np
 from matplotlib.lines import Line2D
 
 from pma_model import units
-from pma_model.report import BRANCH_MODEL_FORMS, DIRECTIONS, FittedModel
-from pma_model.samples import BranchData, Samples, settled_holds
+from pma_model.mix import MIX_MEMORY, RuleMix
+from pma_model.offline.report import BRANCH_MODEL_FORMS, DIRECTIONS, REPORT_MODELS, FittedModel
+from pma_model.offline.samples import BranchData, Samples, settled_holds
+from pma_model.rules import MEMORY_RULES
 
 PRESSURE_LABEL = 'gauge pressure P [kPa]'
 LENGTH_LABEL = 'muscle length L [cm]'
 RESIDUAL_LABEL = 'measured - model [cm]'      # residuals.png and comparison.png alike
-# The one colour registry: each model, and each series of the bag figure (bag_plot.py), has
-# one colour in every figure. Okabe-Ito and Tol hues chosen so that every two models differ by
-# a CIELAB distance of at least 27 for normal, deuteranope and protanope vision (Machado 2009;
-# pma_model/test/test_refit_outputs.py checks it): the old orange #E69F00 and vermillion
-# #D55E00, and green #009E73 and purple #CC79A7, were 18 apart, one colour to many readers.
-COLOURS = {'sigmoid_fixed_c': '#0072B2', 'sigmoid_free_c': '#44AA99', 'hill': '#117733',
-           'bouc_wen': '#E69F00', 'bouc_wen_nonlinear': '#882255',
+# Each model, and each series of the bag figure (bag_plot.py), has one colour in every figure:
+# the models' from their registry (report.REPORT_MODELS), the series' here. Every two models
+# differ by a CIELAB distance of at least 27 for normal, deuteranope and protanope vision
+# (Machado 2009; pma_model/test/test_refit_outputs.py checks it; docs/model-history.md).
+MODEL_COLOURS = {name: model.colour for name, model in REPORT_MODELS.items()}
+COLOURS = {**MODEL_COLOURS,
            'measured': 'black', 'setpoint': '0.45', 'prediction': '#56B4E9',
            'target': '#D55E00', 'length setpoint': '#D55E00'}
-MODEL_COLOURS = {name: COLOURS[name] for name in
-                 ('sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear')}
 # Plain names for the legends (the JSON keys are in docs/refit.md's table beside them).
-MODEL_LABELS = {'sigmoid_fixed_c': "paper's sigmoid (c = 6.214)",
-                'sigmoid_free_c': 'sigmoid, c fitted', 'hill': 'Hill branches',
-                'bouc_wen': 'Bouc-Wen, linear backbone',
-                'bouc_wen_nonlinear': 'Bouc-Wen, Hill backbone'}
-MEMORY_LABELS = {'mix': 'learned mix of scanning curves and friction band',
-                 'identify': 'learned scanning curves',
-                 'play': 'friction band (play)', 'madelung': 'Madelung turning points',
-                 'switch': "branch switch (the paper's)"}
+MODEL_LABELS = {name: model.label for name, model in REPORT_MODELS.items()}
+MEMORY_LABELS = {MIX_MEMORY: RuleMix.label,
+                 **{name: rule.label for name, rule in MEMORY_RULES.items()}}
 # What --params-out writes (or would: loop.png's title says why it was chosen).
 CHOSEN_LABEL = 'the chosen model'
 # The bag figure's series: label, colour (COLOURS) and line.

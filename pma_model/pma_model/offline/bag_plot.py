@@ -31,8 +31,9 @@ matplotlib.use('Agg')    # no display needed; plot_bag(show=True) switches for -
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pma_model import plots, provenance, units
-from pma_model.samples import STATE_TOPIC, SamplesError, _decode_states, state_topic_in
+from pma_model import units
+from pma_model.offline import plots, provenance
+from pma_model.offline.samples import STATE_TOPIC, SamplesError, _decode_states, state_topic_in
 
 PREDICTION_TYPE = 'pma_interfaces/msg/PmaPrediction'
 CONTROL_TYPE = 'pma_interfaces/msg/ControlState'

@@ -9,12 +9,12 @@ failed (table and JSON) and the others stand; the exit code is 2 only when the m
 for with --model, or every branch model --params-out could use, failed. A truncated bag is
 refitted on what it holds before the damage, with a warning line.
 
-Before it trusts a fit, refit checks what it fitted (pma_model.checks: a level near 0 kPa on
-the increasing branch and near the top on the decreasing one, each level on the branch its
-place in the sweep says, the fitted L0 against the lengths measured at rest, enough levels
+Before it trusts a fit, refit checks what it fitted (pma_model.offline.checks: a level near 0
+kPa on the increasing branch and near the top on the decreasing one, each level on the branch
+its place in the sweep says, the fitted L0 against the lengths measured at rest, enough levels
 for the parameters, the sweep's own `settled` verdicts): each warning is printed, kept in the
-JSON (`data_checks`), drawn on the loop figure and written at the top of the params file.
-With --strict a warning is an error: exit 3 and no params file.
+JSON (`data_checks`), drawn on the loop figure and written at the top of the params file. With
+--strict a warning is an error: exit 3 and no params file.
 
 The console gets a summary (the run's Table 2, the warnings, the outputs); --verbose adds
 every model's parameters, the whole loop, the hold-out and the memory rules in full.
@@ -33,9 +33,10 @@ from pathlib import Path
 from pma_common.commands import run_command
 from pma_common.console import closed_pipe_ends_quietly
 from pma_model.detector import DEFAULT_DEADBAND_PA
-from pma_model.provenance import input_run
-from pma_model.report import (
+from pma_model.offline.provenance import input_run
+from pma_model.offline.report import (
     BRANCH_MODEL_FORMS,
+    FORM_MODELS,
     MIN_POINTS_PER_BRANCH,
     MODEL_NAMES,
     ONLINE_MEMORIES,
@@ -46,7 +47,8 @@ from pma_model.report import (
     format_table,
     memory_check,
 )
-from pma_model.samples import STATE_TOPIC, SamplesError, load_fit_input, load_samples
+from pma_model.offline.samples import STATE_TOPIC, SamplesError, load_fit_input, load_samples
+from pma_model.params import MEMORIES
 
 EXIT_BAD_INPUT = 2
 EXIT_STRICT = 3     # --strict and the data checks warned (or the bag is truncated)
@@ -76,7 +78,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument('--deadband-pa', type=float, default=DEFAULT_DEADBAND_PA, metavar='X',
                         help=f'branch detector deadband [Pa] (default {DEFAULT_DEADBAND_PA:g})')
     parser.add_argument('--memory-check', type=Path, metavar='BAG_OR_CSV',
-                        help='also run each memory (mix, identify, switch, madelung, play) '
+                        help=f'also run each memory ({", ".join(MEMORIES)}) '
                         'with the fitted branches along this recorded path (minor loops, e.g. '
                         'a Sweep with reversal_pressures_pa) and score it; mix and identify '
                         'learn online as model_node does; --params-out then also sets memory '
@@ -128,8 +130,7 @@ def write_params(path: Path, fitted, name: str, source: str, memory: str | None 
     from pma_model.params import default_params
 
     params = default_params()
-    other = {'sigmoid': 'sigmoid_fixed_c', 'hill': 'hill'}
-    for form, model_name in other.items():
+    for form, model_name in FORM_MODELS.items():
         chosen = name if BRANCH_MODEL_FORMS[name] == form else model_name
         if chosen in fitted:
             branches = fitted[chosen].branches
@@ -319,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
                   + ')')
         if args.plots:
             chosen, note = plotted_choice(report, name, params_written)
-            from pma_model.plots import write_plots
+            from pma_model.offline.plots import write_plots
 
             figures = write_plots(
                 data, fitted, args.plots, run=provenance, chosen=chosen, chosen_note=note,

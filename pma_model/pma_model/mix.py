@@ -1,10 +1,10 @@
-"""A forecaster over whole online models: weight the memory rules by their recent error.
+"""The `mix` memory: a rule built from rules, whole online models weighted by their recent error.
 
 'identify' learns a continuous share between Madelung's rescaled branch and a curve that
 holds, then runs parallel to the branch into the previous reversal T (it must end at T:
 return-point memory). The 'play' rule (hold, then rejoin the major branch itself) is not in
 that family, and on nested paths of Preisach-type muscles (narrow relays, creep) it is the
-better rule: up to 13 % lower RMSE with sigmoid branches, 27 % with Hill ones (docs/model.md).
+better rule (docs/model.md §3).
 No single rule wins on every family, so RuleMix runs the candidates side by side, each a whole
 OnlineModel learning its own branch correction from the same samples, and predicts their
 mixture with exponential weights
@@ -15,11 +15,9 @@ mixture with exponential weights
 e_i a rule's out-of-sample error against the measured length (each bounded by the outlier
 limit, so one bad echo cannot decide). Discounted, this is the exponentially weighted average
 forecaster, whose loss stays near the better rule's (Cesa-Bianchi and Lugosi, Prediction,
-Learning, and Games, ch. 2-3). Measured on the families with the rules' predictions mixed
-offline (sigmoid seeds 1-4, Hill seeds 1-2; docs/model.md §3.1): no run more than 1.1x the
-best fixed rule's RMSE, and the max-error criterion missed on no more runs than identify
-alone (a faster forgetting, 20 s, let the play rule's large errors on the asymmetric muscle
-into the mix).
+Learning, and Games, ch. 2-3). The time constant and temperature were chosen on the families
+(docs/model-history.md, "The constants' figures": a faster forgetting let the play rule's
+large errors on the asymmetric muscle into the mix).
 
 The inverse (`pressure_for_length`) has no closed form: the mixture of monotone lengths along
 the path is monotone, so it is bracketed and solved (scipy's brentq) on the lengths each rule
@@ -37,7 +35,13 @@ from scipy.optimize import brentq
 
 from pma_model.adaptation import Drift
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING, BRANCH_NAMES
-from pma_model.identification import IdentificationSettings, OnlineModel, Prediction, elapsed_s
+from pma_model.identification import (
+    IdentificationSettings,
+    OnlineModel,
+    OnlineRule,
+    Prediction,
+    elapsed_s,
+)
 from pma_model.local_offset import LocalOffset
 from pma_model.memory import InverseResult
 
@@ -72,6 +76,7 @@ class RuleMix:
     # own measured-minus-model feedback (the length controller) turns it off.
     local_offset: bool = True
     memory: ClassVar[str] = MIX_MEMORY
+    label: ClassVar[str] = 'learned mix of scanning curves and friction band'   # legends
 
     def __post_init__(self):
         if len(self.experts) < 1:
@@ -267,7 +272,11 @@ class RuleMix:
                               xtol=PRESSURE_TOLERANCE_PA)
         return InverseResult(True, f'on the mixed {where}', float(pressure), code, low, high)
 
-    def resume_from(self, other: RuleMix | OnlineModel) -> None:
+    @property
+    def local_offset_m(self) -> float:
+        return self.local.offset_m
+
+    def resume_from(self, other: OnlineRule) -> None:
         """Continue `other`'s pressure history with these rules' settings (and its weights,
         when it is a mix of the same rules)."""
         if isinstance(other, RuleMix) and other.rules == self.rules:
@@ -278,7 +287,7 @@ class RuleMix:
                 self.local = replace(other.local, noise_m=self.local.noise_m,
                                      outlier_m=self.local.outlier_m)
         else:
-            source = other.experts[0] if isinstance(other, RuleMix) else other
+            source = other.experts[0]
             for mine in self.experts:
                 mine.resume_from(source)
 

@@ -1,6 +1,6 @@
 """Fit every candidate model to one loop and report the paper's statistics for each.
 
-Models (names are the JSON keys):
+Models (REPORT_MODELS, the one registry; names are the JSON keys):
 - sigmoid_fixed_c: the paper's branch, c = 6.214 and L0 = the measured rest length fixed;
 - sigmoid_free_c: the same with c free (c is then poorly identified);
 - hill: the Hill branch, all four parameters free;
@@ -23,21 +23,67 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pma_common import experiment
-from pma_model import checks, units
+from pma_model import units
 from pma_model.boucwen import BoucWenFit, fit_bouc_wen, minor_loop_drift
-from pma_model.branches import Branch, HillBranch, SigmoidBranch
+from pma_model.branches import BRANCH_FORMS, Branch
 from pma_model.detector import DEFAULT_DEADBAND_PA, detect_branches
 from pma_model.fitting import BranchFit, LeastSquaresFit, fit_branch_multistart
-from pma_model.forecaster import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel
 from pma_model.memory import HysteresisModel
 from pma_model.metrics import fit_metrics
+from pma_model.mix import MIX_MEMORY, RuleMix
+from pma_model.offline import checks
+from pma_model.offline.samples import BranchData, Samples, hold_runs, settled_holds
 from pma_model.params import MEMORIES
-from pma_model.samples import BranchData, Samples, hold_runs, settled_holds
 
 PAPER_C = 6.214
-MODEL_NAMES = ('sigmoid_fixed_c', 'sigmoid_free_c', 'hill', 'bouc_wen', 'bouc_wen_nonlinear')
-BRANCH_MODEL_FORMS = {'sigmoid_fixed_c': 'sigmoid', 'sigmoid_free_c': 'sigmoid', 'hill': 'hill'}
+
+
+@dataclass(frozen=True)
+class ReportModel:
+    """A model the refit fits and reports: a branch form fitted per branch (with some
+    parameters held), or a Bouc-Wen model fitted to the whole loop. Adding one is one
+    `register_report_model` call (a new branch form first registers in branches.py)."""
+
+    name: str           # the JSON key
+    label: str          # the plain name in legends (plots.py)
+    colour: str         # its one colour in every figure (plots.py)
+    branch_form: str | None = None       # a branch model: its form
+    # A branch model's parameters held at a value, from the loop's measured rest length.
+    fixed: Callable[[float], dict[str, float]] = lambda rest_length_m: {}
+    backbone: str | None = None          # a Bouc-Wen model: its backbone (boucwen.py)
+
+
+# The one registry of report models, in report order.
+REPORT_MODELS: dict[str, ReportModel] = {}
+
+
+def register_report_model(model: ReportModel) -> ReportModel:
+    REPORT_MODELS[model.name] = model
+    return model
+
+
+register_report_model(ReportModel(
+    'sigmoid_fixed_c', "paper's sigmoid (c = 6.214)", BRANCH_FORMS['sigmoid'].colour,
+    'sigmoid', lambda rest_length_m: {'l0_m': rest_length_m, 'c': PAPER_C}))
+register_report_model(ReportModel(
+    'sigmoid_free_c', 'sigmoid, c fitted', '#44AA99', 'sigmoid',
+    lambda rest_length_m: {'l0_m': rest_length_m}))
+register_report_model(ReportModel(
+    'hill', BRANCH_FORMS['hill'].label, BRANCH_FORMS['hill'].colour, 'hill'))
+register_report_model(ReportModel(
+    'bouc_wen', 'Bouc-Wen, linear backbone', '#E69F00', backbone='linear'))
+register_report_model(ReportModel(
+    'bouc_wen_nonlinear', 'Bouc-Wen, Hill backbone', '#882255', backbone='hill'))
+
+MODEL_NAMES = tuple(REPORT_MODELS)
+# {report model: its branch form} of the branch models.
+BRANCH_MODEL_FORMS = {name: model.branch_form for name, model in REPORT_MODELS.items()
+                      if model.branch_form is not None}
+# {branch form: the report model written for it when another form is chosen}: the first
+# registered model of each form (the paper's fixed-c sigmoid, the free Hill).
+FORM_MODELS = {form: next(name for name, model_form in BRANCH_MODEL_FORMS.items()
+                          if model_form == form) for form in BRANCH_FORMS}
 DIRECTIONS = ('increasing', 'decreasing')
 MIN_POINTS_PER_BRANCH = 5     # what a branch fit needs (four parameters at most, and one more)
 # A parameter whose 95 % interval half-width exceeds this fraction of its value is flagged.
@@ -83,12 +129,8 @@ class FittedModel:
 
 
 def _branch_model(name: str, data: BranchData) -> FittedModel:
-    rest = data.rest_length_m
-    cls, fixed = {
-        'sigmoid_fixed_c': (SigmoidBranch, {'l0_m': rest, 'c': PAPER_C}),
-        'sigmoid_free_c': (SigmoidBranch, {'l0_m': rest}),
-        'hill': (HillBranch, {}),
-    }[name]
+    model = REPORT_MODELS[name]
+    cls, fixed = BRANCH_FORMS[model.branch_form].cls, model.fixed(data.rest_length_m)
     fits: dict[str, BranchFit] = {}
     for direction, (p, length) in zip(DIRECTIONS, _branch_arrays(data), strict=True):
         fits[direction] = fit_branch_multistart(cls, p, length, fixed)
@@ -108,8 +150,7 @@ def _branch_model(name: str, data: BranchData) -> FittedModel:
 def _bouc_wen_model(name: str, data: BranchData, warm: FittedModel | None) -> FittedModel:
     p, length, rising = data.loop()
     warm_start = warm.fits['loop'].x if warm is not None else None
-    fitted: BoucWenFit = fit_bouc_wen(p, length, rising,
-                                      'linear' if name == 'bouc_wen' else 'hill',
+    fitted: BoucWenFit = fit_bouc_wen(p, length, rising, REPORT_MODELS[name].backbone,
                                       warm_start=warm_start)
     model = fitted.model
     k = fitted.k
@@ -127,7 +168,7 @@ def fit_model(name: str, data: BranchData, warm: FittedModel | None = None) -> F
     """Fit one model; `warm` (the same model on more data) seeds Bouc-Wen's search."""
     if name in BRANCH_MODEL_FORMS:
         return _branch_model(name, data)
-    if name in ('bouc_wen', 'bouc_wen_nonlinear'):
+    if name in REPORT_MODELS:
         return _bouc_wen_model(name, data, warm)
     raise ValueError(f'unknown model {name!r}; choose from {", ".join(MODEL_NAMES)}')
 
@@ -430,7 +471,7 @@ def _clean(value):
 
 def data_checks(data: BranchData, samples: Samples | None, fitted: dict[str, FittedModel],
                 deadband_pa: float = DEFAULT_DEADBAND_PA) -> dict:
-    """pma_model.checks on this refit: the levels (the sweep's records when the bag has
+    """pma_model.offline.checks on this refit: the levels (the sweep's records when the bag has
     them, else the trace's holds, as the steady-state reduction finds them), the length
     noise, and every warning. JSON-ready (kPa, cm), the report's `data_checks`."""
     fit = checks.FitView(

@@ -65,7 +65,7 @@ class Samples:
     source: str = ''
     truncated: str = ''     # a bag cut short: what is damaged ('' = complete input)
     time_origin_s: float = 0.0   # the first sample's stamp: time_s counts from it
-    # The sweep's records in the bag (pma_model.checks.SweepLevelRecord, SweepStartRecord);
+    # The sweep's records in the bag (pma_model.offline.checks.SweepLevelRecord, SweepStartRecord);
     # None: the input has no pma/sweep_record topic (a CSV, a bag recorded before it).
     sweep_levels: list | None = None
     sweep_start: object | None = None
@@ -206,7 +206,7 @@ def _decode_sweep_records(payloads: list[bytes]):
     from rclpy.serialization import deserialize_message
 
     from pma_interfaces.msg import SweepRecord
-    from pma_model.checks import SweepLevelRecord, SweepStartRecord
+    from pma_model.offline.checks import SweepLevelRecord, SweepStartRecord
 
     messages = [deserialize_message(data, SweepRecord) for data in payloads]
     if not messages:

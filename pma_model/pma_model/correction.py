@@ -1,0 +1,235 @@
+"""The learned branch correction: offsets given at knots, added inside a branch.
+
+`CorrectedBranch` is a base branch plus a correction given at CORRECTION_KNOTS_PA,
+interpolated between knots along the base branch's own length, so it stays monotone under a
+simple bound (`monotone_correction`) and inverts in closed form. identification.OnlineModel
+learns the offsets (a mean for both branches and their difference) and builds corrected
+branches from them; `knot_sensitivity` is the derivative it learns through.
+"""
+
+from __future__ import annotations
+
+import bisect
+import functools
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
+
+# Every 50 kPa (Table 1's pressures) and 75 kPa: between 50 and 100 kPa the muscle leaves its
+# dead zone (Table 1: flat to 50 kPa, then 9-15 mm of its 59 mm stroke by 100 kPa), where the
+# slope changes most and where the onset lies differs from muscle to muscle; a correction that
+# follows the sigmoid's own shape across that interval misses a sharp onset by millimetres
+# (docs/model.md §5, "The knots").
+CORRECTION_KNOTS_PA = (0.0, 50_000.0, 75_000.0, *(float(p) for p in range(100_000, 500_001,
+                                                                            50_000)))
+MAX_CORRECTION_M = 0.01      # |delta| limit at any knot
+MAX_DIFFERENCE_M = 2 * MAX_CORRECTION_M   # each branch's own correction stays within the above
+# knot_sensitivity's layout: [increasing knots, decreasing knots, rising share, falling share].
+INCREASING_KNOTS = slice(0, len(CORRECTION_KNOTS_PA))
+DECREASING_KNOTS = slice(len(CORRECTION_KNOTS_PA), 2 * len(CORRECTION_KNOTS_PA))
+
+
+def _knot_position(p_pa: float, knots=CORRECTION_KNOTS_PA) -> tuple[int, bool]:
+    """(interval k, inside) for a pressure: knots k and k + 1 bracket it when inside."""
+    if p_pa <= knots[0]:
+        return 0, False
+    if p_pa >= knots[-1]:
+        return len(knots) - 1, False
+    return bisect.bisect_right(knots, p_pa) - 1, True
+
+
+def _knot_share(p_pa: float, base_length_m: float, at_knots,
+                knots=CORRECTION_KNOTS_PA) -> tuple[int, float]:
+    """(k, share): the correction at p_pa is d_k + (d_{k+1} - d_k) * share, interpolated
+    along the base branch's own length (`at_knots`: its lengths at the knots); share is 0
+    beyond the knots and on an interval where the base does not fall."""
+    k, inside = _knot_position(p_pa, knots)
+    if not inside:
+        return k, 0.0
+    drop = at_knots[k] - at_knots[k + 1]
+    return k, ((at_knots[k] - base_length_m) / drop if drop > 0.0 else 0.0)
+
+
+def _interpolated(offsets, k: int, share: float) -> float:
+    """The correction d_k + (d_{k+1} - d_k) * share (`_knot_share`'s k and share)."""
+    if share == 0.0:
+        return offsets[k]
+    return offsets[k] + (offsets[k + 1] - offsets[k]) * share
+
+
+_MAX_KNOWN_LENGTHS = 256     # single-pressure lengths a CorrectedBranch keeps
+
+
+@functools.lru_cache(maxsize=64)
+def _lengths_at_knots(branch: Branch) -> tuple[float, ...]:
+    """The branch's lengths at the knots: every commit makes new corrected branches over the
+    same two base branches, so this is computed once per base, not once per commit."""
+    return tuple(float(v) for v in branch.length(np.array(CORRECTION_KNOTS_PA)))
+
+
+_MAX_BASE_POINTS = 4096      # single-pressure entries a base branch keeps (_base_point)
+
+
+def _base_point(branch: Branch, p_pa: float) -> tuple[float, int, float]:
+    """(base length, knot interval k, share) at one pressure: what a corrected branch's
+    length and its knot sensitivity are made of, independent of the learned offsets. Kept
+    on the base branch, so shared by every corrected branch over it: a commit makes new
+    corrected branches and its replay asks for the same turning pressures again, and a
+    sample's pressure is asked for by the length, the two shapes and the regressor."""
+    memo = branch.__dict__.get('_points')
+    if memo is None:   # a memo, not a field (frozen); with the knots' lengths (no hashing)
+        memo = ({}, _lengths_at_knots(branch))
+        object.__setattr__(branch, '_points', memo)
+    points = memo[0]
+    point = points.get(p_pa)
+    if point is None:
+        base = float(branch.length(p_pa))
+        point = (base, *_knot_share(p_pa, base, memo[1]))
+        if len(points) >= _MAX_BASE_POINTS:   # a long noisy run: start again
+            points.clear()
+        points[p_pa] = point
+    return point
+
+
+@dataclass(frozen=True)
+class CorrectedBranch(Branch):
+    """`base` plus a correction given at CORRECTION_KNOTS_PA, flat beyond them.
+
+    Between two knots the correction is interpolated along the base branch's own length,
+    not along pressure: with B_k the base length at knot k,
+        delta(P) = d_k + (d_{k+1} - d_k) * (B_k - B(P)) / (B_k - B_{k+1}).
+    So the corrected branch stays monotone exactly when d_{k+1} - d_k <= B_k - B_{k+1}
+    (`monotone_correction`), it can go flat where the muscle is (the sigmoid's slope in the
+    0-50 kPa dead zone), and its inverse is closed form: on interval k,
+        B(P) = (L - d_k - r B_k) / (1 - r),  r = (d_{k+1} - d_k) / (B_k - B_{k+1}),
+    then P = B^-1.
+    """
+
+    form: ClassVar[str] = 'corrected'
+
+    base: Branch
+    offsets_m: tuple[float, ...]
+
+    @functools.cached_property
+    def _base_at_knots(self) -> tuple[float, ...]:
+        return _lengths_at_knots(self.base)
+
+    def __post_init__(self):
+        # Lengths already computed at single pressures. A sample asks for the same few (its
+        # pressure for the length, the two memory shapes and the regressor; the knots around
+        # it), and a commit's replay asks for each turning pressure three times; a commit
+        # makes new branches, so this never goes stale.
+        object.__setattr__(self, '_known_lengths', {})
+        if len(self.offsets_m) != len(CORRECTION_KNOTS_PA):
+            raise ValueError(f'a branch correction needs {len(CORRECTION_KNOTS_PA)} values '
+                             f'(one per knot), got {len(self.offsets_m)}')
+
+    def correction_at(self, p_pa: float, base_length_m: float) -> float:
+        """delta at one pressure, given the base length there."""
+        return _interpolated(self.offsets_m,
+                             *_knot_share(p_pa, base_length_m, self._base_at_knots))
+
+    def length(self, p_pa):
+        if isinstance(p_pa, float):   # the online path: one sample, no numpy round trip
+            known = self._known_lengths
+            length = known.get(p_pa)
+            if length is None:
+                base, k, share = _base_point(self.base, p_pa)
+                length = base + _interpolated(self.offsets_m, k, share)
+                if len(known) >= _MAX_KNOWN_LENGTHS:   # a long noisy hold: start again
+                    known.clear()
+                known[p_pa] = length
+            return length
+        p = np.asarray(p_pa, dtype=float)
+        base = np.asarray(self.base.length(p))
+        result = base + np.vectorize(self.correction_at, otypes=[float])(p, base)
+        return float(result) if np.ndim(result) == 0 else result
+
+    def inverse_unchecked(self, length_m):
+        lengths = np.asarray(length_m, dtype=float)
+        result = np.vectorize(self._inverse_one, otypes=[float])(lengths)
+        return float(result) if result.ndim == 0 else result
+
+    def _inverse_one(self, length_m: float) -> float:
+        if not math.isfinite(length_m):
+            return math.nan
+        base, offsets = self._base_at_knots, self.offsets_m
+        corrected = [b + d for b, d in zip(base, offsets, strict=True)]
+        if length_m > corrected[0]:
+            return math.nan    # longer than at 0 Pa (flat below: the least pressure is 0)
+        if length_m <= corrected[-1]:
+            return float(self.base.inverse_unchecked(length_m - offsets[-1]))
+        first = next(i for i, value in enumerate(corrected) if value <= length_m)
+        if corrected[first] == length_m:
+            return CORRECTION_KNOTS_PA[first]   # the least pressure of a flat stretch too
+        k = first - 1
+        drop = base[k] - base[k + 1]
+        ratio = (offsets[k + 1] - offsets[k]) / drop if drop > 0.0 else 1.0
+        if ratio >= 1.0:       # a flat interval: its lowest pressure
+            return CORRECTION_KNOTS_PA[k]
+        target = (length_m - offsets[k] - ratio * base[k]) / (1.0 - ratio)
+        return float(self.base.inverse_unchecked(target))
+
+    def invertible_pressure_limit(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
+        """The base branch's: a learned flat stretch (a plateau) is answered with its least
+        pressure, it does not end the range the inverse answers for."""
+        return self.base.invertible_pressure_limit(p_max_pa)
+
+    def stroke_m(self) -> float:
+        return self.base.stroke_m() + self.offsets_m[0] - self.offsets_m[-1]
+
+    def saturation_length_m(self) -> float:
+        return self.base.saturation_length_m() + self.offsets_m[-1]
+
+    @classmethod
+    def bounds(cls):
+        raise TypeError('a corrected branch is learned online, not fitted')
+
+
+def correction_caps(branch: Branch) -> np.ndarray:
+    """Per knot interval: how much the correction may rise and keep the branch monotone."""
+    return np.maximum(-np.diff(_lengths_at_knots(branch)), 0.0)
+
+
+def monotone_correction(offsets, caps) -> tuple[float, ...]:
+    """The offsets, bounded, each knot lowered only as needed (from 0 Pa upward) so that
+    the corrected branch stays non-increasing. `caps`: correction_caps, as an array or a
+    tuple of floats."""
+    # Plain floats: it runs on every sample, where numpy's per-call cost dominates.
+    if isinstance(offsets, list):
+        values = offsets
+    elif isinstance(offsets, np.ndarray) and offsets.dtype == float:
+        values = offsets.tolist()
+    else:
+        values = np.asarray(offsets, dtype=float).tolist()
+    rises = caps if isinstance(caps, tuple) else np.asarray(caps, dtype=float).tolist()
+    low, high = -MAX_CORRECTION_M, MAX_CORRECTION_M
+    previous = min(max(values[0], low), high)
+    result = [previous]
+    # min(max(value, low), high, previous + rise) as comparisons (they select, so exact; a
+    # builtin call each cost more than the rest of the loop).
+    for value, rise in zip(values[1:], rises, strict=False):   # rises: one per interval
+        cap = previous + rise
+        bounded = low if value < low else (high if value > high else value)
+        previous = cap if bounded > cap else bounded
+        result.append(previous)
+    return tuple(result)
+
+
+def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
+    """d branch length(p_pa) / d [increasing knots, decreasing knots, the two play shares]
+    (memory.BranchSensitivity): the interpolation weights of the branch's own correction,
+    whichever branch of the pair `rising` says it is."""
+    knots = len(CORRECTION_KNOTS_PA)
+    gradient = np.zeros(2 * knots + 2)
+    start = 0 if rising else knots
+    base = branch.base if isinstance(branch, CorrectedBranch) else branch
+    _, k, share = _base_point(base, p_pa)
+    gradient[start + k] = 1.0 - share
+    if share != 0.0:
+        gradient[start + k + 1] = share
+    return gradient
