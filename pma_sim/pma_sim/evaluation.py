@@ -25,7 +25,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pma_model.mix import MIX_MEMORY, RuleMix
 from pma_model.identification import OnlineModel, run_online
 from pma_model.mix import MIX_MEMORY, RuleMix
 from pma_model.params import ModelParams, default_params, paper_table1
@@ -73,7 +72,7 @@ class Config:
         return model if self.local_offset else model.without_local_offset()
 
 
-MIX = MIX_MEMORY   # forecaster.RuleMix over 'identify' and 'play', each learning: the default
+MIX = MIX_MEMORY   # mix.RuleMix over 'identify' and 'play', each learning: the default
 PAPER = Config('switch', learn=False)
 STATIC_RULES = (Config('madelung', False), Config('play', False))
 LEARNED_RULES = (Config('switch', True), Config('madelung', True), Config('play', True))
