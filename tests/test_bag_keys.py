@@ -18,9 +18,9 @@ from pma_bag.info import LOSS_KEYS
 from pma_bag.record import RIG_DIAGNOSTIC_KEYS
 from pma_cli.goals import move_metadata
 from pma_common import experiment
+from pma_common.driver_parameters import PARAMETERS
 from pma_common.protocol import Hello
-from pma_driver.parameters import PARAMETERS
-from pma_driver.sweep import PROFILE_FIELDS, SweepGoal, plan_goal
+from pma_common.sweep import PROFILE_FIELDS, SweepGoal, plan_goal
 from pma_driver.sweep_runner import recording_metadata
 from pma_interfaces.action import MoveToLength
 from support.procs import ROOT

@@ -35,7 +35,7 @@ from std_msgs.msg import Float64
 
 from pma_common.calibration import PressureCalibration
 from pma_common.commands import has_ros2_cli, run_command
-from pma_driver.parameters import PARAMETERS
+from pma_common.driver_parameters import PARAMETERS
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
 from support import firmware

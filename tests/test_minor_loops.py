@@ -18,7 +18,7 @@ import pytest
 
 from pma_common import protocol
 from pma_common.calibration import PressureCalibration
-from pma_driver.sweep import plan_sweep
+from pma_common.sweep import plan_sweep
 from pma_model.identification import run_online
 from pma_model.memory import HysteresisModel
 from pma_model.params import default_params

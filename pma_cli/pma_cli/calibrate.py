@@ -31,7 +31,7 @@ from pma_cli import quantities as q
 from pma_cli.commands import DRIVER, Parameters, Setpoints
 from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted, Session
 from pma_common import names
-from pma_driver.parameters import PARAMETERS
+from pma_common.driver_parameters import PARAMETERS
 
 MEASURE_S = 2.0
 REST_WAIT_S = 2.0          # after the pressure is steady: the length creeps a little longer

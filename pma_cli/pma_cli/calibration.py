@@ -1,9 +1,9 @@
 """The arithmetic of `pma calibrate`: span from a reference gauge, length offset from a tape.
 
 No ROS. The sensors' transfer functions are pma_common.calibration's and the limits are the
-driver's own parameter checks (pma_driver.parameters), so a result the driver would refuse is
-refused here first, with the reason; on top of them, bounds on what a calibration may change
-at all (a 30 % span error is a wrong sensor or a misread gauge, not a calibration).
+driver's own parameter checks (pma_common.driver_parameters), so a result the driver would
+refuse is refused here first, with the reason; on top of them, bounds on what a calibration
+may change at all (a 30 % span error is a wrong sensor or a misread gauge, not a calibration).
 
 Geometry (docs/hardware.md, "Length sensor geometry"): the HC-SR04 looks along the muscle at
 a plate on its free end and `length_m = length_offset_m + range_sign * range_m`. With the
@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from pma_common.calibration import ADC_FULL_SCALE, LengthCalibration
-from pma_driver.parameters import PARAMETERS, calibrations, check_parameters
+from pma_common.driver_parameters import PARAMETERS, calibrations, check_parameters
 
 MIN_CHECK_FRACTION = 0.2       # of full scale: below it the span is judged on too few counts
 MAX_SPAN_ERROR = 0.2           # |reference / reading - 1| above this: not a calibration

@@ -23,8 +23,8 @@ from pma_cli import quantities as q
 from pma_cli.observe import BRANCHES, PARTICIPANT_ANNOUNCEMENT_S
 from pma_cli.session import NO_ANSWER, OK, CliError, Latest, Session
 from pma_common import names
-from pma_driver.parameters import PARAMETERS, device_ceiling_pa
-from pma_driver.setpoint import setpoint_refusal
+from pma_common.driver_parameters import PARAMETERS, device_ceiling_pa
+from pma_common.setpoint import setpoint_refusal
 from pma_interfaces.msg import ControlState, PmaState
 from pma_interfaces.srv import PressureForLength
 
@@ -50,7 +50,7 @@ class Setpoints:
     the setpoint the device regulates to) and the driver's log line on /rosout, `refused
     setpoint: ...`, is the refusal with its reason. A setpoint the driver would refuse by its
     value (negative, not finite, above `ceiling_pa`) is refused here instead, in the driver's
-    words (pma_driver.setpoint), and not published: every subscriber of the topic would see
+    words (pma_common.setpoint), and not published: every subscriber of the topic would see
     it. `ceiling_pa` is inf until read_ceiling (or the caller) sets it.
     """
 
@@ -229,7 +229,7 @@ def driver_ceiling_pa(session: Session, timeout_s: float,
 
 def check_setpoint(gauge_pa: float, ceiling_pa: float, ceiling_from: str = '') -> None:
     """CliError (exit 1) for a setpoint the driver would refuse by its value, in the driver's
-    own words (pma_driver.setpoint); `ceiling_from` says where the ceiling came from."""
+    own words (pma_common.setpoint); `ceiling_from` says where the ceiling came from."""
     kind, reason = setpoint_refusal(gauge_pa, ceiling_pa)
     if reason:
         source = f' ({ceiling_from})' if kind == 'too high' and ceiling_from else ''

@@ -46,7 +46,7 @@ from pma_cli.session import (
 )
 from pma_common import experiment, names
 from pma_common.action import ServerWatch
-from pma_driver.sweep import (
+from pma_common.sweep import (
     STREAMED_PROFILES,
     SweepError,
     SweepGoal,

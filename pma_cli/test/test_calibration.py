@@ -8,7 +8,7 @@ import yaml
 
 from pma_cli import calibration as cal
 from pma_common.calibration import ADC_FULL_SCALE, LengthCalibration, PressureCalibration
-from pma_driver.parameters import PARAMETERS, calibrations, check_parameters, defaults
+from pma_common.driver_parameters import PARAMETERS, calibrations, check_parameters, defaults
 
 pytestmark = pytest.mark.in_process
 

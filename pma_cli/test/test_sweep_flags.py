@@ -1,4 +1,4 @@
-"""`pma sweep`'s flags become the Sweep goal the driver checks (pma_driver.sweep.plan_goal);
+"""`pma sweep`'s flags become the Sweep goal the driver checks (pma_common.sweep.plan_goal);
 the experiment's flags of `pma sweep` and `pma move` need a bag to go into."""
 
 import pytest
@@ -6,7 +6,7 @@ import pytest
 from pma_cli.goals import checked_sweep_goal, describe, move_metadata, sweep_goal
 from pma_cli.main import main, parser
 from pma_cli.session import USAGE, CliError
-from pma_driver.sweep import SweepError, SweepGoal, plan_goal
+from pma_common.sweep import SweepError, SweepGoal, plan_goal
 from pma_interfaces.action import MoveToLength
 
 pytestmark = pytest.mark.in_process

@@ -15,10 +15,10 @@ import threading
 from collections.abc import Callable
 from typing import Protocol
 
+from pma_common.driver_parameters import device_ceiling_pa
 from pma_common.protocol import Ack, Command, Hello, Nak, Sample
+from pma_common.setpoint import setpoint_refusal
 from pma_driver.link import LinkError, LinkState, Reply
-from pma_driver.parameters import device_ceiling_pa
-from pma_driver.setpoint import setpoint_refusal
 
 _log = logging.getLogger('pma_driver.command_gate')
 

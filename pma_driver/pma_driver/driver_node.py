@@ -28,6 +28,14 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from pma_common import names, protocol
+from pma_common.driver_parameters import (
+    PARAMETERS,
+    calibrations,
+    check_parameters,
+    descriptor,
+    stall_timeout_s,
+    startup_commands,
+)
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_common.parameters import node_or_exit
 from pma_common.protocol import Command, Hello
@@ -36,14 +44,6 @@ from pma_driver.clock_sync import ClockSync
 from pma_driver.command_gate import DeviceControl
 from pma_driver.link import PortOpenError, SerialLink
 from pma_driver.messages import FAULT_BITS, link_level, link_values, sample_messages
-from pma_driver.parameters import (
-    PARAMETERS,
-    calibrations,
-    check_parameters,
-    descriptor,
-    stall_timeout_s,
-    startup_commands,
-)
 from pma_driver.recorder_client import RecorderClient
 from pma_driver.sweep_runner import Outcome, SweepGoal, SweepRunner, SweepSettings
 from pma_interfaces.action import Sweep

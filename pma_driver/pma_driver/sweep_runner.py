@@ -41,9 +41,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from pma_common.protocol import Ack, Command, Hello
-from pma_driver.command_gate import DeviceControl
-from pma_driver.link import LinkError
-from pma_driver.sweep import (
+from pma_common.sweep import (
     PROFILE_FIELDS,
     StreamPlan,
     SweepError,
@@ -51,6 +49,8 @@ from pma_driver.sweep import (
     SweepPlan,
     plan_goal,
 )
+from pma_driver.command_gate import DeviceControl
+from pma_driver.link import LinkError
 
 SET_ATTEMPTS = 2            # SET is idempotent: sent once more when its reply got lost
 # At rest, the pressure no longer falls: the means of the rest window's two halves differ by

@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.driver_parameters import PARAMETERS, check_parameters, defaults
 from pma_common.protocol import Hello
-from pma_driver.parameters import PARAMETERS, check_parameters, defaults
 
 pytestmark = pytest.mark.in_process
 

@@ -17,8 +17,8 @@ from sim_link import SimClock, SimLink
 
 from pma_common.calibration import PressureCalibration
 from pma_common.protocol import Command
+from pma_common.sweep import STREAM_RATE_HZ, plan_goal
 from pma_driver.command_gate import DeviceControl
-from pma_driver.sweep import STREAM_RATE_HZ, plan_goal
 from pma_driver.sweep_runner import (
     PHASE_REST,
     PHASE_RUNNING,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from pma_cli.arguments import field_count, quantities, quantity, rate
 from pma_common import experiment
-from pma_driver.sweep import FORC_FAMILIES, PROFILES
+from pma_common.sweep import FORC_FAMILIES, PROFILES
 from pma_interfaces.action import Sweep
 
 NAME = 'sweep'

@@ -1,5 +1,6 @@
-"""`pma set` refuses what the driver would refuse by its value, in the driver's own words,
-before anything is published (the process tests: tests/test_cli.py)."""
+"""`pma set` refuses what the driver's command gate would refuse by its value, in the driver's
+own words, before anything is published (the process tests: tests/test_cli.py). Here, as it
+takes both packages: pma_cli does not depend on pma_driver."""
 
 import pytest
 from hypothesis import given
@@ -7,8 +8,8 @@ from hypothesis import strategies as st
 
 from pma_cli.commands import DEFAULT_CEILING_PA, check_setpoint
 from pma_cli.session import FAILED, CliError
+from pma_common.driver_parameters import PARAMETERS, device_ceiling_pa
 from pma_driver.command_gate import DeviceControl
-from pma_driver.parameters import PARAMETERS, device_ceiling_pa
 
 pytestmark = pytest.mark.in_process
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pma_driver.sweep import (
+from pma_common.sweep import (
     MAX_RATE_PA_S,
     STREAM_RATE_HZ,
     StreamPlan,
