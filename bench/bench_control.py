@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 from benchlib import check, isolate_ros_graph, load_row, print_table, read_line, serve, stop
 
+from pma_common import names
 from pma_control.simulated_runs import sine_error_m, sine_profile
 from pma_control.simulated_runs import track as run
 from pma_sim.evaluation import SCORED_FAMILIES, STROKE_M
@@ -182,7 +183,7 @@ def publisher_main(rate_hz: float) -> None:
 
     rclpy.init()
     node = rclpy.create_node('bench_state_publisher')
-    publisher = node.create_publisher(PmaState, 'pma/state', 10)
+    publisher = node.create_publisher(PmaState, names.STATE, 10)
     seq = 0
     setpoint_pa = 0.0
 
@@ -190,7 +191,7 @@ def publisher_main(rate_hz: float) -> None:
         nonlocal setpoint_pa
         setpoint_pa = float(round(msg.data))       # the driver sends whole Pa
 
-    node.create_subscription(Float64, 'pma/pressure_setpoint', on_setpoint, 10)
+    node.create_subscription(Float64, names.PRESSURE_SETPOINT, on_setpoint, 10)
 
     def tick():
         nonlocal seq
@@ -214,8 +215,8 @@ def relay_main() -> None:
 
     rclpy.init()
     node = rclpy.create_node('bench_relay')
-    publisher = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
-    node.create_subscription(PmaState, 'pma/state',
+    publisher = node.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
+    node.create_subscription(PmaState, names.STATE,
                              lambda msg: publisher.publish(Float64(data=msg.gauge_pressure_pa)),
                              qos_profile_sensor_data)
     serve(node)
@@ -244,9 +245,9 @@ def measure_latency(argv: list[str], seconds: float, needs_target: bool) -> np.n
             if state_at:
                 latencies.append((now - state_at[-1]) / 1e6)
 
-    node.create_subscription(PmaState, 'pma/state', on_state, 100)
-    node.create_subscription(Float64, 'pma/pressure_setpoint', on_setpoint, 100)
-    target = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
+    node.create_subscription(PmaState, names.STATE, on_state, 100)
+    node.create_subscription(Float64, names.PRESSURE_SETPOINT, on_setpoint, 100)
+    target = node.create_publisher(LengthSetpoint, names.LENGTH_SETPOINT, 10)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -37,7 +37,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile
 from std_msgs.msg import Float64
 
-from pma_common import protocol
+from pma_common import names, protocol
 from pma_interfaces.msg import PmaState
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -137,7 +137,7 @@ def subscriber_main(out: str, setpoint_hz: float) -> None:
     rclpy.init()
     node = rclpy.create_node('bench_driver_probe')
     if setpoint_hz > 0:
-        setpoints = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+        setpoints = node.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
         node.create_timer(1.0 / setpoint_hz, lambda: setpoints.publish(
             Float64(data=100_000.0 + 50_000.0 * np.sin(time.monotonic()))))
     seqs: list[int] = []
@@ -158,7 +158,7 @@ def subscriber_main(out: str, setpoint_hz: float) -> None:
                 diagnostics.append((time.monotonic_ns(), int(values['samples published']),
                                     int(values['lost samples'])))
 
-    node.create_subscription(PmaState, 'pma/state', on_state, QoSProfile(depth=1000))
+    node.create_subscription(PmaState, names.STATE, on_state, QoSProfile(depth=1000))
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
     try:
         rclpy.spin(node)

@@ -63,6 +63,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
+from pma_common import names
 from pma_common.background import BackgroundSpin
 from pma_common.sequence import SequenceTracker
 from pma_common.service import SERVICE_QOS
@@ -106,7 +107,7 @@ def publisher_main(rate_hz: float, seconds: float, out: str) -> None:
     node = rclpy.create_node('bench_state_publisher')
     # driver_node's default data QoS (reliable, depth 10); model_node's best-effort
     # subscription makes the delivery best effort.
-    publisher = node.create_publisher(PmaState, 'pma/state', QoSProfile(depth=10))
+    publisher = node.create_publisher(PmaState, names.STATE, QoSProfile(depth=10))
     deadline = time.monotonic() + 30
     while publisher.get_subscription_count() < 1:
         if time.monotonic() > deadline:
@@ -197,7 +198,7 @@ class Bench:
         executor.add_node(node)
         model_request = PressureForLength.Request(length_m=0.27, branch=1)
         clients = {
-            'model': (node.create_client(PressureForLength, 'pressure_for_length'),
+            'model': (node.create_client(PressureForLength, names.PRESSURE_FOR_LENGTH),
                       model_request),
             'trigger': (node.create_client(Trigger, TRIGGER_SERVICE), Trigger.Request()),
         }
@@ -258,7 +259,7 @@ class Bench:
                 raise RuntimeError(f'burst client: {line} {self.log_tail(f"burst_client{i}")}')
         results = {name: {'sent': 0, 'answered': 0, 'latency_ms': []}
                    for name in ('model', 'trigger')}
-        services = {'model': 'pressure_for_length', 'trigger': TRIGGER_SERVICE}
+        services = {'model': names.PRESSURE_FOR_LENGTH, 'trigger': TRIGGER_SERVICE}
         order = ['model', 'trigger']
         for round_ in range(2 * rounds):
             name = order[round_ % 2] if (round_ // 2) % 2 == 0 else order[1 - round_ % 2]
@@ -402,7 +403,7 @@ class Bench:
                     if kv.key == 'samples':
                         self.diagnostics.append((now, int(kv.value)))
 
-        node.create_subscription(PmaPrediction, 'pma/prediction', on_prediction,
+        node.create_subscription(PmaPrediction, names.PREDICTION, on_prediction,
                                  QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         node.create_subscription(DiagnosticArray, '/diagnostics', on_diagnostics, 10)
         self.listener = BackgroundSpin(node)

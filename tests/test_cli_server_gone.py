@@ -20,6 +20,7 @@ import rclpy
 from rclpy.action import ActionClient
 from rclpy.node import Node
 
+from pma_common import names
 from pma_common.background import BackgroundSpin
 from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.msg import ControlState
@@ -211,7 +212,7 @@ def test_the_demo_notices_a_server_killed_under_its_goal(procs, action):
     from pma_bringup import demo
     from pma_common.action import ServerGone
 
-    name = 'pma/sweep' if action == 'sweep' else 'pma/move_to_length'
+    name = names.SWEEP if action == 'sweep' else names.MOVE_TO_LENGTH
     server = procs.python(SILENT, '--goals', '--action', name, '--ros-args', '-r',
                           f'__ns:=/demo_{action}', name=f'demo_{action}_server')
     server.wait_for_line('silent_cancel_server: ready', 20)

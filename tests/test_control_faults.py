@@ -26,6 +26,7 @@ from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from std_msgs.msg import Float64
 
+from pma_common import names
 from pma_interfaces.msg import ControlState, LengthSetpoint
 from support.bursts import BurstClient, answered
 from support.control_probe import ControlProbe
@@ -66,7 +67,7 @@ class Rig:
         self.model.wait_for_line('model_node ready', 30)
         self.probe = ControlProbe('control_faults_probe')
         node = self.probe.spinning.node
-        self.pressure = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+        self.pressure = node.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
         wait_until(lambda: self.probe.state_count() > 20 and len(self.probe.control) > 5, 20,
                    'pma/state and pma/control_state')
 

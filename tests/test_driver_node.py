@@ -33,6 +33,7 @@ from rclpy.action import ActionClient
 from sensor_msgs.msg import FluidPressure, Range
 from std_msgs.msg import Float64
 
+from pma_common import names
 from pma_common.calibration import PressureCalibration
 from pma_common.commands import has_ros2_cli, run_command
 from pma_common.driver_parameters import PARAMETERS
@@ -77,14 +78,14 @@ class Probe:
             # Deep enough for the every-sample test: a reliable reader loses samples only when
             # its own queue overflows, and this Python process stalls for up to ~1.6 s on two
             # busy cores (measured: depth 100 lost 12-40 of ~500 samples in 3 of 20 runs).
-            node.create_subscription(PmaState, 'pma/state', self._on_state, 1000),
-            node.create_subscription(FluidPressure, 'pma/pressure', self._keep(self.pressures),
+            node.create_subscription(PmaState, names.STATE, self._on_state, 1000),
+            node.create_subscription(FluidPressure, names.PRESSURE, self._keep(self.pressures),
                                      100),
-            node.create_subscription(Range, 'pma/range', self._keep(self.ranges), 100),
+            node.create_subscription(Range, names.RANGE, self._keep(self.ranges), 100),
             node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10),
         ]
-        self.setpoint_pub = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
-        self.sweep = ActionClient(node, Sweep, 'pma/sweep')
+        self.setpoint_pub = node.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
+        self.sweep = ActionClient(node, Sweep, names.SWEEP)
 
     def _on_state(self, msg: PmaState) -> None:
         with self.lock:

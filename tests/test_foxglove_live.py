@@ -37,6 +37,7 @@ from websockets.sync.client import connect
 from helpers.live_publisher import prediction_fields, state_fields
 from pma_bag.record import message_class
 from pma_bringup.foxglove_client import FoxgloveClient, Received
+from pma_common import names
 from pma_interfaces.msg import PmaState
 from support.domains import another_domain
 from support.procs import ROOT, children_of, running
@@ -288,7 +289,7 @@ def test_the_rig_reaches_a_viewer_as_a_plain_subscriber_sees_it(rig):
         with lock:
             seen[msg.seq] = msg
 
-    probe.node.create_subscription(PmaState, 'pma/state', on_state, qos_profile_sensor_data)
+    probe.node.create_subscription(PmaState, names.STATE, on_state, qos_profile_sensor_data)
     client = FoxgloveClient(url)
     try:
         # The probe is a new participant; the bridge has long been subscribed. Compare only

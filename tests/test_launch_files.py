@@ -26,6 +26,7 @@ import yaml
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import DescribeParameters, ListParameters
 
+from pma_common import names
 from support.procs import INSTALL, ROOT
 from support.ros import SpinningNode, shutdown
 
@@ -476,7 +477,7 @@ def test_bringup_two_simulated_muscles_do_not_share_port_bag_or_namespace(stand_
         assert str(fake_args.link) == port and port.startswith('/tmp/')
         bag = recorder_args(nodes['record']['arguments']).output
         topics = parameters_given(nodes['record'])['topics']
-        assert 'pma/state' in topics and '/diagnostics' in topics
+        assert names.STATE in topics and '/diagnostics' in topics
         seen[side] = (port, bag.name)
     assert seen['left'][0] != seen['right'][0]
     assert seen['left'][1] != seen['right'][1] and 'left' in seen['left'][1]

@@ -18,6 +18,7 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.action import ActionClient
 from std_msgs.msg import Float64
 
+from pma_common import names
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import ControlState, LengthSetpoint
 from pma_model.params import paper_table1
@@ -204,7 +205,7 @@ def test_another_command_source_releases_the_target(rig):
 
     # As `ros2 topic pub --once /pma/pressure_setpoint std_msgs/msg/Float64 "{data: 60000.0}"`.
     hold(0.27)
-    publisher = node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+    publisher = node.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
     wait_until(lambda: publisher.get_subscription_count() >= 1, 10, 'the driver')
     deadline = time.monotonic() + 3.0        # and the controller, which listens there too
     while publisher.get_subscription_count() < 2 and time.monotonic() < deadline:
@@ -219,7 +220,7 @@ def test_another_command_source_releases_the_target(rig):
 
     # A sweep (0 -> 100 -> 0 kPa) while a length is held.
     hold(0.27)
-    sweep = ActionClient(node, Sweep, 'pma/sweep')
+    sweep = ActionClient(node, Sweep, names.SWEEP)
     wait_for_action_server(sweep)
     goal = Sweep.Goal(max_gauge_pressure_pa=100_000.0, step_pa=100_000.0, hold_s=2.0, cycles=1)
     handle = probe.spinning.send_goal(sweep, goal)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from pma_common import names
 from pma_model.params import default_params
 from support.ros import SpinningNode, shutdown, wait_until
 
@@ -25,7 +26,7 @@ def probe():
 
 def _ask_inverse(probe, request):
     from pma_interfaces.srv import PressureForLength
-    return probe.call(PressureForLength, 'pressure_for_length', request, idempotent=True)
+    return probe.call(PressureForLength, names.PRESSURE_FOR_LENGTH, request, idempotent=True)
 
 
 def test_service_refuses_bad_requests_then_answers(procs, probe):
@@ -75,10 +76,10 @@ def test_every_state_gets_a_prediction_with_its_header(procs, probe):
     from pma_interfaces.srv import PressureForLength
 
     procs.ros2_run('pma_model', 'model_node').wait_for_line('model_node ready')
-    predictions, sub_p = probe.collect(PmaPrediction, 'pma/prediction')
-    states, sub_s = probe.collect(PmaState, 'pma/state')
+    predictions, sub_p = probe.collect(PmaPrediction, names.PREDICTION)
+    states, sub_s = probe.collect(PmaState, names.STATE)
     try:
-        wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,
+        wait_until(lambda: probe.node.count_publishers(names.PREDICTION) >= 1, 20,
                    'model_node publisher')
         procs.python(HELPERS / 'rig_stand_in.py', '--rate', '100',
                      '--nan-every', '25').wait_for_line('ready')
@@ -139,7 +140,7 @@ def test_parameters_are_validated_as_a_whole_and_published(procs, probe, tmp_pat
                    ros_args=['-p', f'params_file:={params_file}']).wait_for_line(
         'model_node ready')
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
+    published, sub = probe.collect(ModelParams, names.MODEL_PARAMS, latched)
     try:
         wait_until(lambda: published, 20, 'latched model parameters')
         assert published[-1].form == 'sigmoid' and published[-1].memory == 'mix'
@@ -209,7 +210,7 @@ def test_the_first_state_clears_the_no_data_warning_at_once(procs, probe):
         return [status for array in list(received) for status in array.status
                 if status.name.startswith('/model_node:')]
 
-    publisher = probe.node.create_publisher(PmaState, 'pma/state', 10)
+    publisher = probe.node.create_publisher(PmaState, names.STATE, 10)
     node = procs.ros2_run('pma_model', 'model_node')
     try:
         node.wait_for_line('model_node ready')
@@ -247,7 +248,7 @@ def test_a_bad_params_file_at_start_leaves_the_node_running_on_the_defaults(proc
     params_file.write_bytes(b'# written by caf\xe9 refit\n' + hill.to_yaml().encode())
     latest, diag_sub = _model_diagnostics(probe)
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
+    published, sub = probe.collect(ModelParams, names.MODEL_PARAMS, latched)
     node = procs.ros2_run('pma_model', 'model_node',
                           ros_args=['-p', f'params_file:={params_file}'])
     try:
@@ -281,7 +282,7 @@ def test_a_bad_override_at_start_keeps_the_default_and_says_so(procs, probe):
 
     latest, diag_sub = _model_diagnostics(probe)
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
+    published, sub = probe.collect(ModelParams, names.MODEL_PARAMS, latched)
     # kPa for Pa, a weight state far outside what the mix can reach, and an integer for a
     # float: rclpy refuses all three at declaration (the descriptors' ranges and types),
     # which used to end the node with a traceback.
@@ -319,7 +320,7 @@ def test_params_file_set_at_run_time_is_validated_before_it_is_accepted(procs, p
     node = procs.ros2_run('pma_model', 'model_node')
     node.wait_for_line('model_node ready')
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    published, sub = probe.collect(ModelParams, 'pma/model_params', latched)
+    published, sub = probe.collect(ModelParams, names.MODEL_PARAMS, latched)
     fifo = tmp_path / 'params.fifo'
     os.mkfifo(fifo)
     bad_units = tmp_path / 'kpa.yaml'
@@ -384,7 +385,7 @@ def test_a_burst_of_200_requests_from_4_clients_is_answered_whole(procs, tmp_pat
     for client in clients:
         client.wait_for_line('ready', timeout=40)
     go = tmp_path / '.go-0'
-    go.write_text('pressure_for_length')
+    go.write_text(names.PRESSURE_FOR_LENGTH)
     go.rename(tmp_path / 'go-0')            # all four see it at once, whole
     answered = 0
     for client in clients:
@@ -415,12 +416,12 @@ def test_a_stall_of_500_samples_loses_no_state_and_no_prediction(procs, probe):
     model = procs.ros2_run('pma_model', 'model_node')
     model.wait_for_line('model_node ready')
     latest, diag_sub = _model_diagnostics(probe)
-    predictions, sub = probe.collect(PmaPrediction, 'pma/prediction',
+    predictions, sub = probe.collect(PmaPrediction, names.PREDICTION,
                                 QoSProfile(depth=count, reliability=ReliabilityPolicy.RELIABLE))
     try:
-        wait_until(lambda: probe.node.count_publishers('pma/prediction') >= 1, 20,
+        wait_until(lambda: probe.node.count_publishers(names.PREDICTION) >= 1, 20,
                    'model_node publisher')
-        procs.python(HELPERS / 'bag_state_publisher.py', '--topic', 'pma/state', '--rate',
+        procs.python(HELPERS / 'bag_state_publisher.py', '--topic', names.STATE, '--rate',
                      '500', '--count', str(count), '--wait-subscribers', '1')
         wait_until(lambda: len(predictions) >= 300, 30, 'the stream under way')
         model.signal(signal.SIGSTOP)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
+from pma_common import names
 from pma_model.identification import CORRECTION_KNOTS_PA
 from pma_sim import paths
 from pma_sim.registry import muscle_family
@@ -35,7 +36,7 @@ def publish_run(probe, rate_hz=400.0, duration_s=60.0):
 
     path = paths.ramp_path(paths.random_turns(duration_s, seed=4), seed=4)
     run = paths.simulate(muscle_family('wide'), path, seed=4)
-    publisher = probe.node.create_publisher(PmaState, 'pma/state', 50)
+    publisher = probe.node.create_publisher(PmaState, names.STATE, 50)
     wait_until(lambda: publisher.get_subscription_count() >= 1, 20, 'model_node subscribed')
     start = time.monotonic()
     for seq, (t, p, length) in enumerate(zip(run.time_s, run.measured_pressure_pa,
@@ -61,7 +62,7 @@ def test_it_learns_publishes_and_a_restart_resumes(procs, probe, tmp_path):
     latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          reliability=ReliabilityPolicy.RELIABLE)
     procs.ros2_run('pma_model', 'model_node').wait_for_line('model_node ready', 30)
-    published, sub_params = probe.collect(ModelParams, 'pma/model_params', latched)
+    published, sub_params = probe.collect(ModelParams, names.MODEL_PARAMS, latched)
     diagnostics, sub_diag = probe.collect(DiagnosticArray, '/diagnostics')
     try:
         wait_until(lambda: published, 20, 'the latched parameters')

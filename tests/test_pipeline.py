@@ -28,6 +28,7 @@ from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
 from pma_bag import BagReader
+from pma_common import names
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import ModelParams, PmaPrediction, PmaState
 from support.procs import INSTALL
@@ -117,7 +118,7 @@ def swept(module_procs, probe, tmp_path_factory):
     driver.wait_for_line('active: publishing', 30)
     wait_until(lambda: live.count('predictions') >= 10, 30, 'live predictions')
 
-    client = ActionClient(probe.node, Sweep, 'pma/sweep')
+    client = ActionClient(probe.node, Sweep, names.SWEEP)
     wait_for_action_server(client)
     bag = work / 'sweep_bag'
     goal = Sweep.Goal(max_gauge_pressure_pa=500e3, step_pa=50e3, hold_s=1.0, cycles=1,
@@ -274,7 +275,7 @@ def replayed(swept, module_procs, probe):
     stream = Stream(probe.node, '/replayed')
     wait_until(lambda: stream.count('params') >= 1, 20, 'replayed model parameters')
     player = module_procs.ros2_run('pma_bag', 'play', swept['bag'], '--start-paused',
-                                   '--topics', 'pma/state',
+                                   '--topics', names.STATE,
                                    '--remap', '/pma/state:=/replayed/pma/state')
     player.wait_for_line('play: playing', 30)
     wait_until(lambda: probe.node.count_publishers('/replayed/pma/state') >= 1, 20,

@@ -14,6 +14,7 @@ from rclpy.serialization import deserialize_message
 from rosbags.highlevel import AnyReader
 
 from pma_bag import BagReader
+from pma_common import names
 from pma_interfaces.msg import ModelParams, PmaState
 from support.bursts import BurstClient, answered
 from support.procs import INSTALL
@@ -155,7 +156,7 @@ def test_replay_loop_plays_the_bag_again(procs, tmp_path, recorded):
                        '--timeout', '40', '--resume-service', '/player/resume')
     sub.wait_for_line('subscriber: listening', timeout=20)
     player = procs.ros2_run('pma_bag', 'play', recorded, '--start-paused', '--loop',
-                            '--rate', '4', '--topics', 'pma/state')
+                            '--rate', '4', '--topics', names.STATE)
     sub.wait_for_line('subscriber: got', timeout=60)
     assert player.alive(), 'a looping player only stops when told to'
     player.signal(signal.SIGINT)
@@ -192,7 +193,7 @@ def test_a_burst_of_300_requests_to_each_player_service_is_answered_whole(
 
 def test_replay_topics_remap_and_clock(procs, tmp_path, recorded):
     results = replay_into(
-        procs, tmp_path, recorded, '--topics', 'pma/state', '--remap', '/pma/state:=/echo/state',
+        procs, tmp_path, recorded, '--topics', names.STATE, '--remap', '/pma/state:=/echo/state',
         '--clock', '50',
         listen=(('/echo/state', STATE, 'seq'), ('/pma/state', STATE, 'seq'),
                 ('/pma/model_params', 'pma_interfaces/msg/ModelParams', 'form'),

@@ -26,6 +26,7 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagReader, BagWriteError, BagWriter, recover_bag
 from pma_bag.reader import TruncatedBagWarning
+from pma_common import names
 from pma_common.commands import run_command
 from pma_interfaces.msg import PmaState
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
@@ -147,7 +148,7 @@ def publisher(procs, rate: float, count: int, topic: str = '/pma/state', wait: i
 def test_services_drive_split_compressed_bags_with_custom_data(procs, probe, tmp_path):
     """The Sweep's path: an idle recorder, ~/start (returns matched), pause, split, stop."""
     recorder = procs.ros2_run('pma_bag', 'record', '--idle', '--compression', 'zstd',
-                              '--topics', 'pma/state', cwd=tmp_path)
+                              '--topics', names.STATE, cwd=tmp_path)
     recorder.wait_for_line('recorder: idle', timeout=30)
     watch = probe()
     source = publisher(procs, rate=200, count=200 * 60)
@@ -253,7 +254,7 @@ def test_a_burst_of_300_requests_to_each_service_is_answered_whole_and_the_bag_s
     service gets 300 at once, then the tester's mix (300 of each of the three, interleaved),
     while a stream is recorded; the bag they paused and split dozens of times reads whole."""
     bag = tmp_path / 'burst'
-    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', 'pma/state')
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', names.STATE)
     recorder.wait_for_line('recorder: recording', timeout=30)
     publisher(procs, rate=50, count=50 * 120)
     recorder.wait_for_line('recorder: recording 1 topics', timeout=30)
@@ -295,7 +296,7 @@ def test_start_waits_for_a_sample_of_a_silent_per_sample_topic(procs, probe, tmp
     """A matched reader does not prove that the writer knows it (each side of a DDS match
     learns of it separately): ~/start answers for pma/state only once a sample of it reached
     the bag. A publisher that sends nothing gets the 3 s, and the answer names it."""
-    recorder = procs.ros2_run('pma_bag', 'record', '--idle', '--topics', 'pma/state',
+    recorder = procs.ros2_run('pma_bag', 'record', '--idle', '--topics', names.STATE,
                               cwd=tmp_path)
     recorder.wait_for_line('recorder: idle', timeout=30)
     watch = probe()
@@ -337,7 +338,7 @@ def test_start_of_a_new_bag_on_a_running_recorder_misses_nothing(procs, probe, t
 
 def test_sigterm_with_more_signals_while_finishing_leaves_a_complete_bag(procs, tmp_path):
     bag = tmp_path / 'term'
-    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', 'pma/state',
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', names.STATE,
                               '--compression', 'lz4', '--max-bag-duration', '1', '--note',
                               'signals', '--custom', 'rig=bench-a', 'calibration=cal1.yaml')
     recorder.wait_for_line('recorder: recording', timeout=30)
@@ -359,7 +360,7 @@ def test_sigterm_with_more_signals_while_finishing_leaves_a_complete_bag(procs, 
 def test_sigkill_with_compression_loses_at_most_the_last_second(procs, probe, tmp_path):
     bag = tmp_path / 'killed'
     watch = probe()
-    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', 'pma/state',
+    recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', names.STATE,
                               '--compression', 'zstd', '--max-bag-size', '20000',
                               '--note', 'killed on purpose')
     recorder.wait_for_line('recorder: recording', timeout=30)
@@ -386,7 +387,7 @@ def test_full_disk_stays_up_then_exits_non_zero_and_says_recover(procs, tmp_path
     """Regression: after a disk-full error the recorder exited 0 on SIGINT with no hint."""
     with small_filesystem(tmp_path / 'small', 192 * 1024) as disk:
         bag = disk / 'full'
-        recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', 'pma/state')
+        recorder = procs.ros2_run('pma_bag', 'record', '-o', bag, '--topics', names.STATE)
         recorder.wait_for_line('recorder: recording', timeout=30)
         publisher(procs, rate=1000, count=1000 * 30)
         recorder.wait_for_line('No space left', timeout=40)
@@ -446,7 +447,7 @@ def test_a_topics_parameter_that_is_not_a_list_stops_it_with_one_line(procs, tmp
                               ros_args=['-p', 'topics:=pma/state'])
     assert recorder.popen.wait(20) == 2
     recorder.wait_for_line("recorder: bad parameter, not started: topics must be of type "
-                           "STRING_ARRAY, got 'pma/state' (STRING)")
+                           "STRING_ARRAY, got names.STATE (STRING)")
     assert 'Traceback' not in recorder.output and not (tmp_path / 'bag').exists()
 
 

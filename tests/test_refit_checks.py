@@ -19,6 +19,7 @@ from rclpy.action import ActionClient
 from rclpy.qos import qos_profile_sensor_data
 from std_msgs.msg import Float64
 
+from pma_common import names
 from pma_interfaces.action import Sweep
 from pma_interfaces.msg import PmaState
 from support.ros import SpinningNode, shutdown, wait_for_action_server, wait_until
@@ -40,7 +41,7 @@ def set_pressure(probe, publisher, states, pressure_pa: float) -> None:
 
 
 def sweep(probe, bag, *, start_pressurised: bool) -> None:
-    client = ActionClient(probe.node, Sweep, 'pma/sweep')
+    client = ActionClient(probe.node, Sweep, names.SWEEP)
     wait_for_action_server(client)
     goal = Sweep.Goal(max_gauge_pressure_pa=500e3, step_pa=100e3, hold_s=1.0, cycles=1,
                       record=True, bag_path=str(bag), start_pressurised=start_pressurised)
@@ -64,8 +65,8 @@ def refits(module_procs, tmp_path_factory):
     recorder.wait_for_line('recorder: idle', 30)
     driver.wait_for_line('active: publishing', 30)
     probe = SpinningNode('refit_checks_probe')
-    states, _ = probe.collect(PmaState, 'pma/state', qos_profile_sensor_data)
-    setpoint = probe.node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+    states, _ = probe.collect(PmaState, names.STATE, qos_profile_sensor_data)
+    setpoint = probe.node.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
     runs = {}
     try:
         for name, pressurised in (('pressurised', True), ('from_rest', False)):

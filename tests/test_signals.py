@@ -32,7 +32,7 @@ from rosbags.highlevel import AnyReader
 from std_msgs.msg import Float64
 
 from pma_bag import BagWriter
-from pma_common import protocol
+from pma_common import names, protocol
 from pma_common.stop import STOP_SIGNALS
 from pma_interfaces.msg import PmaState
 from support import firmware
@@ -168,8 +168,8 @@ def test_ctrl_c_under_launch_vents_the_muscle(procs, tmp_path):
     fake.wait_for_line('device at', 20)
     probe = SpinningNode('signal_test_probe')
     states: list[PmaState] = []
-    probe.node.create_subscription(PmaState, 'pma/state', states.append, 100)
-    setpoint = probe.node.create_publisher(Float64, 'pma/pressure_setpoint', 10)
+    probe.node.create_subscription(PmaState, names.STATE, states.append, 100)
+    setpoint = probe.node.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
     try:
         for attempt in range(3):
             driver = procs.ros2_run('pma_driver', 'driver_node', name=f'driver{attempt}',

@@ -9,6 +9,7 @@ from pma_bringup.foxglove_live import (
     matches,
     viewer_urls,
 )
+from pma_common import names
 
 pytestmark = pytest.mark.in_process
 
@@ -25,7 +26,7 @@ def test_anything_else_is_refused_with_a_reason(host):
 
 
 def test_topic_entries_are_names_or_absolute_patterns():
-    for entry in ('pma/state', '/diagnostics', '~/status', '/*/pma/state', '/left/pma/*'):
+    for entry in (names.STATE, '/diagnostics', '~/status', '/*/pma/state', '/left/pma/*'):
         assert check_topic_entry(entry) == '', entry
     assert 'absolute' in check_topic_entry('*/pma/state')
     assert 'pma state' in check_topic_entry('pma state')
@@ -43,7 +44,7 @@ def test_patterns_match_every_namespace_names_match_exactly():
 
 def test_the_default_topics_are_the_recorded_ones_and_the_controllers():
     assert DEFAULT_TOPICS[:2] == ['pma/state', 'pma/pressure']
-    assert {'pma/prediction', 'pma/model_params', '/diagnostics', 'pma/control_state'} <= set(
+    assert {'pma/prediction', names.MODEL_PARAMS, '/diagnostics', names.CONTROL_STATE} <= set(
         DEFAULT_TOPICS)
     assert len(DEFAULT_TOPICS) == len(set(DEFAULT_TOPICS))
 

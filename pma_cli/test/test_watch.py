@@ -12,6 +12,7 @@ import pytest
 
 from pma_cli.observe import RateLimit, Watch
 from pma_cli.session import INTERRUPTED, NO_ANSWER, CliError, Interrupted, Session
+from pma_common import names
 from pma_interfaces.msg import PmaState
 
 
@@ -62,7 +63,7 @@ def test_the_root_namespace_is_suggested_as_a_usable_flag():
     session.node = SimpleNamespace(get_topic_names_and_types=lambda: [
         ('/pma/state', ['pma_interfaces/msg/PmaState']),
         ('/left/pma/state', ['pma_interfaces/msg/PmaState'])])
-    hint = session.where_hint('pma/state', 'driver_node')
+    hint = session.where_hint(names.STATE, 'driver_node')
     assert 'It runs in /, /left: add --namespace /, --namespace left.' in hint
 
 

@@ -19,6 +19,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.task import Future
 
+from pma_common import names
 from pma_common.action import ServerGone, ServerWatch, results_answered, send_goal
 from pma_common.background import BackgroundSpin
 from pma_common.service import poll
@@ -53,7 +54,7 @@ class Server:
     decides the n-th goal callback (from 1): 'accept', 'reject', 'late' (accept after 3
     resend periods) or 'never'. A goal runs until cancelled if `until_cancelled`."""
 
-    def __init__(self, node: Node, name: str = 'pma/sweep'):
+    def __init__(self, node: Node, name: str = names.SWEEP):
         self.node = node
         self.goal_calls = 0
         self.executions = 0
@@ -106,7 +107,7 @@ def rig(context):
         node.destroy_node()
 
 
-def ready(spin: BackgroundSpin, client_type=ActionClient, name: str = 'pma/sweep'):
+def ready(spin: BackgroundSpin, client_type=ActionClient, name: str = names.SWEEP):
     client = client_type(spin.node, Sweep, name)
     assert client.wait_for_server(timeout_sec=10)
     return client

@@ -12,6 +12,7 @@ from rclpy.action import ActionServer
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from pma_common import names
 from pma_common.node import WorkerPoolExecutor
 from pma_interfaces.action import Sweep
 from pma_interfaces.srv import PressureForLength
@@ -20,8 +21,8 @@ from pma_interfaces.srv import PressureForLength
 class InterfaceServers(Node):
     def __init__(self):
         super().__init__('interface_servers')
-        self.create_service(PressureForLength, 'pressure_for_length', self.on_request)
-        self._action = ActionServer(self, Sweep, 'pma/sweep', self.on_goal)
+        self.create_service(PressureForLength, names.PRESSURE_FOR_LENGTH, self.on_request)
+        self._action = ActionServer(self, Sweep, names.SWEEP, self.on_goal)
 
     def on_request(self, request, response):
         # A straight line from 0.30 m at 0 Pa to 0.24 m at 500 kPa.

@@ -22,6 +22,7 @@ from pathlib import Path
 import rclpy
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from pma_common import names
 from pma_interfaces.msg import PmaPrediction, PmaState
 
 MATCH_GRACE_S = 0.5
@@ -68,8 +69,8 @@ def main() -> int:
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                      reliability=(ReliabilityPolicy.BEST_EFFORT if args.best_effort
                                   else ReliabilityPolicy.RELIABLE))
-    publishers = [node.create_publisher(PmaState, 'pma/state', qos),
-                  node.create_publisher(PmaPrediction, 'pma/prediction', qos)]
+    publishers = [node.create_publisher(PmaState, names.STATE, qos),
+                  node.create_publisher(PmaPrediction, names.PREDICTION, qos)]
     sent = 0
     try:
         deadline = time.monotonic() + args.wait_timeout

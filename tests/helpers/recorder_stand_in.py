@@ -19,6 +19,7 @@ from pathlib import Path
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
+from pma_common import names
 from pma_common.node import WorkerPoolExecutor, ros_context, spin_until_stopped
 from pma_interfaces.msg import PmaState
 from pma_interfaces.srv import StartRecording, StopRecording
@@ -33,7 +34,7 @@ class RecorderStandIn(Node):
         self.bag = ''
         self.setpoints: list[float] = []
         self.auto_count = 0
-        self.create_subscription(PmaState, 'pma/state', self.on_state, qos_profile_sensor_data)
+        self.create_subscription(PmaState, names.STATE, self.on_state, qos_profile_sensor_data)
         self.create_service(StartRecording, '~/start', self.on_start)
         self.create_service(StopRecording, '~/stop', self.on_stop)
 
@@ -60,7 +61,7 @@ class RecorderStandIn(Node):
             self.bag, self.setpoints = str(bag), []
         response.success, response.message = True, f'recording to {bag}'
         response.bag_path = str(bag)
-        response.topics = [self.resolve_topic_name('pma/state')]
+        response.topics = [self.resolve_topic_name(names.STATE)]
         return response
 
     def on_stop(self, _request, response):

@@ -35,6 +35,7 @@ from action_msgs.srv import CancelGoal
 from std_srvs.srv import Trigger
 from unique_identifier_msgs.msg import UUID
 
+from pma_common import names
 from pma_common.service import SERVICE_QOS, ask
 from pma_interfaces.action import MoveToLength, Sweep
 from pma_interfaces.srv import IsPaused, PressureForLength
@@ -46,7 +47,7 @@ def unknown_goal_id() -> UUID:
 
 # By the end of the service's name: (type, request maker).
 REQUESTS = {
-    'pressure_for_length': (PressureForLength,
+    names.PRESSURE_FOR_LENGTH: (PressureForLength,
                             lambda: PressureForLength.Request(length_m=0.27, branch=1)),
     'bench_trigger': (Trigger, Trigger.Request),
     # the recorder's and the player's (pma_bag), the driver's

@@ -13,6 +13,7 @@ import numpy as np
 from rclpy.action import ActionClient
 from std_msgs.msg import Float64
 
+from pma_common import names
 from pma_interfaces.action import MoveToLength
 from pma_interfaces.msg import ControlState, LengthSetpoint, PmaState
 from support.ros import SpinningNode, wait_until
@@ -26,11 +27,11 @@ class ControlProbe:
         self.states: list[tuple[float, PmaState]] = []
         self.control: list[ControlState] = []
         self.commands: list[tuple[float, float]] = []    # (monotonic, Pa) on pma/pressure_setpoint
-        node.create_subscription(PmaState, 'pma/state', self._on_state, 1000)
-        node.create_subscription(ControlState, 'pma/control_state', self._on_control, 1000)
-        node.create_subscription(Float64, 'pma/pressure_setpoint', self._on_command, 1000)
-        self.setpoints = node.create_publisher(LengthSetpoint, 'pma/length_setpoint', 10)
-        self.move = ActionClient(node, MoveToLength, 'pma/move_to_length')
+        node.create_subscription(PmaState, names.STATE, self._on_state, 1000)
+        node.create_subscription(ControlState, names.CONTROL_STATE, self._on_control, 1000)
+        node.create_subscription(Float64, names.PRESSURE_SETPOINT, self._on_command, 1000)
+        self.setpoints = node.create_publisher(LengthSetpoint, names.LENGTH_SETPOINT, 10)
+        self.move = ActionClient(node, MoveToLength, names.MOVE_TO_LENGTH)
 
     def _on_state(self, msg: PmaState) -> None:
         with self.lock:
