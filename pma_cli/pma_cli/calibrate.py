@@ -26,7 +26,7 @@ from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from pma_bag import BagWriteError, BagWriter
-from pma_cli import calibration as cal
+from pma_cli import calibration_arithmetic as cal
 from pma_cli import quantities as q
 from pma_cli.commands import DRIVER, Parameters, Setpoints
 from pma_cli.session import FAILED, INTERRUPTED, OK, USAGE, CliError, Interrupted, Session

@@ -6,7 +6,7 @@ import math
 import pytest
 import yaml
 
-from pma_cli import calibration as cal
+from pma_cli import calibration_arithmetic as cal
 from pma_common.calibration import ADC_FULL_SCALE, LengthCalibration, PressureCalibration
 from pma_common.driver_parameters import PARAMETERS, calibrations, check_parameters, defaults
 
