@@ -447,7 +447,7 @@ def test_a_topics_parameter_that_is_not_a_list_stops_it_with_one_line(procs, tmp
                               ros_args=['-p', 'topics:=pma/state'])
     assert recorder.popen.wait(20) == 2
     recorder.wait_for_line("recorder: bad parameter, not started: topics must be of type "
-                           "STRING_ARRAY, got names.STATE (STRING)")
+                           "STRING_ARRAY, got 'pma/state' (STRING)")
     assert 'Traceback' not in recorder.output and not (tmp_path / 'bag').exists()
 
 

@@ -76,6 +76,10 @@ STREAM_REARM_QUIET_S = 0.5
 DEVICE_VENT_BITS = PmaState.STATUS_OVERPRESSURE | PmaState.STATUS_HEARTBEAT_LOST
 # The shortest window a goal's result averages the measured length over [s].
 MIN_MEASURED_WINDOW_S = 0.5
+# A target taken before the first pma/state sample (a goal sent while this node was still
+# starting: discovery takes about a second) waits this long for it. Nothing is commanded
+# without a sample, so the wait is safe; stale_timeout_s counts once samples have come.
+FIRST_SAMPLE_WAIT_S = 5.0
 
 # ControllerSettings field -> (description, low, high)
 SETTING_DESCRIPTIONS = {
@@ -143,6 +147,7 @@ class LengthControllerNode(Node):
         self._goal_started = 0.0
         self._inside_since: float | None = None   # since when the goal is within tolerance
         self._last_sample_at: float | None = None
+        self._armed_at = time.monotonic()
         self._last_state: PmaState | None = None
         self._last_output: ControlOutput | None = None
         self._fault = ''
@@ -292,6 +297,7 @@ class LengthControllerNode(Node):
     def _armed(self) -> None:
         """A new target was taken (goal or stream): the last let-go is history."""
         self._let_go_reason, self._let_go_by_fault = '', False
+        self._armed_at = time.monotonic()
 
     # -- other command sources ---------------------------------------------------------
 
@@ -388,6 +394,10 @@ class LengthControllerNode(Node):
         last = self._last_sample_at
         if last is not None and time.monotonic() - last <= timeout:
             return
+        if last is None:
+            timeout = max(timeout, FIRST_SAMPLE_WAIT_S)
+            if time.monotonic() - self._armed_at <= timeout:
+                return
         age = 'none yet' if last is None else f'{time.monotonic() - last:.1f} s old'
         self._fault = (f'no usable pma/state sample for {timeout:g} s (latest: {age}): is the '
                        'driver running and active?')
@@ -460,10 +470,7 @@ class LengthControllerNode(Node):
             self._let_go('the goal was canceled', fault=False)
             return
         output = self._last_output
-        if output is None:
-            if elapsed > self.get_parameter('stale_timeout_s').value:
-                self._let_go('no pma/state sample yet: is the driver running and active?',
-                             fault=True)
+        if output is None:        # no sample yet: _check_stale gives up after its wait
             return
         tolerance, settle_s, timeout_s = goal_limits(request)
         error = request.length_m - output.estimated_length_m
