@@ -5,7 +5,7 @@ Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid h
 [--kinds sines damped]]
 (OMP_NUM_THREADS=1; about 11 minutes a branch form on one core, five muscles). Prints the
 table of docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of
-stroke) and checks, for every family (the simulator's and the held-out Bouc-Wen muscle of
+stroke) and checks, for every family (the simulator's and the Bouc-Wen muscle of
 pma_sim.evaluation), path and seed:
   - the default memory ('mix': mix.RuleMix, identify and play mixed), from the
     third reversal on: RMSE <= 0.9x and max <= 0.7x the paper's switch;
@@ -64,7 +64,7 @@ from pma_sim.evaluation import (
     score,
     worst_moment_s,
 )
-from pma_sim.registry import FAMILY_NAMES, family_argument, held_out_fit_errors_m, rate_dependent
+from pma_sim.registry import FAMILY_NAMES, family_argument, rate_dependent, table1_fit_errors_m
 
 # The issue's criteria against the paper's switch, from the third reversal on.
 RMSE_OF_SWITCH = 0.9
@@ -216,7 +216,7 @@ def main() -> int:
                              'firmware\'s maximum; driver_node asks for 20 by default)')
     parser.add_argument('--families', nargs='+', default=list(SCORED_FAMILIES),
                         type=family_argument,
-                        help='default: every simulated family and the held-out bouc-wen; '
+                        help='default: the simulator\'s four families and bouc-wen; '
                              'duhem:RISING:FALLING (kPa) adds a Duhem muscle with other '
                              'approach scales, fitted to Table 1 (asymmetric is duhem:15:100); '
                              'gpi[:BULGE] a generalized Prandtl-Ishlinskii muscle, asymmetric '
@@ -248,7 +248,7 @@ def main() -> int:
           f'{args.rate_hz:g} Hz, '
           f'stroke {STROKE_M * 100:.2f} cm)')
     for family in args.families:
-        errors = held_out_fit_errors_m(family)
+        errors = table1_fit_errors_m(family)
         if errors is not None:
             print(f'{family}: Table 1 fit RMSE {100 * np.sqrt(np.mean(errors ** 2)):.3f} cm, '
                   f'max {100 * np.max(np.abs(errors)):.3f} cm over {errors.size} points')
@@ -277,7 +277,7 @@ def main() -> int:
                                               rate_hz=args.rate_hz)
             print('\n'.join(drift_lines), flush=True)
             drift_verdict = f'drift recovery {"met" if drift_passed else "NOT met"}'
-        else:   # the held-out muscle alone has no drift option: nothing was checked
+        else:   # bouc-wen alone has no drift option: nothing was checked
             drift_verdict = 'drift recovery not checked (no family with a drift option)'
         verdicts.append(f'{form}: minor-loop criteria {"met" if passed else "NOT met"} '
                         f'(identify alone: {"met" if alone_passed else "NOT met"}), '

@@ -113,7 +113,7 @@ def fit_asymmetric(starts: int = 4, seed: int = 0, rising_scale_pa: float = RISI
     """The Duhem muscle whose steady loop fits Table 1, for the given approach scales.
 
     Other scales than the `asymmetric` family's give other Duhem muscles on the same major
-    loop: held-out variants for judging the model (pma_sim.registry: duhem, gpi, friction).
+    loop: variants for judging the model (pma_sim.registry: duhem, gpi, friction).
     """
     from scipy.optimize import least_squares
 
