@@ -31,6 +31,7 @@ def test_the_simulators_own_families_come_first_and_every_family_is_in_one_decla
         assert muscle_set.seeds == tuple(range(1, 9))
         for family in muscle_set.families:
             assert set_of(family) is muscle_set
+            parse_family(family)   # every declared name is a registered family
 
 
 @pytest.mark.parametrize('name', QUICK)
