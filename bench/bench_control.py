@@ -5,8 +5,9 @@
 
 * tracking (ROS-free, simulated time, the simulated device's own sensors and regulator;
   the true length is known only to the evaluation), on every simulated muscle family and
-  the held-out Bouc-Wen muscle: feedforward only ('ff'), feedback only ('fb'),
-  feedforward + feedback ('ff_fb') on
+  the Bouc-Wen muscle (--set tuning|validation: that set of pma_sim.splits instead; the
+  validation set's figures are reported, never tuned on): feedforward only ('ff'),
+  feedback only ('fb'), feedforward + feedback ('ff_fb') on
   - steps 25.5 -> 28.5 -> 26.5 cm: settle time to +/-2 mm of the truth, overshoot, steady
     error (mean of the last 2 s of each step);
   - sines 25 <-> 29.5 cm at 0.05, 0.1 and 0.2 Hz: RMSE and max error against the truth in %
@@ -43,6 +44,7 @@ from benchlib import check, isolate_ros_graph, load_row, print_table, read_line,
 from pma_common import names
 from pma_control.simulated_runs import sine_error_m, sine_profile
 from pma_control.simulated_runs import track as run
+from pma_sim import splits
 from pma_sim.evaluation import SCORED_FAMILIES, STROKE_M
 from pma_sim.registry import family_argument
 
@@ -303,9 +305,11 @@ def main() -> int:
     parser.add_argument('--seconds', type=float, default=20.0, help='latency window')
     parser.add_argument('--families', nargs='+', type=family_argument,
                         help='only these simulated muscles (default: the scored ones; '
-                             'held-out ones too: duhem:RISING:FALLING, gpi[:BULGE], '
+                             'any registered one: duhem:RISING:FALLING, gpi[:BULGE], '
                              'friction[:WIDEST], creep:INNER:SHARE:TAU; see '
                              'bench_memory_families.py --help)')
+    parser.add_argument('--set', choices=tuple(splits.SETS), dest='muscle_set',
+                        help='the families of this declared set (pma_sim.splits) instead')
     parser.add_argument('--device-seeds', nargs='+', type=int, default=DEVICE_SEEDS,
                         metavar='N', help='simulated device seeds (sensor noise, valve timing)')
     parser.add_argument('--publish', type=float, help=argparse.SUPPRESS)
@@ -318,7 +322,9 @@ def main() -> int:
         relay_main()
         return 0
     isolate_ros_graph()
-    rows, ok = tracking_table(list(args.families or SCORED_FAMILIES), tuple(args.device_seeds))
+    families = args.families or (splits.SETS[args.muscle_set].families if args.muscle_set
+                                 else SCORED_FAMILIES)
+    rows, ok = tracking_table(list(families), tuple(args.device_seeds))
     latency, latency_ok = latency_rows(args.seconds)
     print()
     print_table([*rows, *latency, load_row()])

@@ -1,7 +1,8 @@
-"""The controller's 0.1 Hz target on muscles its defaults were not chosen on.
+"""The controller's 0.1 Hz target on muscles beyond the simulator's own four.
 
-pma_control's own tests run the simulator's families; these are held out
-(pma_sim.evaluation): the paper's Bouc-Wen model, and muscles creeping more slowly and
+pma_control's own tests run the simulator's families; these are the others of the tuning set
+(pma_sim.splits; the validation set's are run by bench_control.py --set validation only to
+report): the paper's Bouc-Wen model, and muscles creeping more slowly and
 more than `creep` does (30 % of each change lagged by 1.5-2 s), where a feedforward that
 inverts only the settled curves lags a 0.1 Hz sine by the creep (2.1-2.3 % of stroke before
 it aimed through the learned creep; docs/control.md). bench_control.py runs the same on six

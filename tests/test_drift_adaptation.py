@@ -52,8 +52,8 @@ def test_adaptation_costs_nothing_without_drift(family):
 
 
 @pytest.mark.parametrize('rule', [*LEARNED_RULES, IDENTIFY], ids=lambda rule: rule.memory)
-def test_adaptation_costs_nothing_with_any_learned_rule_on_the_held_out_muscle(rule):
-    """Not only the default: any rule a user may choose, on the muscle nothing was tuned on.
+def test_adaptation_costs_nothing_with_any_learned_rule_on_the_bouc_wen_muscle(rule):
+    """Not only the default: any rule a user may choose, on the Bouc-Wen muscle (tuning set).
 
     Drift used to start with a prior as wide as the shape's, and the shape was kept out of
     the directions drift moves the knots in. On the Bouc-Wen muscle (7 mm longer at rest

@@ -1,9 +1,10 @@
 """The length controller on a simulated muscle family, in simulated time (ROS-free).
 
 Shared by tests/test_control_on_held_out_muscles.py and bench/bench_control.py, so that
-every muscle family of pma_sim.registry, the held-out ones too, reaches the controller the
-same way in both. It lives in pma_control, not pma_sim, because it runs the controller: the
-simulator does not depend on the controller (pma_control's tests use the simulator).
+every muscle family of pma_sim.registry, of either set of pma_sim.splits, reaches the
+controller the same way in both. It lives in pma_control, not pma_sim, because it runs the
+controller: the simulator does not depend on the controller (pma_control's tests use the
+simulator).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ SINE_LOW_M, SINE_HIGH_M = 0.25, 0.295    # the tracked sine: 25 <-> 29.5 cm, fro
 def track(mode: str, family: str, profile, duration_s: float, *, seed: int, rate_hz: int = 20,
           command_delay_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(time, true length, target) of the shipped controller in `mode` following
-    `profile(t_s)` on `family`'s muscle (a simulator family or a held-out one), starting from
+    `profile(t_s)` on `family`'s muscle (any registered family), starting from
     the shipped model with nothing learned."""
     control = LengthController(default_params().build_online(), ControllerSettings(mode=mode))
 

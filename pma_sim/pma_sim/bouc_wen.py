@@ -1,4 +1,4 @@
-"""A held-out muscle: the paper's nonlinear comparison model, Bouc-Wen, fitted to Table 1.
+"""Tuning set: the paper's nonlinear comparison model, Bouc-Wen, fitted to Table 1.
 
 pma_model.boucwen with a Hill backbone (`refit`'s `bouc_wen_nonlinear`), least squares on
 Table 1's loop. Its loop is up to 4 mm wide and it has no return-point memory, like the

@@ -22,7 +22,7 @@ each behaves differently after a reversal:
 Any family takes `drift=DriftSpec(...)`: rest length and stroke change slowly, as with
 temperature and wear (`registry.muscle_from_spec('wide+drift')` for the default drift).
 
-These are the mechanisms; `pma_sim.registry` names every family, the held-out ones of
+These are the mechanisms; `pma_sim.registry` names every family, the ones of
 other modules (generalized_play, friction, bouc_wen) too, and builds them by name.
 
 The interface (`Muscle`): `update(pressure_pa, t_s) -> length_m` with gauge pressure [Pa]

@@ -65,9 +65,10 @@ def fit_wide(starts: int = 8, seed: int = 0) -> families.PlayParams:
     return fit_plays(classic_plays, starts, seed)
 
 
-def fit_plays(params_for, starts: int, seed: int):
+def fit_plays(params_for, starts: int, seed: int, target: np.ndarray = TARGET):
     """Warp and play weights fitted to Table 1 by variable projection; `params_for(rest, warp,
-    radii, weights)` makes the parameters (PlayParams or a generalized play's)."""
+    radii, weights)` makes the parameters (PlayParams or a generalized play's). `target`: what
+    the plays' loop must make (Table 1, less what a muscle adds to its plays: ratchet.py)."""
     from scipy.optimize import least_squares, nnls
 
     rest = float(TABLE1_LENGTH_INCREASING_M[0])
@@ -77,8 +78,8 @@ def fit_plays(params_for, starts: int, seed: int):
     def weights_for(warp):
         design, _ = _play_design(params_for, warp)
         weights, _ = nnls(np.vstack([design, penalty]),
-                          np.concatenate([rest - TARGET, np.zeros(PLAYS - 2)]))
-        return weights, rest - design @ weights - TARGET
+                          np.concatenate([rest - target, np.zeros(PLAYS - 2)]))
+        return weights, rest - design @ weights - target
 
     rng = np.random.default_rng(seed)
     best = None
@@ -113,7 +114,7 @@ def fit_asymmetric(starts: int = 4, seed: int = 0, rising_scale_pa: float = RISI
     """The Duhem muscle whose steady loop fits Table 1, for the given approach scales.
 
     Other scales than the `asymmetric` family's give other Duhem muscles on the same major
-    loop: held-out variants for judging the model (pma_sim.registry: duhem, gpi, friction).
+    loop: variants for judging the model (pma_sim.registry: duhem, gpi, friction).
     """
     from scipy.optimize import least_squares
 

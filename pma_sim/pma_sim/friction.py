@@ -1,4 +1,4 @@
-"""A held-out muscle: braid friction that grows with the pressure, and a late, sharp onset.
+"""Tuning set: braid friction that grows with the pressure, and a late, sharp onset.
 
 In a McKibben muscle the braid's fibres rub on the tube and on each other with a contact
 force that grows with the pressure, so the friction each fibre must overcome is a fixed

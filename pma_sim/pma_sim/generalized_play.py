@@ -1,4 +1,4 @@
-"""A held-out muscle: generalized Prandtl-Ishlinskii, asymmetric, with return-point memory.
+"""Tuning set: generalized Prandtl-Ishlinskii, asymmetric, with return-point memory.
 
 A model the literature fits to pneumatic muscles whose length/pressure loops are asymmetric
 (the generalized play operator of Al Janaideh, Rakheja and Su, IEEE/ASME Trans. Mechatronics

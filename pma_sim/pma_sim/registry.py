@@ -7,10 +7,11 @@ prints this registry, one family a line (`describe`). A family is named by its n
 is parsed here (`parse_family`) and nowhere else. `+drift` appended gives it the default drift
 (families.DriftSpec) where the family has a drift option.
 
-The simulator's own families (`FAMILY_NAMES`: narrow, wide, asymmetric, creep) are the ones
-the model's defaults were chosen on; the others are held out of that choice (`held_out`), so
-that the tests and benches (pma_sim.evaluation) can show the defaults on muscles they were
-not tuned for.
+Which families the model's defaults may be chosen on (the tuning set) and which are run only
+to report (the validation set) is declared once, in pma_sim.splits (`TUNING`, `VALIDATION`:
+families and seeds); `--list-muscles` labels each family with its set, and every registered
+family must be in exactly one (checked at the end of this module). `FAMILY_NAMES`, the
+simulator's own four (narrow, wide, asymmetric, creep), is the first of the tuning set.
 
 To add a family: write its muscle, a class with the `families.Muscle` interface, in a
 module of its own (as generalized_play.py does), and add one `_register(Family(...))` at the
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pma_sim import families, family_fits
+from pma_sim import families, family_fits, splits
 from pma_sim.families import DriftingMuscle, DriftSpec, Muscle
 from pma_sim.friction import DEFAULT_WIDEST_BAND
 from pma_sim.generalized_play import DEFAULT_BULGE
@@ -52,11 +53,15 @@ class Family:
     build: Callable[..., Muscle]    # build(*arguments) -> a fresh muscle, relaxed at 0 Pa
     usage: str = ''                 # its name with parameters ('gpi[:BULGE]'); '' takes none
     arguments: Callable[[str], tuple] | None = None
-    held_out: bool = True           # False: the model's defaults were chosen on it
     drifts: bool = True             # accepts '+drift'
     rate_dependent: bool = False    # its length depends on time, not only on the pressure path
     # Its major loop minus Table 1 (22 values), from build's arguments; None: documented only.
     fit_errors_m: Callable[..., np.ndarray] | None = None
+
+    @property
+    def muscle_set(self) -> str:
+        """'tuning' or 'validation': its set in pma_sim.splits."""
+        return splits.set_of(self.name).name
 
     @property
     def syntax(self) -> str:
@@ -64,8 +69,7 @@ class Family:
 
     def line(self) -> str:
         """Its line of `--list-muscles`."""
-        kind = 'held out' if self.held_out else 'simulator'
-        return f'{self.syntax:<25} [{kind}] {self.summary}; Table 1: {self.table1_fit}'
+        return f'{self.syntax:<25} [{self.muscle_set}] {self.summary}; Table 1: {self.table1_fit}'
 
 
 FAMILIES: dict[str, Family] = {}
@@ -103,7 +107,7 @@ def muscle_family(name: str = DEFAULT_FAMILY, drift: DriftSpec | None = None) ->
     """A fresh muscle of the named family (relaxed, at 0 Pa), drifting if `drift` is given."""
     family, arguments = parse_family(name)
     if drift is not None and not family.drifts:
-        raise ValueError(f'the held-out {family.name} muscle has no drift option')
+        raise ValueError(f'the {family.name} muscle has no drift option')
     muscle = family.build(*arguments)
     return muscle if drift is None else DriftingMuscle(muscle, drift)
 
@@ -114,7 +118,7 @@ def parse_muscle_spec(spec: str) -> tuple[str, DriftSpec | None]:
     family, _ = parse_family(name)
     drift = DriftSpec() if name != spec else None
     if drift is not None and not family.drifts:
-        raise ValueError(f'the held-out {family.name} muscle has no drift option '
+        raise ValueError(f'the {family.name} muscle has no drift option '
                          f'({DRIFT_SUFFIX!r})')
     return name, drift
 
@@ -138,8 +142,8 @@ def rate_dependent(name: str) -> bool:
     return parse_family(name)[0].rate_dependent
 
 
-def held_out_fit_errors_m(name: str) -> np.ndarray | None:
-    """A held-out family's major loop minus Table 1 (22 values), fitted for its parameters;
+def table1_fit_errors_m(name: str) -> np.ndarray | None:
+    """A parameterised family's major loop minus Table 1 (22 values), fitted for its parameters;
     None for a family whose fit is documented only (the simulator's own in family_fits.py,
     Bouc-Wen in bouc_wen.py, creep variants, which settle on their inner family's loop)."""
     family, arguments = parse_family(name)
@@ -170,7 +174,7 @@ DUHEM_VARIANT = 'duhem'   # 'duhem:30:60': a Duhem muscle with other approach sc
 
 def duhem_variant_scales_pa(family: str) -> tuple[float, float] | None:
     """'duhem:30:60' -> (30e3, 60e3): the rising and falling approach scales [kPa in the
-    name, Pa returned] of a held-out Duhem muscle; None for any other family name.
+    name, Pa returned] of a Duhem muscle of other scales; None for any other family name.
 
     The `asymmetric` family is the Duhem muscle with 15 and 100 kPa; any other pair, fitted
     to Table 1 the same way (fit_families.fit_asymmetric, about 30 s), is a muscle the
@@ -211,13 +215,13 @@ def friction_widest_band(family: str) -> float | None:
                          "0..1 (the widest fibre's band, a share of the pressure)")
 
 
-CREEP_VARIANT = 'creep'   # 'creep:wide:0.3:1.5': a rate-independent family creeping, held out
+CREEP_VARIANT = 'creep'   # 'creep:wide:0.3:1.5': a rate-independent family creeping
 _CREEPING_FAMILIES = ('narrow', 'wide', 'asymmetric')
 
 
 def creep_variant(family: str) -> tuple[str, families.CreepParams] | None:
     """'creep:wide:0.3:1.5' -> ('wide', CreepParams(share=0.3, time_constant_s=1.5)): a
-    held-out muscle, that family with a share of every length change arriving through a lag
+    muscle, that family with a share of every length change arriving through a lag
     of that time constant; None for any other family name (`creep` itself is
     creep:narrow:0.25:0.6, the lag the defaults were measured on).
 
@@ -239,7 +243,7 @@ def creep_variant(family: str) -> tuple[str, families.CreepParams] | None:
     return inner, families.CreepParams(share=share, time_constant_s=time_constant_s)
 
 
-# --- builders (the held-out modules are imported when first built: scipy, pma_model) --------
+# --- builders (the other modules are imported when first built: scipy, pma_model) ----------
 
 def _creep(inner: str = 'narrow', params: families.CreepParams | None = None) -> Muscle:
     params = families.CreepParams(**family_fits.CREEP) if params is None else params
@@ -284,6 +288,30 @@ def _friction_errors_m(widest_band: float) -> np.ndarray:
     return friction.loop_errors_m(friction.fit(widest_band))
 
 
+def _ratchet() -> Muscle:
+    from pma_sim import ratchet
+
+    return ratchet.RatchetMuscle(ratchet.fit())
+
+
+def _ratchet_errors_m() -> np.ndarray:
+    from pma_sim import ratchet
+
+    return ratchet.loop_errors_m(ratchet.fit())
+
+
+def _rate_width() -> Muscle:
+    from pma_sim import rate_width
+
+    return rate_width.RateWidthMuscle(rate_width.fit())
+
+
+def _rate_width_errors_m() -> np.ndarray:
+    from pma_sim import rate_width
+
+    return rate_width.loop_errors_m(rate_width.fit())
+
+
 def _bouc_wen() -> Muscle:
     from pma_sim.bouc_wen import BoucWenMuscle, bouc_wen_fit
 
@@ -296,23 +324,23 @@ _register(Family(
     'narrow', 'Preisach muscle (narrow relays): after a reversal the length holds for tens of '
     'kPa, then rejoins the other branch; return-point memory (muscle.py)',
     'RMSE 0.067 cm, max 0.176 cm (22 points)',
-    lambda: PreisachMuscle(TABLE1_FIT), held_out=False))
+    lambda: PreisachMuscle(TABLE1_FIT)))
 _register(Family(
     'wide', 'Prandtl-Ishlinskii, play operators on a warped pressure: after a reversal the '
     'length moves at once; return-point memory (families.PlayMuscle)',
     'RMSE 0.097 cm, max 0.259 cm (22 points)',
-    lambda: families.PlayMuscle(families.wide_params()), held_out=False))
+    lambda: families.PlayMuscle(families.wide_params())))
 _register(Family(
     'asymmetric', 'Duhem: the length approaches the other envelope exponentially, fast when '
     'inflating, slow when deflating; loops close only approximately (families.DuhemMuscle)',
     'RMSE 0.092 cm, max 0.162 cm (22 points)',
-    lambda: families.DuhemMuscle(families.asymmetric_params()), held_out=False))
+    lambda: families.DuhemMuscle(families.asymmetric_params())))
 _register(Family(
     'creep', 'the narrow muscle with a viscoelastic element in series (lag 0.6 s, share 0.25); '
-    'creep:INNER:SHARE:TAU, another family creeping with another lag, is held out',
+    'creep:INNER:SHARE:TAU is another family creeping with another lag',
     "narrow's at the end of each hold (the inner family's for a variant)",
     _creep, usage='creep[:INNER:SHARE:TAU]',
-    arguments=lambda name: creep_variant(name) or (), held_out=False, rate_dependent=True))
+    arguments=lambda name: creep_variant(name) or (), rate_dependent=True))
 _register(Family(
     'bouc-wen', "the paper's nonlinear comparison model (pma_model.boucwen, Hill backbone): "
     'minor loops ratchet, no return-point memory, no drift option (bouc_wen.py)',
@@ -342,4 +370,20 @@ _register(Family(
     arguments=lambda name: (friction_widest_band(name),),
     fit_errors_m=_friction_errors_m))
 
-FAMILY_NAMES = tuple(name for name, family in FAMILIES.items() if not family.held_out)
+# --- the validation set (pma_sim.splits): run only to report, never tuned on ---------------
+
+_register(Family(
+    'ratchet', 'loops that do not close: a play muscle (wide-like) that every fall of the '
+    'pressure leaves a little longer, the set saturating at 2 mm (ratchet.py)',
+    'plays refitted (about 3 s); first cycle RMSE 0.097 cm, max 0.262 cm (22 points)',
+    _ratchet, fit_errors_m=_ratchet_errors_m))
+_register(Family(
+    'rate-width', 'plays whose bands widen with the filtered |dP/dt| (1.44x at 250 kPa/s), '
+    'narrowing back on holds (rate_width.py)',
+    'plays refitted (about 3 s); ends of 10 s holds RMSE 0.097 cm, max 0.259 cm (22 points)',
+    _rate_width, rate_dependent=True, fit_errors_m=_rate_width_errors_m))
+
+FAMILY_NAMES = splits.SIMULATOR_FAMILIES   # the simulator's own, first of the tuning set
+assert tuple(FAMILIES)[:len(FAMILY_NAMES)] == FAMILY_NAMES
+for _family in FAMILIES.values():
+    splits.set_of(_family.name)   # in exactly one declared set, or the import fails

@@ -9,6 +9,7 @@ from pma_sim import fake_arduino, registry
 from pma_sim.device import DeviceConfig
 from pma_sim.families import DriftingMuscle, DriftSpec
 from pma_sim.registry import FAMILIES, FAMILY_NAMES, muscle_family, parse_family, parse_muscle_spec
+from pma_sim.splits import TUNING, VALIDATION, set_of
 
 pytestmark = pytest.mark.in_process
 
@@ -17,11 +18,20 @@ pytestmark = pytest.mark.in_process
 QUICK = ('narrow', 'wide', 'asymmetric', 'creep', 'creep:wide:0.3:1.5', 'bouc-wen')
 
 
-def test_the_simulators_own_families_come_first_and_the_rest_are_held_out():
+def test_the_simulators_own_families_come_first_and_every_family_is_in_one_declared_set():
     assert FAMILY_NAMES == ('narrow', 'wide', 'asymmetric', 'creep')
     assert list(FAMILIES)[:4] == list(FAMILY_NAMES)
     assert {'bouc-wen', 'duhem', 'gpi', 'friction'} <= set(FAMILIES)
-    assert all(FAMILIES[name].held_out for name in set(FAMILIES) - set(FAMILY_NAMES))
+    assert set(FAMILY_NAMES) <= TUNING.names()
+    # friction chose the 75 kPa correction knot: it tunes, it does not validate
+    assert 'friction' in TUNING.names() and 'friction' not in VALIDATION.names()
+    assert not TUNING.names() & VALIDATION.names()
+    assert all(FAMILIES[name].muscle_set in ('tuning', 'validation') for name in FAMILIES)
+    for muscle_set in (TUNING, VALIDATION):
+        assert muscle_set.seeds == tuple(range(1, 9))
+        for family in muscle_set.families:
+            assert set_of(family) is muscle_set
+            parse_family(family)   # every declared name is a registered family
 
 
 @pytest.mark.parametrize('name', QUICK)
