@@ -88,16 +88,12 @@ def start_child(name: str, argv: Sequence[str | os.PathLike], *,
     argv = [str(a) for a in argv]
     full_env = {**os.environ, 'PYTHONUNBUFFERED': '1', **(env or {})}
     preexec = ended_with(os.getpid()) if die_with_parent else None
-    if log_path is None:
-        popen = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    output = (open(log_path, 'w') if log_path is not None
+              else contextlib.nullcontext(subprocess.PIPE))
+    with output as stdout:
+        popen = subprocess.Popen(argv, stdout=stdout, stderr=subprocess.STDOUT,
                                  stdin=subprocess.DEVNULL, start_new_session=True,
                                  preexec_fn=preexec, env=full_env, cwd=cwd)  # noqa: PLW1509
-    else:
-        with open(log_path, 'w') as log:
-            popen = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, start_new_session=True,
-                                     preexec_fn=preexec, env=full_env,  # noqa: PLW1509
-                                     cwd=cwd)
     return Child(name, popen, log_path, argv)
 
 
