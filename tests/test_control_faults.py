@@ -340,6 +340,85 @@ def test_stopping_the_controller_leaves_the_pressure_where_it_is(at_rest):
     rig.controller = rig.start_controller()
 
 
+def first_state_at(probe: ControlProbe, since: float, test) -> float | None:
+    """When (the probe's monotonic time) the first state since `since` passing `test` came."""
+    with probe.lock:
+        return next((t for t, s in probe.states if t >= since and test(s)), None)
+
+
+# The default commander_timeout_s, plus its check's period (a tenth of it): the documented
+# worst case from a commander's last renewal to VENT (docs/driver.md "Commander lease").
+LEASE_VENT_WITHIN_S = 0.8 + 0.08
+# What the test adds on a machine running the suite beside it: the driver's timer and the
+# VENT's way to the device and back in pma/state (tens of milliseconds when idle).
+LOAD_SLACK_S = 0.6
+
+
+def test_a_controller_that_vanishes_while_holding_leaves_the_muscle_vented(at_rest):
+    """The controller holds a length and its process freezes, as when the network between its
+    host and the rig drops (SIGSTOP: nothing it sends arrives). Its commander lease runs out:
+    the driver vents within commander_timeout_s. When it comes back it must not re-pressurise
+    the muscle: its goal-less hold ends with the reason, and `pma status` tells the story."""
+    rig = at_rest
+    rig.hold(0.255)
+    assert rig.probe.latest().gauge_pressure_pa > 200_000.0
+    mark = line_mark(rig.driver)
+    frozen = time.monotonic()
+    rig.controller.signal(signal.SIGSTOP)
+    try:
+        wait_for_new_line(rig.driver, 'lost: no renewal of its lease for 0.8 s', mark, 10)
+        vented = first_state_at(rig.probe, frozen, lambda s: s.gauge_setpoint_pa == 0.0)
+        assert vented is not None and vented - frozen <= LEASE_VENT_WITHIN_S + LOAD_SLACK_S, \
+            vented and vented - frozen
+        assert 'length_controller' in lines_after(rig.driver, mark)
+        time.sleep(1.0)
+    finally:
+        rig.controller.signal(signal.SIGCONT)
+    wait_until(lambda: rig.probe.latest_control().mode != ControlState.MODE_HOLD, 5,
+               'the controller letting go')
+    rig.stays_vented(2.5)
+    status = subprocess.run([str(PMA), 'status'], capture_output=True, text=True, timeout=60,
+                            stdin=subprocess.DEVNULL, check=False)
+    said = status.stdout + status.stderr
+    assert 'last lost: commander /length_controller' in said, said
+    rig.hold(0.27)          # a new goal takes the muscle again
+
+
+def test_a_sweep_whose_pma_sweep_vanishes_is_aborted_and_vented(at_rest):
+    """`pma sweep` holds a lease while its goal runs: frozen mid-sweep (its host gone), the
+    driver aborts the sweep and vents; once back it prints the abort's reason."""
+    rig = at_rest
+    sweep = rig.procs.start([PMA, 'sweep', '--max', '300kPa', '--step', '100kPa', '--hold',
+                             '5s'], name='pma-sweep')
+    wait_until(lambda: rig.probe.latest().gauge_pressure_pa > 80_000.0, 30, 'the sweep filling')
+    mark = line_mark(rig.driver)
+    frozen = time.monotonic()
+    sweep.signal(signal.SIGSTOP)
+    try:
+        wait_for_new_line(rig.driver, 'sweep aborted: commander pma sweep', mark, 10)
+        vented = first_state_at(rig.probe, frozen, lambda s: s.gauge_setpoint_pa == 0.0)
+        assert vented is not None and vented - frozen <= LEASE_VENT_WITHIN_S + LOAD_SLACK_S
+    finally:
+        sweep.signal(signal.SIGCONT)
+    assert sweep.popen.wait(30) == 1, sweep.output
+    assert 'sweep aborted' in sweep.output and 'commander pma sweep' in sweep.output, \
+        sweep.output
+    rig.stays_vented(1.0)
+
+
+def test_a_rig_set_once_and_left_alone_keeps_its_pressure(at_rest):
+    """No lease, no loss: `pma set` commands once and leaves; nothing vents the muscle."""
+    rig = at_rest
+    mark = line_mark(rig.driver)
+    result = subprocess.run([str(PMA), 'set', '150kPa'], capture_output=True, text=True,
+                            timeout=60, stdin=subprocess.DEVNULL, check=False)
+    assert result.returncode == 0, result.stdout + result.stderr
+    since = time.monotonic()
+    time.sleep(3.0)
+    assert {s.gauge_setpoint_pa for s in rig.probe.states_since(since)} == {150_000.0}
+    assert 'commander' not in lines_after(rig.driver, mark)
+
+
 @pytest.mark.serial
 def test_a_burst_of_300_result_and_cancel_requests_is_answered_whole(rig, tmp_path):
     """300 requests at once to MoveToLength's result and cancel services (for goals it does

@@ -624,6 +624,9 @@ def same_node(launched: dict, started: dict, read_files: bool) -> None:
       'live': 'true', 'live_port': '8766'}),
     (('--no-control', '--live', '--live-host', '0.0.0.0', '--namespace', '/right'),
      {'control': 'false', 'live': 'true', 'live_host': '0.0.0.0', 'namespace': 'right'}),
+    (('--no-driver', '--simulated', '--record', '/tmp/b'),         # the workstation's half
+     {'driver': 'false', 'use_fake_arduino': 'true', 'record': 'true', 'bag_dir': '/tmp/b'}),
+    (('--no-model', '--no-control'), {'model': 'false', 'control': 'false'}),   # the rig's
     (('--refit-params', '/tmp/refit.yaml', '--driver-params', '/tmp/rig.yaml',
       '--model-params', '/tmp/model.yaml', '--control-params', '/tmp/control.yaml',
       '--record', '/tmp/b', '--recorder-params', '/tmp/record.yaml'),

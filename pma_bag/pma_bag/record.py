@@ -85,6 +85,7 @@ KNOWN_TOPICS = {
     names.PRESSURE_SETPOINT: ('std_msgs/msg/Float64', False),
     names.LENGTH_SETPOINT: ('pma_interfaces/msg/LengthSetpoint', False),
     names.SWEEP_RECORD: ('pma_interfaces/msg/SweepRecord', True),
+    names.COMMANDER_LEASE: ('pma_interfaces/msg/CommanderLease', False),
     names.DIAGNOSTICS: (DIAGNOSTICS_TYPE, False),
 }
 # Transient local too, but records of what happened (a sweep's START, LEVELs, END), not a

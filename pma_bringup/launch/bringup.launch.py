@@ -115,6 +115,13 @@ def generate_launch_description():
             'fake_arduino_seed', default_value='0',
             description='seed of the simulated sensor noise (use_fake_arduino only)'),
         DeclareLaunchArgument(
+            'driver', default_value='true', choices=['true', 'false'],
+            description='false: no driver_node (nor fake_arduino) here: the rig computer runs '
+                        'it (docs/lab-network.md)'),
+        DeclareLaunchArgument(
+            'model', default_value='true', choices=['true', 'false'],
+            description='false: no model_node here (another computer runs it)'),
+        DeclareLaunchArgument(
             'control', default_value='true', choices=['true', 'false'],
             description='true: also run the length controller (idle until given a target)'),
         DeclareLaunchArgument(

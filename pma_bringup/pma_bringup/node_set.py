@@ -88,6 +88,9 @@ class Options:
     port: str = ''                      # '' = default_port(namespace, simulated)
     simulated: bool = False             # launch: use_fake_arduino
     fake_arduino_seed: str = '0'
+    # false: that node runs on another computer (the rig's driver, docs/lab-network.md)
+    driver: bool = True
+    model: bool = True
     control: bool = True
     record: bool = False
     bag_dir: str = ''                   # '' = default_bag_dir(namespace)
@@ -184,29 +187,32 @@ def yaml_value(value) -> str:
 
 
 def node_set(options: Options, share: Callable[[str], str] = package_share) -> list[NodeSpec]:
-    """The processes of one muscle, in start order: [fake_arduino], driver_node, model_node,
-    [length_controller], [recorder], [foxglove_live]. `share(package)` finds the default
-    parameters files (launch passes what its arguments resolved to)."""
+    """The processes of one muscle, in start order: [fake_arduino], [driver_node],
+    [model_node], [length_controller], [recorder], [foxglove_live]. `share(package)` finds
+    the default parameters files (launch passes what its arguments resolved to)."""
     namespace = options.namespace
     port = options.resolved_port()
     specs = []
-    if options.simulated:
+    if options.driver and options.simulated:
         # A plain executable, not a ROS node: no --ros-args.
         specs.append(NodeSpec(
             name='fake_arduino', package='pma_sim', executable='fake_arduino', ros=False,
             arguments=('--link', port, '--seed', str(options.fake_arduino_seed)),
             env={'PYTHONUNBUFFERED': '1'}))
-    # The port and autostart given after the file win over the file's.
-    specs.append(NodeSpec(
-        name='driver_node', package='pma_driver', executable='driver_node',
-        namespace=namespace, lifecycle=True,
-        params_files=(options.params_file('driver_params_file', share),),
-        parameters={'port': port, 'autostart': options.autostart}))
-    specs.append(NodeSpec(
-        name='model_node', package='pma_model', executable='model_node', namespace=namespace,
-        params_files=(options.params_file('model_params_file', share),),
-        parameters={'params_file': options.refit_params_file,
-                    'use_sim_time': options.use_sim_time}))
+    if options.driver:
+        # The port and autostart given after the file win over the file's.
+        specs.append(NodeSpec(
+            name='driver_node', package='pma_driver', executable='driver_node',
+            namespace=namespace, lifecycle=True,
+            params_files=(options.params_file('driver_params_file', share),),
+            parameters={'port': port, 'autostart': options.autostart}))
+    if options.model:
+        specs.append(NodeSpec(
+            name='model_node', package='pma_model', executable='model_node',
+            namespace=namespace,
+            params_files=(options.params_file('model_params_file', share),),
+            parameters={'params_file': options.refit_params_file,
+                        'use_sim_time': options.use_sim_time}))
     if options.control:
         specs.append(NodeSpec(
             name='length_controller', package='pma_control', executable='length_controller',

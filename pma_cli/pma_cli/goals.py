@@ -45,7 +45,8 @@ from pma_cli.session import (
     Session,
 )
 from pma_common import experiment, names
-from pma_common.action import ServerWatch
+from pma_common.action import SILENT_S, ServerWatch
+from pma_common.lease import LeaseHolder, commander_name
 from pma_common.sweep import (
     STREAMED_PROFILES,
     SweepError,
@@ -107,7 +108,8 @@ class Progress:
 
 def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, timeout_s: float,
              what: str, hint: str, lost: str, before: Callable[[], None] | None = None,
-             result_within_s: float | None = None, late: str = '', server: str = ''):
+             result_within_s: float | None = None, late: str = '', server: str = '',
+             silent_s: float = SILENT_S):
     """(status, result, cancelled) of one goal; a stop signal cancels it and its result is
     still awaited, as long as the server is there (module docstring).
 
@@ -115,10 +117,10 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
     server's node, said (with how to start it) while it is waited for. `lost` says what a
     server gone during the goal leaves behind; `result_within_s` (from the acceptance), if
     given, is how long the result may take (`late` says why), after which the goal is
-    cancelled and given up on.
+    cancelled and given up on. A server silent for `silent_s` is taken for hung.
     """
     client = ActionClient(session.node, action_type, name)
-    watch = ServerWatch(client)
+    watch = ServerWatch(client, silent_s=silent_s)
 
     def feedback(message) -> None:
         watch.alive()
@@ -368,17 +370,26 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
                       f'{feedback.sample_count} samples',
                       feedback.step_index if unit == 'step' else round(10 * feedback.progress))
 
+    # While the goal runs, a commander lease: if this command's host or its network to the
+    # rig is lost, the driver aborts the sweep and vents (docs/lab-network.md).
+    lease = LeaseHolder(session.node, commander_name(session.node, 'pma sweep'))
+
+    def before() -> None:
+        release_holding_controller(session, control, timeout_s)
+        lease.hold()
+
     print(describe(goal), flush=True)
     started = time.monotonic()
     try:
         status, result, cancelled = run_goal(
             session, Sweep, names.SWEEP, goal, on_feedback=on_feedback, timeout_s=timeout_s,
             what='driver', hint=session.where_hint(names.STATE, 'driver_node'),
-            lost=SWEEP_LOST, before=lambda: release_holding_controller(session, control,
-                                                                        timeout_s),
-            server='driver_node')
+            lost=SWEEP_LOST, before=before, server='driver_node', silent_s=LEASED_SILENT_S)
     finally:
         progress.end()
+        if lease.holding:
+            lease.release()
+            lease.wait_for_driver(LEASE_RELEASE_WAIT_S)
     word = STATUS_WORDS.get(status, f'status {status}')
     _say_result(f'sweep {word} after {q.seconds(time.monotonic() - started)}: '
                 f'{result.message} ({result.sample_count} samples)', result.success or cancelled)
@@ -392,6 +403,13 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
         return INTERRUPTED
     return OK if result.success else FAILED
 
+
+# How long `pma sweep` waits, at its end, for the driver to have the lease's release.
+LEASE_RELEASE_WAIT_S = 0.5
+# A silent driver under a leased sweep is most likely a network outage, after which the driver
+# has aborted the sweep by itself: its result (with the reason) is waited for this long, not
+# SILENT_S. A driver that left the graph is noticed as soon as ever (GONE_GRACE_S).
+LEASED_SILENT_S = 15.0
 
 MOVE_GOAL_FIELDS = ('length_m', 'tolerance_m', 'settle_s', 'timeout_s')
 

@@ -127,6 +127,18 @@ def driver_line(status: NodeStatus | None) -> str:
     return ' | '.join(parts)
 
 
+def commander_line(status: NodeStatus | None) -> str | None:
+    """Who holds a commander lease on the driver, and the last one it lost (None: neither)."""
+    if status is None:
+        return None
+    holders = status.values.get('commanders holding a lease', '-')
+    lost = status.values.get('last commander lost', '-')
+    if holders == '-' and lost == '-':
+        return None
+    return f'commander {holders if holders != "-" else "none holds a lease"}' + (
+        f' | last lost: {lost}' if lost != '-' else '')
+
+
 def state_lines(state: PmaState | None) -> list[str]:
     if state is None:
         return ['pressure  - (no pma/state received)']
@@ -218,6 +230,9 @@ def status(session: Session, wait_s: float, listen_s: float) -> int:
     driver = diagnostics.get('driver_node')
     print(f'namespace {session.namespace}   nodes: {", ".join(nodes) or "none"}')
     print(f'driver    {driver.level + " " if driver else ""}{driver_line(driver)}')
+    line = commander_line(driver)
+    if line:
+        print(line)
     for line in state_lines(state.message):
         print(line)
     for line in (model_line(diagnostics.get('model_node'), prediction.message, params.message),

@@ -43,7 +43,8 @@ def options_from_args(args) -> Options:
     """`pma up`'s flags as node_set's Options (the same as bringup.launch.py's arguments)."""
     return Options(
         namespace=args.namespace.strip('/'), port=args.port, simulated=args.simulated,
-        fake_arduino_seed=args.seed, control=not args.no_control,
+        fake_arduino_seed=args.seed, driver=not args.no_driver, model=not args.no_model,
+        control=not args.no_control,
         record=args.record is not None,
         bag_dir='' if not args.record else _absolute(Path(args.record)),
         live=args.live, live_host=args.live_host, live_port=args.live_port,
@@ -204,7 +205,9 @@ def wait_until_up(rig: Rig, options: Options, timeout_s: float, stop) -> str:
                     if ns == namespace} & wanted
 
         def all_up() -> bool:
-            return (state.message is not None and prediction.message is not None
+            # Without --no-driver or --no-model here, another computer's (docs/lab-network.md).
+            return (state.message is not None
+                    and (prediction.message is not None or not options.model)
                     and in_graph() == wanted)
 
         session.spin_until(lambda: bool(rig.ended()) or all_up(), timeout_s)
@@ -218,20 +221,22 @@ def wait_until_up(rig: Rig, options: Options, timeout_s: float, stop) -> str:
         missing = []
         if state.message is None:
             why = ''
-            if not options.simulated and not Path(options.resolved_port()).exists():
+            if not options.driver:
+                why = ' (--no-driver: is it running on the rig computer, in this ROS domain?)'
+            elif not options.simulated and not Path(options.resolved_port()).exists():
                 why = f' (there is no {options.resolved_port()}: is the rig plugged in? '
                 why += 'the driver retries it every second)'
             missing.append(f'driver_node: no pma/state within {timeout_s:g} s{why}')
-        elif prediction.message is None:
+        elif prediction.message is None and options.model:
             missing.append(f'model_node: no pma/prediction within {timeout_s:g} s')
         for name in sorted(wanted - in_graph()):
             missing.append(f'{name}: not in the graph (namespace {namespace})')
         logs = {line.split(':')[0] for line in missing}
         details = '\n'.join(f'  {line}' for line in missing)
-        for name in sorted(logs):
+        for name in sorted(logs & {child.name for child in rig.children}):
             child = next(c for c in rig.children if c.name == name)
             details += f'\n  {name}\'s log ({child.log_path}) ends:\n{tail(child.log_path)}'
-        if options.simulated and 'driver_node' in logs:
+        if options.simulated and options.driver and 'driver_node' in logs:
             fake = next(c for c in rig.children if c.name == 'fake_arduino')
             details += f'\n  fake_arduino\'s log ({fake.log_path}) ends:\n{tail(fake.log_path)}'
         raise CliError(f'the rig did not come up within {timeout_s:g} s:\n{details}')

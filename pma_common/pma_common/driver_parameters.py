@@ -17,7 +17,11 @@ from rclpy.validate_node_name import validate_node_name
 from rclpy.validate_topic_name import validate_topic_name
 
 from pma_common.calibration import LengthCalibration, PressureCalibration
+from pma_common.lease import MIN_COMMANDER_TIMEOUT_S
 from pma_common.protocol import Command, Hello
+
+# What driver_node does when a commander's lease runs out (commander_lost_action).
+COMMANDER_LOST_ACTIONS = ('vent', 'hold')
 
 
 def _floats(low: float, high: float, step: float = 0.0) -> list[FloatingPointRange]:
@@ -67,6 +71,16 @@ PARAMETERS: dict[str, tuple[Any, str, dict]] = {
                            {'floating_point_range': _floats(0.01, 5.0)}),
     'heartbeat_timeout_ms': (1000, 'Device vents after this long without a command (HBTO) [ms]',
                              {'integer_range': _ints(100, 10_000)}),
+    # A remote commander (length controller, `pma sweep`) renews its lease on
+    # pma/commander_lease every 0.1 s: 0.8 s is eight missed renewals, and with the check
+    # every tenth of it the muscle is vented within 0.9 s of the network dropping.
+    'commander_timeout_s': (0.8, 'A commander holding a lease on pma/commander_lease that '
+                            'renews none for this long is lost: the muscle goes to '
+                            'commander_lost_action [s]',
+                            {'floating_point_range': _floats(MIN_COMMANDER_TIMEOUT_S, 30.0)}),
+    'commander_lost_action': ('vent', "'vent' (default) or 'hold' (keep the pressure, for a "
+                              'load that must not drop) when a commander is lost; a running '
+                              'sweep aborts and vents either way', {}),
     'reconnect_period_s': (1.0, 'Retry period when the port is missing or lost [s]',
                            {'floating_point_range': _floats(0.1, 60.0)}),
     'handshake_timeout_s': (2.0, 'Wait this long for the firmware HELLO after opening [s]',
@@ -161,6 +175,9 @@ def check_parameters(values: dict, hello: Hello | None) -> str:
     if values['qos_reliability'] not in ('reliable', 'best_effort'):
         return ("qos_reliability must be 'reliable' or 'best_effort', got "
                 f"{values['qos_reliability']!r}")
+    if values['commander_lost_action'] not in COMMANDER_LOST_ACTIONS:
+        return (f'commander_lost_action must be one of {COMMANDER_LOST_ACTIONS}, got '
+                f"{values['commander_lost_action']!r}")
     if values['sample_rate_hz'] != round(values['sample_rate_hz']):
         return (f'sample_rate_hz must be a whole number of Hz (the device takes RATE in whole '
                 f'Hz), got {values["sample_rate_hz"]}')

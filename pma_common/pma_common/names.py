@@ -13,6 +13,7 @@ RANGE = 'pma/range'                          # sensor_msgs/msg/Range (the HC-SR0
 PRESSURE_SETPOINT = 'pma/pressure_setpoint'  # std_msgs/msg/Float64, gauge [Pa], in
 SWEEP = 'pma/sweep'                          # pma_interfaces/action/Sweep
 SWEEP_RECORD = 'pma/sweep_record'            # pma_interfaces/msg/SweepRecord, latched
+COMMANDER_LEASE = 'pma/commander_lease'      # pma_interfaces/msg/CommanderLease, in
 
 # The model (pma_model model_node)
 PREDICTION = 'pma/prediction'                # pma_interfaces/msg/PmaPrediction
@@ -28,4 +29,4 @@ DIAGNOSTICS = '/diagnostics'                 # diagnostic_msgs/msg/DiagnosticArr
 
 # What the recorder writes by default: every topic above (the actions' own topics aside).
 RECORDED = (STATE, PRESSURE, RANGE, PREDICTION, MODEL_PARAMS, CONTROL_STATE, PRESSURE_SETPOINT,
-            LENGTH_SETPOINT, SWEEP_RECORD, DIAGNOSTICS)
+            LENGTH_SETPOINT, SWEEP_RECORD, COMMANDER_LEASE, DIAGNOSTICS)

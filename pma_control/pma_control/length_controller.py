@@ -17,7 +17,10 @@ goal, or a stream that starts again, asks (docs/control.md has the table):
 - another command source (a pressure setpoint from another node, or a device setpoint that
   is not the controller's for OTHER_SOURCE_S, e.g. a sweep): the last command wins, and the
   two never fight over the valve;
-- a cancel (the pressure stays where it is; so it does when the node stops).
+- a cancel (the pressure stays where it is; so it does when the node stops cleanly).
+While it holds a target it holds a commander lease on the driver (pma_common.lease): if the
+controller vanishes (its host or the network to the driver is lost, or it is killed), the
+driver brings the muscle to its safe state within commander_timeout_s.
 A re-armed target after any of these would re-pressurise a muscle someone may be handling:
 so a stream that kept sending through it must go quiet for STREAM_REARM_QUIET_S first.
 A NaN pressure skips the sample; a NaN length alone is no fault (the estimate carries on
@@ -42,6 +45,7 @@ from std_msgs.msg import Float64
 
 from pma_common import names
 from pma_common.diagnostics import publish_status
+from pma_common.lease import MIN_COMMANDER_TIMEOUT_S, LeaseHolder, commander_name
 from pma_common.node import run_single_threaded
 from pma_common.parameters import declare_or_keep_default
 from pma_common.service import SERVICE_QOS
@@ -80,6 +84,8 @@ MIN_MEASURED_WINDOW_S = 0.5
 # starting: discovery takes about a second) waits this long for it. Nothing is commanded
 # without a sample, so the wait is safe; stale_timeout_s counts once samples have come.
 FIRST_SAMPLE_WAIT_S = 5.0
+# A clean stop waits at most this long for the driver to acknowledge the lease's release.
+LEASE_RELEASE_WAIT_S = 0.5
 
 # ControllerSettings field -> (description, low, high)
 SETTING_DESCRIPTIONS = {
@@ -166,6 +172,7 @@ class LengthControllerNode(Node):
         self._device_differs_since: float | None = None
 
         self._command_pub = self.create_publisher(Float64, names.PRESSURE_SETPOINT, 10)
+        self._lease = LeaseHolder(self, commander_name(self))
         self._state_pub = self.create_publisher(ControlState, names.CONTROL_STATE, 10)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 1)
         # One thread runs everything: every sample is one control step, published at once.
@@ -258,7 +265,13 @@ class LengthControllerNode(Node):
         output = self._controller.update(t_s, state.gauge_pressure_pa, state.length_m)
         self._last_state, self._last_output = state, output
         if self._controller.target_m is not None and not self._fault:
-            self._command(float(output.command_pa))
+            silent = self._lease.silent_s()
+            if silent >= MIN_COMMANDER_TIMEOUT_S:
+                self._let_go(f'this node renewed its commander lease for none of {silent:.1f} s '
+                             '(paused or starved): the driver may have taken the muscle back '
+                             'and vented it', fault=True)
+            else:
+                self._command(float(output.command_pa))
         self._state_pub.publish(self._control_state(state, output))
 
     # -- the muscle taken out of the controller's hands ---------------------------------
@@ -287,6 +300,7 @@ class LengthControllerNode(Node):
         self._device_differs_since = None
         self._let_go_reason, self._let_go_by_fault = reason, fault
         self._last_let_go = f'{reason} (at {self.get_clock().now().nanoseconds / 1e9:.3f} s)'
+        self._sync_lease()
         if fault:
             self._stats['holds ended by a fault'] += 1
             self.get_logger().warning(f'hold ended: {reason}; nothing is commanded until a '
@@ -298,6 +312,7 @@ class LengthControllerNode(Node):
         """A new target was taken (goal or stream): the last let-go is history."""
         self._let_go_reason, self._let_go_by_fault = '', False
         self._armed_at = time.monotonic()
+        self._sync_lease()
 
     # -- other command sources ---------------------------------------------------------
 
@@ -386,6 +401,22 @@ class LengthControllerNode(Node):
         self._check_stale()
         if self._goal is not None:
             self._follow_goal(self._goal)
+        self._sync_lease()
+
+    def _sync_lease(self) -> None:
+        """Hold the driver's commander lease exactly while steering a target."""
+        if self._controller.target_m is not None and not self._fault:
+            self._lease.hold()
+        else:
+            self._lease.release()
+
+    def destroy_node(self) -> None:
+        """A clean stop lets go of the lease (the pressure stays, as after a cancel), and
+        waits briefly for the driver to have it: an unheard release would vent the muscle."""
+        if self._lease.holding:
+            self._lease.release()
+            self._lease.wait_for_driver(LEASE_RELEASE_WAIT_S)
+        super().destroy_node()
 
     def _check_stale(self) -> None:
         if self._fault or self._controller.target_m is None:

@@ -1,4 +1,5 @@
-"""The one gate for commands that move air: setpoints, sweep steps, tare and vent.
+"""The one gate for commands that move air: setpoints, sweep steps, tare and vent; and what
+happens when a remote commander is lost (commander_lease).
 
 Plain Python, no ROS: the driver node and the SweepRunner share it, and its unit tests run
 it against the simulated device. One lock is held from "may this pressure be commanded?" to
@@ -12,12 +13,14 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable
 from typing import Protocol
 
 from pma_common.driver_parameters import device_ceiling_pa
 from pma_common.protocol import Ack, Command, Hello, Nak, Sample
 from pma_common.setpoint import setpoint_refusal
+from pma_driver.commander_lease import CommanderLeases
 from pma_driver.link import LinkError, LinkState, Reply
 
 _log = logging.getLogger('pma_driver.command_gate')
@@ -45,7 +48,9 @@ class DeviceControl:
     """Who may command what, right now; and the latest reading to judge it by."""
 
     def __init__(self, max_gauge_pressure_pa: float,
-                 on_event: Callable[[int, str], None] = _log.log):
+                 on_event: Callable[[int, str], None] = _log.log, *,
+                 commander_timeout_s: float = 0.8, commander_lost_action: str = 'vent',
+                 clock: Callable[[], float] = time.monotonic):
         self.lock = threading.RLock()
         self.link: Link | None = None            # set at configure, None after cleanup
         self.active = False                      # the lifecycle node is active
@@ -71,6 +76,12 @@ class DeviceControl:
         self._next_set: int | None = None
         self.setpoints_sent = 0                  # SETs sent for pma/pressure_setpoint
         self.setpoints_coalesced = 0             # ... replaced by a newer one while waiting
+        # Remote commanders' leases (renewed from a ROS callback, checked on a timer).
+        self.clock = clock
+        self.leases = CommanderLeases(commander_timeout_s)
+        self.commander_lost_action = commander_lost_action
+        self._lease_lock = threading.Lock()
+        self.last_commander_lost = ''            # who was lost last, and why we think so
 
     # -- state ---------------------------------------------------------------------------
 
@@ -130,6 +141,10 @@ class DeviceControl:
             return kind, reason
         if self._sweep_running:
             return 'sweep', 'a sweep is running'
+        with self._lease_lock:
+            reason = self.leases.setpoint_refusal(self.clock())
+        if reason:
+            return 'lease', reason
         return '', ''
 
     def command_setpoint(self, gauge_pa: float) -> tuple[str, str]:
@@ -241,6 +256,38 @@ class DeviceControl:
             self.on_event(logging.INFO, f'vented ({why})')
             return True
         return False
+
+    # -- commander leases ----------------------------------------------------------------
+
+    def note_lease(self, lease_id: str, commander: str, holding: bool) -> bool:
+        """A pma/commander_lease message; False when it renews a lease already lost."""
+        with self._lease_lock:
+            return self.leases.renew(lease_id, commander, holding, self.clock())
+
+    def check_leases(self) -> list[str]:
+        """Find the commanders lost since the last check and act (commander_lost_action):
+        vent, or hold the pressure; a running sweep aborts either way (it sees lost_count
+        rise). What happened, one line per commander."""
+        with self._lease_lock:
+            lost = self.leases.expired(self.clock())
+        events = []
+        for lease in lost:
+            what = (f'commander {lease.commander} lost: no renewal of its lease for '
+                    f'{self.leases.timeout_s:g} s (network down, or its host stopped)')
+            if self.commander_lost_action == 'hold':
+                done = 'holding the pressure (commander_lost_action hold)'
+            else:
+                with self.lock:
+                    done = ('vented' if self.vent(f'commander {lease.commander} lost')
+                            else 'could not vent: ' + self.link_text())
+            events.append(f'{what}; {done}')
+            self.last_commander_lost = what
+        return events
+
+    @property
+    def commanders_lost(self) -> int:
+        """How many leases have run out since start: a sweep notes it, and aborts on a rise."""
+        return self.leases.lost_count
 
     def deactivate(self, why: str = 'deactivated') -> None:
         """Stop taking commands and vent, with no SET in between."""

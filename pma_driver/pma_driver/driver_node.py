@@ -47,12 +47,14 @@ from pma_driver.messages import FAULT_BITS, link_level, link_values, sample_mess
 from pma_driver.recorder_client import RecorderClient
 from pma_driver.sweep_runner import Outcome, SweepGoal, SweepRunner, SweepSettings
 from pma_interfaces.action import Sweep
-from pma_interfaces.msg import PmaState, SweepRecord
+from pma_interfaces.msg import CommanderLease, PmaState, SweepRecord
 
 # pma/sweep_record: a sweep's START, LEVELs and END; a reader that joins late (a recorder
 # subscribed after the sweep began) still gets them.
 SWEEP_RECORD_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# /diagnostics warns this long after a commander was lost (then 'last commander lost' says it).
+LOST_WARN_S = 60.0
 
 
 class PmaDriver(Node):
@@ -73,7 +75,9 @@ class PmaDriver(Node):
             raise InvalidParameterValueException('parameters', '', reason)
 
         self._link: SerialLink | None = None
-        self._control = DeviceControl(values['max_gauge_pressure_pa'], self._log)
+        self._control = DeviceControl(values['max_gauge_pressure_pa'], self._log,
+                                      commander_timeout_s=values['commander_timeout_s'],
+                                      commander_lost_action=values['commander_lost_action'])
         self._clock_sync = ClockSync()
         self._pressure_cal, self._length_cal = calibrations(values)
         self._frame_id = values['frame_id']
@@ -81,6 +85,7 @@ class PmaDriver(Node):
         self._published = 0
         self._unpublished = 0           # decoded while configured but not active
         self._last_fault = ('', '')     # (status text, ROS time) of the last fault bits
+        self._last_commander_lost = ('', '', -math.inf)   # (what happened, ROS time, monotonic)
         self._rate_count = (0, time.monotonic())
         self._rate_hz = 0.0
         self._configure_error = ''
@@ -102,6 +107,11 @@ class PmaDriver(Node):
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 1)
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_subscription(Float64, names.PRESSURE_SETPOINT, self._on_setpoint, 10)
+        # Remote commanders' leases (docs/driver.md "Commander lease"): checked 10 times a
+        # timeout, so a loss is acted on within 1.1 timeouts.
+        self.create_subscription(CommanderLease, names.COMMANDER_LEASE, self._on_lease, 10)
+        self._lease_timer = self.create_timer(values['commander_timeout_s'] / 10,
+                                              self._check_leases)
         # Every goal is accepted: one that cannot run is aborted at once with the reason in
         # its result, which a client at a terminal sees (a rejection carries no reason).
         # Its goal, result and cancel services queue a burst as every service does.
@@ -140,6 +150,12 @@ class PmaDriver(Node):
         self._ambient_pa = values['ambient_pressure_pa']
         self._control.max_gauge_pressure_pa = values['max_gauge_pressure_pa']
         self._recorder.timeout_s = values['sweep.recorder_timeout_s']
+        self._control.leases.timeout_s = values['commander_timeout_s']
+        self._control.commander_lost_action = values['commander_lost_action']
+        if 'commander_timeout_s' in names:
+            self.destroy_timer(self._lease_timer)
+            self._lease_timer = self.create_timer(values['commander_timeout_s'] / 10,
+                                                  self._check_leases)
         link = self._link
         if link is None:
             return
@@ -312,6 +328,19 @@ class PmaDriver(Node):
             self._refusal_logged[kind] = now
             self.get_logger().warning(f'refused setpoint: {reason}')
 
+    def _on_lease(self, msg: CommanderLease) -> None:
+        if not self._control.note_lease(msg.lease_id, msg.commander, msg.holding) and \
+                msg.holding:
+            self.get_logger().warning(
+                f'{msg.commander} renews lease {msg.lease_id[:8]}, which ran out: its setpoints '
+                'are refused until it lets go', throttle_duration_sec=2.0)
+
+    def _check_leases(self) -> None:
+        for event in self._control.check_leases():
+            self._last_commander_lost = (event, f'{self.get_clock().now().nanoseconds / 1e9:.3f}',
+                                         time.monotonic())
+            self.get_logger().error(event)
+
     def _on_tare(self, _request, response):
         """Zero the pressure at rest, on the device and here, from the same ADC count.
 
@@ -399,6 +428,9 @@ class PmaDriver(Node):
             stats = link.stats()
             pubs = self._pubs
             status.level, status.message = link_level(stats, self._control.latest)
+            lost, _, lost_at = self._last_commander_lost
+            if status.level == DiagnosticStatus.OK and time.monotonic() - lost_at < LOST_WARN_S:
+                status.level, status.message = DiagnosticStatus.WARN, lost
             values.update(link_values(stats, link.baud))
             values.update({
                 'sample rate [Hz]': f'{self._rate_hz:.1f}',
@@ -413,6 +445,10 @@ class PmaDriver(Node):
                 'setpoints coalesced': str(self._control.setpoints_coalesced),
                 'last fault': (f'{self._last_fault[0]} at {self._last_fault[1]} s'
                                if self._last_fault[0] else '-'),
+                'commanders holding a lease': ', '.join(self._control.leases.holders()) or '-',
+                'last commander lost': (f'{self._last_commander_lost[0]} at '
+                                        f'{self._last_commander_lost[1]} s'
+                                        if self._last_commander_lost[0] else '-'),
                 'clock offset [s]': f'{self._clock_sync.offset_s:.6f}',
                 'clock drift [ppm]': f'{self._clock_sync.drift_ppm:.0f}',
             })

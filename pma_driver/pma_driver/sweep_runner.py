@@ -252,6 +252,7 @@ class _Run:
     last_reading: object = None     # the DeviceControl reading seen last (by identity)
     reach_timed_out: bool = False   # the step just reached was not, within step_timeout_s
     previous_level: tuple[float, Branch] | None = None   # the last level's target and branch
+    commanders_lost: int = 0        # DeviceControl.commanders_lost when the run began
 
 
 class SweepRunner:
@@ -284,7 +285,8 @@ class SweepRunner:
             message = 'another sweep is running; this one did not start (nothing commanded)'
             self.on_event(logging.WARNING, f'sweep {Outcome.ABORTED.value}: {message}')
             return SweepReport(Outcome.ABORTED, message)
-        run = _Run(goal, settings, cancel_requested, feedback, calibration or {}, record)
+        run = _Run(goal, settings, cancel_requested, feedback, calibration or {}, record,
+                   commanders_lost=self.control.commanders_lost)
         try:
             return self._run(run)
         except Exception as error:   # a bug (or a recorder's) must still vent and say so
@@ -464,6 +466,8 @@ class SweepRunner:
         if reason:
             return Outcome.ABORTED, (f'{reason} during the sweep (the device also vents on '
                                      'heartbeat loss)')
+        if self.control.commanders_lost > run.commanders_lost:
+            return Outcome.ABORTED, self.control.last_commander_lost
         return None
 
     def _command(self, run: _Run, setpoint: float, what: str,

@@ -165,3 +165,60 @@ def test_a_waiting_setpoint_refused_once_the_lock_is_free_leaves_nothing_in_flig
     assert link.commands('SET')[-1] == (100_000,)
     control.command_setpoint(110_000.0)               # sent at once: nothing stuck in flight
     assert link.commands('SET')[-1] == (110_000,)
+
+
+@pytest.fixture
+def leased(control):
+    """The control fixture with a simulated clock for leases, and a commander holding 200 kPa."""
+    clock = SimClock(control.link)
+    control.clock = clock
+    control.leases.timeout_s = 1.0
+    control.note_lease('lease-1', 'length_controller', True)
+    assert control.command_setpoint(200_000.0) == ('', '')
+    clock.sleep(0.5)
+    return control, clock
+
+
+def test_a_commander_lost_vents_the_muscle(leased):
+    control, clock = leased
+    control.note_lease('lease-1', 'length_controller', True)
+    clock.sleep(0.9)
+    assert control.check_leases() == []                     # renewed 0.9 s ago
+    clock.sleep(0.2)
+    events = control.check_leases()
+    assert events == ['commander length_controller lost: no renewal of its lease for 1 s '
+                      '(network down, or its host stopped); vented']
+    assert control.link.commands('VENT') == [()] and control.commanders_lost == 1
+    clock.sleep(2.0)
+    assert control.link.device.setpoint_pa == 0 and control.link.device.rig.pressure_pa < 20_000
+
+
+def test_hold_keeps_the_pressure_when_the_commander_is_lost(leased):
+    control, clock = leased
+    control.commander_lost_action = 'hold'
+    clock.sleep(1.0)
+    assert control.check_leases()[0].endswith('holding the pressure (commander_lost_action hold)')
+    assert control.link.commands('VENT') == []
+    clock.sleep(1.0)
+    assert control.link.device.setpoint_pa == 200_000
+
+
+def test_a_lost_commander_still_renewing_cannot_re_pressurise(leased):
+    control, clock = leased
+    clock.sleep(1.0)
+    control.check_leases()
+    assert not control.note_lease('lease-1', 'length_controller', True)   # the link is back
+    kind, reason = control.command_setpoint(200_000.0)
+    assert kind == 'lease' and 'length_controller lost the muscle' in reason
+    assert control.link.commands('SET') == [(200_000,)]                   # the first only
+    control.note_lease('lease-1', 'length_controller', False)            # it let go
+    assert control.command_setpoint(100_000.0) == ('', '')
+
+
+def test_an_idle_rig_set_once_keeps_its_pressure(control):
+    """`pma set` holds no lease: a rig set once and left alone is never vented for it."""
+    clock = SimClock(control.link)
+    control.clock = clock
+    control.command_setpoint(150_000.0)
+    clock.sleep(5.0)
+    assert control.check_leases() == [] and control.link.commands('VENT') == []

@@ -710,3 +710,27 @@ def test_a_recorded_forc_set_keeps_its_turning_points(rig):
     assert json.loads(data['sweep.turning_points_pa']) == [0, 200_000, 100_000, 200_000, 0,
                                                            200_000, 0]
     assert 'sweep.reversal_pressures_pa' not in data
+
+
+def test_a_lost_commander_aborts_the_sweep_and_vents(rig):
+    """`pma sweep` on another host holds a lease; the network drops at 2.5 s (no renewal
+    since), so the driver finds it lost at 3.5 s and the sweep ends there, vented."""
+    rig.control.clock = rig.clock
+    rig.control.leases.timeout_s = 1.0
+    rig.control.note_lease('sweep-lease', 'pma sweep (pid 7 on workstation)', True)
+
+    def tick(t: float) -> None:
+        if t < 2.5:
+            rig.control.note_lease('sweep-lease', 'pma sweep (pid 7 on workstation)', True)
+        rig.control.check_leases()
+
+    rig.clock.on_tick = tick
+    report = rig.run(max_gauge_pressure_pa=400_000.0, hold_s=5.0)
+    assert report.outcome is Outcome.ABORTED
+    assert report.message.startswith('commander pma sweep (pid 7 on workstation) lost: no '
+                                     'renewal of its lease for 1 s')
+    assert rig.clock() == pytest.approx(3.5, abs=0.1)
+    first_vent = next(i for i, (_, name, _) in enumerate(rig.link.sent) if name == 'VENT')
+    assert all(name != 'SET' for _, name, _ in rig.link.sent[first_vent:])
+    rig.settle()
+    assert rig.device.setpoint_pa == 0

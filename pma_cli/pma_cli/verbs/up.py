@@ -23,6 +23,9 @@ def add_arguments(p) -> None:
     p.add_argument('--simulated', action='store_true',
                    help='also start fake_arduino, a simulated rig on a pty at --port')
     p.add_argument('--seed', default='0', help='--simulated: seed of the sensor noise')
+    p.add_argument('--no-driver', action='store_true', help='no driver_node (nor fake_arduino): '
+                   'the rig computer runs it (docs/lab-network.md)')
+    p.add_argument('--no-model', action='store_true', help='no model_node')
     p.add_argument('--no-control', action='store_true', help='no length controller')
     p.add_argument('--record', nargs='?', const='', default=None, metavar='DIR',
                    help='also run the recorder into this bag (no DIR: '
