@@ -1,7 +1,7 @@
 """model_node service round trip and burst, stream latency, drops at 1 kHz, CPU, and soaks.
 
     . tools/env.sh && python bench/bench_model_node.py [--seconds 10] [--calls 500]
-        [--burst-rounds 5] [--soak-s 120] [--soak-rates-hz 1000 100]
+        [--burst-rounds 5] [--soak-s 300] [--soak-rates-hz 1000 100]
 
 * service: sequential calls from this process to model_node's `pressure_for_length`
   (length_m=0.27, branch=1), interleaved with calls to a trivial std_srvs/Trigger server
@@ -26,7 +26,9 @@
   (driver's 'lost samples'), states published by driver_node that model_node never received
   (its 'samples', and by PmaState.seq its 'states_lost'), predictions model_node published
   that the recorder never received (bag), states the recorder never received (by seq, bag),
-  and the states in the bag without their prediction in the bag; CPU of each process.
+  and the states in the bag without their prediction in the bag (target under 0.1 %); CPU of
+  each process.
+It exits 1 when any target is missed (rows marked MISSED).
 """
 
 from __future__ import annotations
@@ -610,6 +612,10 @@ def run(args: argparse.Namespace, work: Path) -> list[tuple[str, str, str]]:
     return rows
 
 
+# Issue 47's target for the soaks: under this share of the bag's states without a prediction.
+MAX_WITHOUT_PREDICTION_PERCENT = 0.1
+
+
 def soak_rows(soak: Soak) -> list[tuple[str, str, str]]:
     # By seq, inside the stream each subscriber saw, less what the device itself lost; the
     # rest of `published - samples` went out before the subscription had matched the new
@@ -633,7 +639,8 @@ def soak_rows(soak: Soak) -> list[tuple[str, str, str]]:
         ('  states the recorder never received (by seq)', f'{recorder_lost}',
          f'({soak.bag_states} in the bag)'),
         ('  states in the bag without their prediction', f'{soak.bag_states_without_prediction}',
-         f'({percent:.3f} %)'),
+         check(percent < MAX_WITHOUT_PREDICTION_PERCENT,
+               f'< {MAX_WITHOUT_PREDICTION_PERCENT:g} %') + f' ({percent:.3f} %)'),
         ('  CPU [% core]', f'{sum(soak.cpu_percent.values()):.0f}',
          f'({cpu}; load average {soak.load:.1f})'),
     ]
@@ -647,7 +654,7 @@ def main() -> None:
     parser.add_argument('--burst-rounds', type=int, default=5,
                         help=f'bursts of {BURST_CLIENTS} x {BURST_PER_CLIENT} requests per '
                              'server (0 skips)')
-    parser.add_argument('--soak-s', type=float, default=120.0,
+    parser.add_argument('--soak-s', type=float, default=300.0,
                         help='length of each soak through driver, model and recorder [s] '
                              '(0 skips them)')
     parser.add_argument('--soak-rates-hz', type=float, nargs='+', default=[1000.0, 100.0],
@@ -669,6 +676,10 @@ def main() -> None:
     rows = run(args, work)
     shutil.rmtree(work, ignore_errors=True)        # kept (logs) when the run failed
     print_table(rows)
+    missed = [name.strip() for name, _, target in rows if target.startswith('MISSED')]
+    if missed:
+        print(f'\nmissed: {"; ".join(missed)}')
+        sys.exit(1)
 
 
 if __name__ == '__main__':
