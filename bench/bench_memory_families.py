@@ -4,8 +4,9 @@ Run: nice python bench/bench_memory_families.py [--seeds 1 2] [--forms sigmoid h
 [--rate-hz 20 [50]] [--against-switch --seeds 1 2 3 4 5 6 7 8 [--jobs 2]
 [--noise-free-pressure] [--kinds sines damped]] [--set tuning|validation|both]
 (OMP_NUM_THREADS=1; about 11 minutes a branch form on one core, five muscles). Prints the
-table of docs/model.md §3 (family x rule x adaptation, RMSE and max error in cm and % of
-stroke) and checks, for every family (the simulator's and the Bouc-Wen muscle of
+tables of docs/model-history.md, "The family bench in detail" (family x rule x adaptation,
+RMSE and max error in cm and % of stroke) and checks, for every family (the simulator's and
+the Bouc-Wen muscle of
 pma_sim.evaluation), path and seed:
   - the default memory ('mix': mix.RuleMix, identify and play mixed), from the
     third reversal on: RMSE <= 0.9x and max <= 0.7x the paper's switch;
@@ -34,7 +35,7 @@ chosen on.
 (each set apart with `both`): the tuning set, on which the defaults may be chosen, or the
 validation set, run only to report; with --against-switch it adds issue 47's targets for the
 set (at least 90 % of runs meet both switch criteria, mean minor-loop RMSE at most 1.5 % of
-stroke). The acceptance table of both sets at both rates:
+stroke). The acceptance table of both sets at both rates (docs/model.md §3.1):
   nice python bench/bench_memory_families.py --against-switch --forms sigmoid \
       --set both --rate-hz 20 50
 The figures are model errors (not speeds), so no in-run baseline is needed; the reference

@@ -172,9 +172,10 @@ def test_on_the_duhem_muscle_even_the_exact_muscle_with_return_point_memory_miss
 def test_the_local_offset_helps_where_loops_do_not_close_and_costs_little_where_they_do(
         family, at_most):
     # What the rules leave near the current pressure (pma_model.local_offset), RMSE with it
-    # over without, seed 1 (nested, random; docs/model.md §3.1): 0.77x, 0.85x on the Duhem
-    # muscle and 0.78x, 0.78x on Bouc-Wen, the two without return-point memory; 0.97x, 1.02x
-    # on narrow, 0.95x, 1.00x on creep; wide pays most, 1.00x, 1.12x (seeds 1-8: 1.03x).
+    # over without, seed 1 (nested, random; docs/model-history.md, "The mix's local offset"):
+    # 0.77x, 0.85x on the Duhem muscle and 0.78x, 0.78x on Bouc-Wen, the two without
+    # return-point memory; 0.97x, 1.02x on narrow, 0.95x, 1.00x on creep; wide pays most,
+    # 1.00x, 1.12x (seeds 1-8: 1.03x).
     for kind in PATH_KINDS:
         scenario = Scenario(family, kind)
         ratio = score(scenario, MIXED).rmse_m / score(scenario, MIXED_WITHOUT_LOCAL_OFFSET).rmse_m
@@ -212,8 +213,9 @@ def test_on_an_asymmetric_muscle_with_return_point_memory_the_default_meets_the_
     # The generalized Prandtl-Ishlinskii muscle (pma_sim.generalized_play): rising and falling
     # curves follow different envelopes, as on the Duhem muscle, but its loops close (the
     # oracle test above). Every criterion on seeds 1-2 and the switch criteria on all 48
-    # runs of seeds 1-8 at 50 Hz with three asymmetry strengths (docs/model.md §3.1): the
-    # Duhem muscle's misses come from its open loops, not from its asymmetry.
+    # runs of seeds 1-8 at 50 Hz with three asymmetry strengths (docs/model-history.md,
+    # "Generalized Prandtl-Ishlinskii"): the Duhem muscle's misses come from its open loops,
+    # not from its asymmetry.
     errors = table1_fit_errors_m(GENERALIZED_PLAY)
     assert np.sqrt(np.mean(errors ** 2)) < 0.0012   # Table 1 within the HC-SR04's accuracy
     ours, paper = scores(GENERALIZED_PLAY, MIXED), scores(GENERALIZED_PLAY, PAPER)
@@ -248,7 +250,7 @@ def test_on_a_tuning_set_muscle_that_creeps_slower_the_default_meets_the_criteri
     # a quarter of each change by 0.6 s on the narrow muscle; this one lags more of it,
     # longer, on the wide muscle, between the model's two creep lags (0.5 and 2 s).
     # Seed 1, nested / random: RMSE 0.09x / 0.08x the switch, max 0.15x / 0.15x, 0.76x /
-    # 0.78x the best fixed rule (docs/model.md §3.1, "Muscles that creep more slowly").
+    # 0.78x the best fixed rule (docs/model-history.md, "Muscles that creep more slowly").
     ours, paper = scores(SLOW_CREEP, MIXED), scores(SLOW_CREEP, PAPER)
     for kind in PATH_KINDS:
         best = min(scores(SLOW_CREEP, config)[kind].rmse_m
@@ -290,7 +292,8 @@ def test_on_a_tuning_set_bouc_wen_muscle_the_default_meets_the_switch_criteria()
 def test_at_the_drivers_default_20_hz_the_default_meets_the_switch_criteria(family):
     # driver_node asks for 20 Hz unless told otherwise (the firmware allows 50): 2.5x fewer
     # lengths to learn from. With a 4 mm prior on the branch correction (2 mm now) the
-    # Duhem muscle missed the max here, nested and random 0.79x and 0.77x (docs/model.md §3.1).
+    # Duhem muscle missed the max here, nested and random 0.79x and 0.77x
+    # (docs/model-history.md, "The branch correction's prior, 4 → 2 mm").
     for kind in PATH_KINDS:
         scenario = Scenario(family, kind, rate_hz=20.0)
         ours, paper = score(scenario, MIXED), score(scenario, PAPER)
@@ -303,7 +306,8 @@ def test_on_smooth_paths_the_default_meets_the_switch_criteria(family):
     # Paths the defaults were not chosen on: no holds, slowing into every reversal, where the
     # pressure reading's noise makes small false turns (pma_sim.paths.smooth_path).
     # Seeds 1-8, sigmoid: 80 of 80 runs meet both at 50 Hz, 79 of 80 at 20 Hz
-    # (docs/model.md §3.1). Seed 1's largest max: 0.51x the switch's (narrow, sines).
+    # (docs/model-history.md, "On smooth paths"). Seed 1's largest max: 0.51x the switch's
+    # (narrow, sines).
     for kind in SMOOTH_KINDS:
         scenario = Scenario(family, kind)
         ours, paper = score(scenario, MIXED), score(scenario, PAPER)

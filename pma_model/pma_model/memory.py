@@ -1,6 +1,7 @@
 """Hysteresis memory: how the two major branches combine into a length for any pressure path.
 
-Four rules (docs/model.md has the full story and their errors on minor loops):
+Four rules (docs/model.md §3 has them and the accuracy; docs/model-history.md has the full
+story and their errors on minor loops):
 
 - 'switch' (the paper): the length is the major branch of the detected direction, so it
   jumps by the loop width at every reversal.
@@ -268,8 +269,9 @@ class HysteresisModel:
 
         The play share may depend on it (`share_slopes`): what a muscle does after a
         reversal differs between a full excursion and a short one, and how differs by
-        mechanism (the learned slopes: docs/model.md §3.1). Where the branches meet (near
-        0 Pa) every point is on both: 1, as after a full excursion.
+        mechanism (the learned slopes: docs/model-history.md, "The share's slope across the
+        loop"). Where the branches meet (near 0 Pa) every point is on both: 1, as after a full
+        excursion.
         """
         p_origin, l_origin = origin
         toward = float(self.major(rising).length(p_origin))

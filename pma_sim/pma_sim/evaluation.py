@@ -1,7 +1,8 @@
 """The model on every simulated muscle family: scenarios, configurations and their scores.
 
 Shared by tests/test_minor_loops.py, tests/test_drift_adaptation.py and
-bench/bench_memory_families.py (which prints the table in docs/model.md). ROS-free.
+bench/bench_memory_families.py (which prints the acceptance table of docs/model.md §3.1 and
+the tables of docs/model-history.md, "The family bench in detail"). ROS-free.
 
 A scenario is a family (any of pma_sim.registry), a reversal-rich pressure path (`nested` or
 `random` ramps and holds, or the smooth `sines` or `damped`, from pma_sim.paths) and a seed;
