@@ -45,7 +45,7 @@ from pma_cli.session import (
     Session,
 )
 from pma_common import experiment, names
-from pma_common.action import SILENT_S, ServerWatch
+from pma_common.action import ServerWatch
 from pma_common.lease import LeaseHolder, commander_name
 from pma_common.sweep import (
     STREAMED_PROFILES,
@@ -69,8 +69,9 @@ DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or F
 MOVE_LOST = ('the muscle holds what it was last commanded (the driver keeps the last '
              'setpoint; `pma vent` vents it)')
 SWEEP_LOST = ('a driver that stops vents the muscle, and the device vents by itself once no '
-              'host commands it (heartbeat_timeout_ms, 1 s by default); `pma status` shows '
-              'the rig')
+              'host commands it (heartbeat_timeout_ms, 1 s by default); a driver cut off from '
+              'this command by the network aborts the sweep and vents (commander_timeout_s); '
+              '`pma status` shows the rig')
 # STATUS_UNKNOWN: the server holds no goal of that ID (pma_common.action: a rejection taken
 # for the duplicate of an accepted goal).
 STATUS_WORDS = {GoalStatus.STATUS_SUCCEEDED: 'succeeded', GoalStatus.STATUS_ABORTED: 'aborted',
@@ -109,7 +110,7 @@ class Progress:
 def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, timeout_s: float,
              what: str, hint: str, lost: str, before: Callable[[], None] | None = None,
              result_within_s: float | None = None, late: str = '', server: str = '',
-             silent_s: float = SILENT_S):
+             heard_from=None):
     """(status, result, cancelled) of one goal; a stop signal cancels it and its result is
     still awaited, as long as the server is there (module docstring).
 
@@ -117,10 +118,14 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
     server's node, said (with how to start it) while it is waited for. `lost` says what a
     server gone during the goal leaves behind; `result_within_s` (from the acceptance), if
     given, is how long the result may take (`late` says why), after which the goal is
-    cancelled and given up on. A server silent for `silent_s` is taken for hung.
+    cancelled and given up on. `heard_from` (a session.Latest of a topic the server's node
+    publishes) counts as hearing from the server: after a network outage its stream comes
+    back at once, before the action's own traffic is resent.
     """
     client = ActionClient(session.node, action_type, name)
-    watch = ServerWatch(client, silent_s=silent_s)
+    watch = ServerWatch(client)
+    if heard_from is not None:
+        heard_from.on_message(lambda _: watch.alive())
 
     def feedback(message) -> None:
         watch.alive()
@@ -384,7 +389,7 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
         status, result, cancelled = run_goal(
             session, Sweep, names.SWEEP, goal, on_feedback=on_feedback, timeout_s=timeout_s,
             what='driver', hint=session.where_hint(names.STATE, 'driver_node'),
-            lost=SWEEP_LOST, before=before, server='driver_node', silent_s=LEASED_SILENT_S)
+            lost=SWEEP_LOST, before=before, server='driver_node', heard_from=state)
     finally:
         progress.end()
         if lease.holding:
@@ -406,10 +411,6 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
 
 # How long `pma sweep` waits, at its end, for the driver to have the lease's release.
 LEASE_RELEASE_WAIT_S = 0.5
-# A silent driver under a leased sweep is most likely a network outage, after which the driver
-# has aborted the sweep by itself: its result (with the reason) is waited for this long, not
-# SILENT_S. A driver that left the graph is noticed as soon as ever (GONE_GRACE_S).
-LEASED_SILENT_S = 15.0
 
 MOVE_GOAL_FIELDS = ('length_m', 'tolerance_m', 'settle_s', 'timeout_s')
 

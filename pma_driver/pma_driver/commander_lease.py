@@ -35,6 +35,7 @@ class CommanderLeases:
         self._held: dict[str, Lease] = {}
         self._revoked: dict[str, Lease] = {}
         self.lost_count = 0
+        self._checked_at: float | None = None
 
     def renew(self, lease_id: str, commander: str, holding: bool, now: float) -> bool:
         """Note a lease message; False when it renews a revoked lease (it is ignored)."""
@@ -56,7 +57,15 @@ class CommanderLeases:
         return True
 
     def expired(self, now: float) -> list[Lease]:
-        """The held leases not renewed for timeout_s: revoked now, returned once each."""
+        """The held leases not renewed for timeout_s: revoked now, returned once each.
+
+        Called every tenth of the timeout. A call that comes more than half a timeout after
+        the last one finds the checker itself was held up (a starved process): renewals may
+        be waiting behind it, so it judges nobody this time, only the next."""
+        late = self._checked_at is not None and now - self._checked_at > 0.5 * self.timeout_s
+        self._checked_at = now
+        if late:
+            return []
         for lease_id in [key for key, lease in self._revoked.items()
                          if now - lease.renewed_at > REVOKED_KEEP_S]:
             del self._revoked[lease_id]

@@ -11,9 +11,37 @@ pytestmark = pytest.mark.in_process
 TIMEOUT_S = 1.0
 
 
+class Checked(CommanderLeases):
+    """Checked as the driver does, every tenth of the timeout, up to each asked time."""
+
+    def __init__(self, timeout_s):
+        super().__init__(timeout_s)
+        self.clock = 0.0
+
+    def expired(self, now):
+        lost = []
+        while self.clock + 0.1 * self.timeout_s < now:
+            self.clock += 0.1 * self.timeout_s
+            lost += super().expired(self.clock)
+        self.clock = now
+        return lost + super().expired(now)
+
+
 @pytest.fixture
 def leases():
-    return CommanderLeases(TIMEOUT_S)
+    return Checked(TIMEOUT_S)
+
+
+def test_a_late_check_judges_nobody_until_the_next():
+    """A driver held up for a second must not take a renewal queued behind it for a loss."""
+    leases = CommanderLeases(TIMEOUT_S)
+    leases.renew('a', 'controller', True, 0.0)
+    assert leases.expired(0.1) == []
+    assert leases.expired(1.5) == []                       # late: renewals may be queued
+    leases.renew('a', 'controller', True, 1.55)            # ... and here they are
+    for tenth in range(16, 26):                            # 1.6 ... 2.5 s: renewed at 1.55
+        assert leases.expired(tenth / 10) == []
+    assert [lease.commander for lease in leases.expired(2.6)] == ['controller']
 
 
 def test_nothing_is_lost_on_an_idle_rig(leases):
