@@ -14,6 +14,7 @@ setup(
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
         ('share/' + package_name + '/foxglove', glob('foxglove/*.json')),
         ('share/' + package_name + '/plotjuggler', glob('plotjuggler/*.xml')),
+        ('share/' + package_name + '/config', glob('config/*.xml')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,

@@ -109,6 +109,10 @@ class Rig:
         wait_until(lambda: self.pressure.get_subscription_count() >= 3, 10,
                    'the driver and the controller on pma/pressure_setpoint')
         self.pressure.publish(Float64(data=0.0))
+        # The driver takes setpoints best-effort: sent again until the device shows it.
+        wait_until(lambda: self.probe.latest().gauge_setpoint_pa == 0.0
+                   or self.pressure.publish(Float64(data=0.0)) or time.sleep(0.3), 10,
+                   'the device asked for 0 Pa')
         wait_until(lambda: self.probe.latest().gauge_setpoint_pa == 0.0
                    and self.probe.latest().gauge_pressure_pa < REST_PA
                    and self.probe.latest_control().mode == ControlState.MODE_IDLE, 15,

@@ -30,6 +30,7 @@ from pma_interfaces.srv import PressureForLength
 
 DRIVER = 'driver_node'
 SETPOINT_TOPIC = names.PRESSURE_SETPOINT
+SETPOINT_RESEND_S = 0.5     # a setpoint not yet shown by the device is sent again this often
 CONTROL_TOPIC = names.CONTROL_STATE
 ROSOUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 ABSENT_AFTER_S = 4.0        # a node not in the graph by then (which shows others) is not running
@@ -117,12 +118,21 @@ class Setpoints:
         sent_at = time.monotonic()
         seen = self.state.count
         self.publisher.publish(Float64(data=float(gauge_pa)))
+        resent_at = sent_at
 
         def answered() -> bool:
+            nonlocal resent_at
             if any(at >= sent_at for at, _ in self.refusals):
                 return True
             state = self.state.message
-            return self.state.count > seen and abs(state.gauge_setpoint_pa - target) < 0.5
+            if self.state.count > seen and abs(state.gauge_setpoint_pa - target) < 0.5:
+                return True
+            # The driver takes setpoints best-effort (never late): one lost on the way is
+            # sent again; the same setpoint twice is that setpoint once.
+            if time.monotonic() - resent_at >= SETPOINT_RESEND_S:
+                resent_at = time.monotonic()
+                self.publisher.publish(Float64(data=float(gauge_pa)))
+            return False
 
         if not self.session.spin_until(answered, timeout_s):
             why = ('the length controller follows a target and overwrote it' if

@@ -53,6 +53,13 @@ from pma_interfaces.msg import CommanderLease, PmaState, SweepRecord
 # subscribed after the sweep began) still gets them.
 SWEEP_RECORD_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# pma/pressure_setpoint is taken best-effort: a setpoint the network held back is dropped, not
+# delivered late. A reliable reader gets a writer's unacknowledged setpoints resent when a
+# broken link returns, seconds after their commander was found lost and the muscle vented:
+# that re-pressurised it (tests/test_lab_network.py). Any publisher matches; one-shot senders
+# resend until the device shows the setpoint (`pma set`).
+SETPOINT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+
 # /diagnostics warns this long after a commander was lost (then 'last commander lost' says it).
 LOST_WARN_S = 60.0
 
@@ -106,7 +113,8 @@ class PmaDriver(Node):
                                    now_ns=lambda: self.get_clock().now().nanoseconds)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 1)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.create_subscription(Float64, names.PRESSURE_SETPOINT, self._on_setpoint, 10)
+        self.create_subscription(Float64, names.PRESSURE_SETPOINT, self._on_setpoint,
+                                 SETPOINT_QOS)
         # Remote commanders' leases (docs/driver.md "Commander lease"): checked 10 times a
         # timeout, so a loss is acted on within 1.1 timeouts.
         self.create_subscription(CommanderLease, names.COMMANDER_LEASE, self._on_lease, 10)
