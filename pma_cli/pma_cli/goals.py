@@ -410,7 +410,7 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
 
 
 # How long `pma sweep` waits, at its end, for the driver to have the lease's release.
-LEASE_RELEASE_WAIT_S = 0.5
+LEASE_RELEASE_WAIT_S = 2.0
 
 MOVE_GOAL_FIELDS = ('length_m', 'tolerance_m', 'settle_s', 'timeout_s')
 

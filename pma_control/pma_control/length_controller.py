@@ -85,7 +85,7 @@ MIN_MEASURED_WINDOW_S = 0.5
 # without a sample, so the wait is safe; stale_timeout_s counts once samples have come.
 FIRST_SAMPLE_WAIT_S = 5.0
 # A clean stop waits at most this long for the driver to acknowledge the lease's release.
-LEASE_RELEASE_WAIT_S = 0.5
+LEASE_RELEASE_WAIT_S = 2.0
 
 # ControllerSettings field -> (description, low, high)
 SETTING_DESCRIPTIONS = {

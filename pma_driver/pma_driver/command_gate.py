@@ -281,7 +281,8 @@ class DeviceControl:
                     done = ('vented' if self.vent(f'commander {lease.commander} lost')
                             else 'could not vent: ' + self.link_text())
             events.append(f'{what}; {done}')
-            self.last_commander_lost = what
+        if lost:   # all of this check's, so that a sweep's abort names its own commander too
+            self.last_commander_lost = '; '.join(event.rsplit('; ', 1)[0] for event in events)
         return events
 
     @property
