@@ -270,10 +270,13 @@ class DeviceControl:
         rise). What happened, one line per commander."""
         with self._lease_lock:
             lost = self.leases.expired(self.clock())
+            whats = [f'commander {lease.commander} lost: no renewal of its lease for '
+                     f'{self.leases.timeout_s:g} s (network down, or its host stopped)'
+                     for lease in lost]
+            if lost:   # with the count, under the lock: a sweep that sees the count rise
+                self.last_commander_lost = '; '.join(whats)   # reads these, not the last
         events = []
-        for lease in lost:
-            what = (f'commander {lease.commander} lost: no renewal of its lease for '
-                    f'{self.leases.timeout_s:g} s (network down, or its host stopped)')
+        for what, lease in zip(whats, lost, strict=True):
             if self.commander_lost_action == 'hold':
                 done = 'holding the pressure (commander_lost_action hold)'
             else:
@@ -281,14 +284,14 @@ class DeviceControl:
                     done = ('vented' if self.vent(f'commander {lease.commander} lost')
                             else 'could not vent: ' + self.link_text())
             events.append(f'{what}; {done}')
-        if lost:   # all of this check's, so that a sweep's abort names its own commander too
-            self.last_commander_lost = '; '.join(event.rsplit('; ', 1)[0] for event in events)
         return events
 
     @property
     def commanders_lost(self) -> int:
-        """How many leases have run out since start: a sweep notes it, and aborts on a rise."""
-        return self.leases.lost_count
+        """How many leases have run out since start: a sweep notes it, and aborts on a rise
+        (then last_commander_lost says who, set under the same lock)."""
+        with self._lease_lock:
+            return self.leases.lost_count
 
     def deactivate(self, why: str = 'deactivated') -> None:
         """Stop taking commands and vent, with no SET in between."""
