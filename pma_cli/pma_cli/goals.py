@@ -392,9 +392,7 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
             lost=SWEEP_LOST, before=before, server='driver_node', heard_from=state)
     finally:
         progress.end()
-        if lease.holding:
-            lease.release()
-            lease.wait_for_driver(LEASE_RELEASE_WAIT_S)
+        lease.release_before_exit()
     word = STATUS_WORDS.get(status, f'status {status}')
     _say_result(f'sweep {word} after {q.seconds(time.monotonic() - started)}: '
                 f'{result.message} ({result.sample_count} samples)', result.success or cancelled)
@@ -409,8 +407,6 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     return OK if result.success else FAILED
 
 
-# How long `pma sweep` waits, at its end, for the driver to have the lease's release.
-LEASE_RELEASE_WAIT_S = 2.0
 
 MOVE_GOAL_FIELDS = ('length_m', 'tolerance_m', 'settle_s', 'timeout_s')
 

@@ -3,7 +3,7 @@
 A node that keeps the muscle pressurised by commanding it (the length controller while it
 holds a target, `pma sweep` while its goal runs) holds a lease while it does and releases it
 when it stops. driver_node brings the muscle to its safe state when a held lease is not
-renewed for its commander_timeout_s (1 s by default): the commander's host or the network
+renewed for its commander_timeout_s (0.8 s by default): the commander's host or the network
 between them is gone (docs/lab-network.md). The renewals ride on the holder's own executor,
 so a holder whose node stops spinning is taken for lost too, which is what it is.
 """
@@ -22,13 +22,16 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from pma_common import names
 from pma_interfaces.msg import CommanderLease
 
-# Ten renewals a default commander_timeout_s: a loss is a second of silence, not one late
+# Eight renewals a default commander_timeout_s: a loss is 0.8 s of silence, not one late
 # message on a busy machine or a lossy Wi-Fi link.
 RENEW_PERIOD_S = 0.1
 # The shortest commander_timeout_s a driver takes. A holder whose renewals stopped this long
 # (its process paused, its machine starved) may have been taken for lost and vented, so it
 # must not command again without a new goal: what it would send predates the vent.
 MIN_COMMANDER_TIMEOUT_S = 0.5
+# A holder that stops cleanly waits at most this long for the driver to acknowledge the
+# release (an unheard release would vent the muscle).
+RELEASE_WAIT_S = 2.0
 LEASE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -78,6 +81,13 @@ class LeaseHolder:
         msg = CommanderLease(commander=self.commander, lease_id=self.lease_id, holding=holding)
         msg.header.stamp = self._node.get_clock().now().to_msg()
         self._publisher.publish(msg)
+
+    def release_before_exit(self, timeout_s: float = RELEASE_WAIT_S) -> None:
+        """Release, if held, and wait up to `timeout_s` for the driver to have the release:
+        a clean stop's last word, which must not be lost with the process."""
+        if self.lease_id:
+            self.release()
+            self.wait_for_driver(timeout_s)
 
     def wait_for_driver(self, timeout_s: float) -> bool:
         """Whether every matched reader (the driver) acknowledged what was sent, within

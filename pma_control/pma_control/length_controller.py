@@ -84,8 +84,6 @@ MIN_MEASURED_WINDOW_S = 0.5
 # starting: discovery takes about a second) waits this long for it. Nothing is commanded
 # without a sample, so the wait is safe; stale_timeout_s counts once samples have come.
 FIRST_SAMPLE_WAIT_S = 5.0
-# A clean stop waits at most this long for the driver to acknowledge the lease's release.
-LEASE_RELEASE_WAIT_S = 2.0
 
 # ControllerSettings field -> (description, low, high)
 SETTING_DESCRIPTIONS = {
@@ -413,9 +411,7 @@ class LengthControllerNode(Node):
     def destroy_node(self) -> None:
         """A clean stop lets go of the lease (the pressure stays, as after a cancel), and
         waits briefly for the driver to have it: an unheard release would vent the muscle."""
-        if self._lease.holding:
-            self._lease.release()
-            self._lease.wait_for_driver(LEASE_RELEASE_WAIT_S)
+        self._lease.release_before_exit()
         super().destroy_node()
 
     def _check_stale(self) -> None:
