@@ -63,6 +63,7 @@ CANCEL_RESEND_S = 0.5        # an unanswered cancel is sent again this often
 HEARD_AFTER_STOP_S = 1.0     # a server that says nothing this long after a Ctrl-C is gone
 SAME_STOP_S = 0.5            # signals closer than this to the first are one Ctrl-C
 GOAL_LATE_S = 5.0            # a move's result given up on this long after its timeout_s
+DRIVER_HEARD_S = 1.0         # a driver whose state was not heard this long acknowledges nothing
 MOVE_DEFAULT_TIMEOUT_S = 30.0   # MoveToLength's timeout_s 0 (the action's definition)
 DEFAULT_STEP_HOLD_S = 5.0    # pma sweep's hold at each step of a staircase or FORC set
 # What a server gone during its goal leaves behind (the sentence after "its result is lost; ").
@@ -378,6 +379,8 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     # While the goal runs, a commander lease: if this command's host or its network to the
     # rig is lost, the driver aborts the sweep and vents (docs/lab-network.md).
     lease = LeaseHolder(session.node, commander_name(session.node, 'pma sweep'))
+    heard = {'at': time.monotonic()}
+    state.on_message(lambda _: heard.update(at=time.monotonic()))
 
     def before() -> None:
         release_holding_controller(session, control, timeout_s)
@@ -392,7 +395,10 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
             lost=SWEEP_LOST, before=before, server='driver_node', heard_from=state)
     finally:
         progress.end()
-        lease.release_before_exit()
+        if time.monotonic() - heard['at'] < DRIVER_HEARD_S:
+            lease.release_before_exit()
+        else:
+            lease.release()                  # a driver not heard from acknowledges nothing
     word = STATUS_WORDS.get(status, f'status {status}')
     _say_result(f'sweep {word} after {q.seconds(time.monotonic() - started)}: '
                 f'{result.message} ({result.sample_count} samples)', result.success or cancelled)
