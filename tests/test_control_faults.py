@@ -292,10 +292,16 @@ def test_a_stream_that_kept_sending_through_a_release_must_start_again(at_rest):
             time.sleep(0.02)
 
     sender = threading.Thread(target=stream, daemon=True)
+    start = line_mark(rig.controller)
     sender.start()
     try:
-        wait_until(lambda: probe.latest_control().mode == ControlState.MODE_STREAM, 10,
-                   'following the stream')
+        try:
+            wait_until(lambda: probe.latest_control().mode == ControlState.MODE_STREAM, 10,
+                       'following the stream')
+        except TimeoutError as error:
+            raise TimeoutError(f'{error}; control state {probe.latest_control()}; the '
+                               f'controller said:\n{lines_after(rig.controller, start)[-3000:]}'
+                               ) from None
         time.sleep(1.0)
         mark = line_mark(rig.controller)
         rig.pressure.publish(Float64(data=60_000.0))

@@ -40,11 +40,15 @@ class ClockSync:
         self.jump_s = jump_s
         self.jump_confirm_s = jump_confirm_s
         self.resets = 0
+        # The last stamp and its receive time belong to the host clock, so they outlive a
+        # reset: a restarted device's first stamp must still follow the last one published.
+        self._last_stamp_ns: int | None = None
+        self._last_receive_ns: int | None = None
         self.reset()
         self.resets = 0
 
     def reset(self) -> None:
-        """Forget everything: the device clock restarted (reconnect, Arduino reset)."""
+        """Forget the device clock: it restarted (reconnect, Arduino reset)."""
         self._last_t_ms: int | None = None
         self._device_ms = 0          # unwrapped device clock [ms]
         self._ref_device_ns = 0      # origin of x (device time) for the line fit
@@ -56,8 +60,6 @@ class ClockSync:
         self._intercept = math.inf   # offset line: y = intercept + slope * x  [s]
         self._slope = 0.0
         self._late_since: float | None = None
-        self._last_stamp_ns: int | None = None
-        self._last_receive_ns: int | None = None
         self.samples = 0
         self.resets += 1
 

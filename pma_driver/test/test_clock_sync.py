@@ -84,6 +84,20 @@ def test_explicit_reset_forgets_the_old_offset():
     assert sync.stamp(1000, 9_000_000_000) == 9_000_000_000
 
 
+def test_a_device_restart_read_with_the_last_lines_does_not_step_back():
+    """The device's hello and first sample read in the same chunk as the previous device's
+    last lines: the restart resets the estimate, but the stamps still go forward (one CI run
+    saw a stamp a few nanoseconds before the last, with the simulated AVR)."""
+    sync = ClockSync()
+    chunk_ns = 7_000_000_000
+    before = [sync.stamp(5_000 + 20 * i, chunk_ns) for i in range(3)]     # read together
+    assert before[-1] > chunk_ns
+    sync.reset()                                       # what the driver does on a hello
+    after = sync.stamp(3, chunk_ns)
+    assert after > before[-1]
+    assert after - chunk_ns <= 10
+
+
 def test_host_clock_jump_back_restarts_estimate():
     sync = ClockSync()
     device_ms, true_host_s, receive_ns = simulate(50.0, 5.0)
