@@ -40,23 +40,6 @@ REST_PA = 20_000.0           # below this the muscle counts as vented
 ECHO_TIMEOUT_RATE = 0.2
 
 
-def lines_after(proc: Proc, mark: int) -> str:
-    return '\n'.join(proc.output.splitlines()[mark:])
-
-
-def line_mark(proc: Proc) -> int:
-    return len(proc.output.splitlines())
-
-
-def wait_for_new_line(proc: Proc, text: str, mark: int, timeout: float) -> None:
-    try:
-        wait_until(lambda: text in lines_after(proc, mark), timeout,
-                   f'{proc.name}: a line with {text!r}')
-    except TimeoutError as error:
-        raise TimeoutError(f'{error}; its lines since:\n{lines_after(proc, mark)[-3000:]}') \
-            from None
-
-
 class Rig:
     def __init__(self, procs, work):
         self.procs, self.port = procs, work / 'pma'
@@ -222,9 +205,9 @@ def test_deactivating_the_driver_ends_the_hold_and_activating_it_does_not_reinfl
     commanded the held length's pressure again by itself."""
     rig = at_rest
     rig.hold(0.26)
-    mark = line_mark(rig.controller)
+    mark = rig.controller.mark()
     assert rig.transition(4)                                       # deactivate: it vents
-    wait_for_new_line(rig.controller, 'hold ended: no usable pma/state sample', mark, 5)
+    rig.controller.wait_for_line('hold ended: no usable pma/state sample', 5, after=mark)
     time.sleep(1.0)
     assert rig.transition(3)                                       # activate
     count = rig.probe.state_count()
@@ -242,10 +225,10 @@ def test_the_driver_crashing_while_holding_does_not_reinflate_the_muscle(at_rest
     rig = at_rest
     rig.hold(0.255)
     assert rig.probe.latest().gauge_pressure_pa > 200_000.0
-    mark = line_mark(rig.controller)
+    mark = rig.controller.mark()
     rig.driver.signal(signal.SIGKILL)
     rig.driver.popen.wait(5)
-    wait_for_new_line(rig.controller, 'hold ended', mark, 5)
+    rig.controller.wait_for_line('hold ended', 5, after=mark)
     rig.driver = rig.start_driver()
     rig.driver.wait_for_line('active: publishing', 30)
     count = rig.probe.state_count()
@@ -263,13 +246,13 @@ def test_the_device_venting_by_itself_ends_the_hold(at_rest):
     the controller let go only a second later, taking the vent for another command source."""
     rig = at_rest
     rig.hold(0.255)
-    mark = line_mark(rig.controller)
+    mark = rig.controller.mark()
     ceiling = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=150_000.0)
     assert rig.call_parameter('driver_node', 'max_gauge_pressure_pa', ceiling).successful
     try:
-        wait_for_new_line(rig.controller, 'hold ended: the device vented by itself '
-                          '(overpressure)', mark, 5)
-        assert 'released the target' not in lines_after(rig.controller, mark)
+        rig.controller.wait_for_line('hold ended: the device vented by itself (overpressure)',
+                                     5, after=mark)
+        assert 'released the target' not in rig.controller.lines_since(mark)
         wait_until(lambda: rig.probe.latest().gauge_pressure_pa < REST_PA, 10, 'vented')
         rig.stays_vented(1.5)
     finally:
@@ -292,7 +275,7 @@ def test_a_stream_that_kept_sending_through_a_release_must_start_again(at_rest):
             time.sleep(0.02)
 
     sender = threading.Thread(target=stream, daemon=True)
-    start = line_mark(rig.controller)
+    start = rig.controller.mark()
     sender.start()
     try:
         try:
@@ -300,19 +283,19 @@ def test_a_stream_that_kept_sending_through_a_release_must_start_again(at_rest):
                        'following the stream')
         except TimeoutError as error:
             raise TimeoutError(f'{error}; control state {probe.latest_control()}; the '
-                               f'controller said:\n{lines_after(rig.controller, start)[-3000:]}'
+                               f'controller said:\n{rig.controller.lines_since(start)[-3000:]}'
                                ) from None
         time.sleep(1.0)
-        mark = line_mark(rig.controller)
+        mark = rig.controller.mark()
         rig.pressure.publish(Float64(data=60_000.0))
-        wait_for_new_line(rig.controller, 'released the target: another node commanded', mark,
-                          5)
+        rig.controller.wait_for_line('released the target: another node commanded', 5,
+                                     after=mark)
         time.sleep(0.5)
         since = time.monotonic()
         time.sleep(1.5)
         assert {s.gauge_setpoint_pa for s in probe.states_since(since)} == {60_000.0}
         assert probe.latest_control().mode == ControlState.MODE_IDLE
-        assert 'refused pma/length_setpoint: the hold ended' in lines_after(rig.controller, mark)
+        assert 'refused pma/length_setpoint: the hold ended' in rig.controller.lines_since(mark)
         paused.set()
         time.sleep(0.8)
         paused.clear()
@@ -327,14 +310,14 @@ def test_a_refit_while_a_goal_runs_is_followed(at_rest):
     """model_node changes its model (as when it loads a refit): the controller switches to it
     mid-goal, keeping the muscle's history, and the goal still settles."""
     rig, probe = at_rest, at_rest.probe
-    mark = line_mark(rig.controller)
+    mark = rig.controller.mark()
     handle = probe.send_goal(0.265, settle_s=2.0, timeout_s=30.0)
     time.sleep(0.5)
     memory = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value='madelung')
     try:
         assert rig.call_parameter('model_node', 'memory', memory).successful
-        wait_for_new_line(rig.controller, "following model_node's model: sigmoid branches, "
-                          'madelung memory', mark, 10)
+        rig.controller.wait_for_line("following model_node's model: sigmoid branches, "
+                                     'madelung memory', 10, after=mark)
         result = probe.result(handle)
         assert result.success, result.message
         assert abs(result.measured_length_m - 0.265) <= 0.003
@@ -381,14 +364,14 @@ def test_a_controller_that_vanishes_while_holding_leaves_the_muscle_vented(at_re
     rig = at_rest
     rig.hold(0.255)
     assert rig.probe.latest().gauge_pressure_pa > 200_000.0
-    mark = line_mark(rig.driver)
+    mark = rig.driver.mark()
     frozen = time.monotonic()
     rig.controller.signal(signal.SIGSTOP)
     try:
-        wait_for_new_line(rig.driver, 'lost: no renewal of its lease for 0.8 s', mark, 10)
+        rig.driver.wait_for_line('lost: no renewal of its lease for 0.8 s', 10, after=mark)
         vented = vented_at(rig.probe, frozen)
         assert vented - frozen <= LEASE_VENT_WITHIN_S + LOAD_SLACK_S, vented - frozen
-        assert 'length_controller' in lines_after(rig.driver, mark)
+        assert 'length_controller' in rig.driver.lines_since(mark)
         time.sleep(1.0)
     finally:
         rig.controller.signal(signal.SIGCONT)
@@ -409,11 +392,11 @@ def test_a_sweep_whose_pma_sweep_vanishes_is_aborted_and_vented(at_rest):
     sweep = rig.procs.start([PMA, 'sweep', '--max', '300kPa', '--step', '100kPa', '--hold',
                              '5s'], name='pma-sweep')
     wait_until(lambda: rig.probe.latest().gauge_pressure_pa > 80_000.0, 30, 'the sweep filling')
-    mark = line_mark(rig.driver)
+    mark = rig.driver.mark()
     frozen = time.monotonic()
     sweep.signal(signal.SIGSTOP)
     try:
-        wait_for_new_line(rig.driver, 'sweep aborted: commander pma sweep', mark, 10)
+        rig.driver.wait_for_line('sweep aborted: commander pma sweep', 10, after=mark)
         vented = vented_at(rig.probe, frozen)
         assert vented - frozen <= LEASE_VENT_WITHIN_S + LOAD_SLACK_S, vented - frozen
         sweep.signal(signal.SIGCONT)
@@ -429,14 +412,14 @@ def test_a_sweep_whose_pma_sweep_vanishes_is_aborted_and_vented(at_rest):
 def test_a_rig_set_once_and_left_alone_keeps_its_pressure(at_rest):
     """No lease, no loss: `pma set` commands once and leaves; nothing vents the muscle."""
     rig = at_rest
-    mark = line_mark(rig.driver)
+    mark = rig.driver.mark()
     result = subprocess.run([str(PMA), 'set', '150kPa'], capture_output=True, text=True,
                             timeout=60, stdin=subprocess.DEVNULL, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
     since = time.monotonic()
     time.sleep(3.0)
     assert {s.gauge_setpoint_pa for s in rig.probe.states_since(since)} == {150_000.0}
-    assert 'commander' not in lines_after(rig.driver, mark)
+    assert 'commander' not in rig.driver.lines_since(mark)
 
 
 @pytest.mark.serial

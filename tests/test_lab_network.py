@@ -163,19 +163,6 @@ def lab(tmp_path_factory):
         hosts.remove()
 
 
-def new_line(proc, mark: int, test, timeout: float) -> str:
-    """The first line of `proc` after line `mark` that passes `test`, waited for."""
-    def found() -> str | None:
-        return next((line for line in proc.output.splitlines()[mark:] if test(line)), None)
-    deadline = time.monotonic() + timeout
-    while found() is None:
-        assert time.monotonic() < deadline, \
-            f'{proc.name}: no such line within {timeout} s; since:\n' + \
-            '\n'.join(proc.output.splitlines()[mark:])[-3000:]
-        time.sleep(0.02)
-    return found()
-
-
 def log_time(line: str) -> float:
     """The wall-clock stamp of an rclpy console line ('[LEVEL] [1796212611.40] [node]: ...')."""
     return float(LOG_STAMP.findall(line)[0])
@@ -285,11 +272,12 @@ def test_the_link_dropping_during_a_move_vents_the_rig_and_both_sides_say_why(la
                                  '--goal-timeout', '60s', label='pma-move')
     move.wait_for_line('moving to', 30)
     time.sleep(2.0)                                      # filled to ~300 kPa
-    mark = len(lab.driver.output.splitlines())
+    mark = lab.driver.mark()
     cut = hosts.down()
     try:
-        line = new_line(lab.driver, mark, lambda text: 'length_controller' in text
-                        and 'lost: no renewal' in text, 10)
+        line = lab.driver.wait_for_line(
+            lambda text: 'length_controller' in text and 'lost: no renewal' in text, 10,
+            after=mark)
         print(f'link down to the vent of the driver, during a move: {log_time(line) - cut:.3f} s')
         assert log_time(line) - cut <= LEASE_VENT_WITHIN_S + LOAD_SLACK_S, \
             (log_time(line) - cut, line)
@@ -304,20 +292,21 @@ def test_the_link_dropping_during_a_move_vents_the_rig_and_both_sides_say_why(la
     said = status.stdout + status.stderr
     assert 'last lost: commander /length_controller' in said, said
     assert 'setpoint 0.0 kPa' in said, said
-    assert 'commander' in '\n'.join(lab.driver.output.splitlines()[mark:])
+    assert 'commander' in lab.driver.lines_since(mark)
 
 
 def test_the_link_dropping_during_a_sweep_aborts_it_on_the_rig(lab):
     hosts = lab.hosts
-    mark = len(lab.driver.output.splitlines())
+    mark = lab.driver.mark()
     sweep = lab.pma_in_background(hosts.workstation, 'sweep', '--max', '300kPa', '--step',
                                   '100kPa', '--hold', '4s', label='pma-sweep')
-    new_line(lab.driver, mark, lambda text: 'sweep: staircase' in text, 30)
+    lab.driver.wait_for_line(lambda text: 'sweep: staircase' in text, 30, after=mark)
     time.sleep(3.0)
     cut = hosts.down()
     try:
-        line = new_line(lab.driver, mark, lambda text: 'commander pma sweep' in text
-                        and 'lost: no renewal' in text, 10)
+        line = lab.driver.wait_for_line(
+            lambda text: 'commander pma sweep' in text and 'lost: no renewal' in text, 10,
+            after=mark)
         print(f'link down to the loss of the sweep commander: {log_time(line) - cut:.3f} s')
         assert log_time(line) - cut <= LEASE_VENT_WITHIN_S + LOAD_SLACK_S, log_time(line) - cut
         time.sleep(1.0)
@@ -328,7 +317,7 @@ def test_the_link_dropping_during_a_sweep_aborts_it_on_the_rig(lab):
     # driver's serial link stalled while the link was down (docs/lab-network.md, "The rig
     # computer's DDS profile") and the stall could abort the sweep first: vented all the same,
     # so either reason is taken; the lease's loss and its timing are checked above.
-    said = '\n'.join(lab.driver.output.splitlines()[mark:])
+    said = lab.driver.lines_since(mark)
     assert re.search(r'sweep aborted: (commander pma sweep|.*stalled|.*no data)', said), said
     assert 'sweep aborted' in sweep.output, sweep.output
 
@@ -343,11 +332,11 @@ def test_a_controller_on_the_rig_itself_keeps_the_muscle_when_the_link_drops(lab
     try:
         result = lab.pma(hosts.rig, 'move', '27cm')
         assert result.returncode == 0, result.stdout + result.stderr
-        mark = len(lab.driver.output.splitlines())
+        mark = lab.driver.mark()
         hosts.down()
         time.sleep(3.0)
         hosts.up()
-        assert 'lost: no renewal' not in '\n'.join(lab.driver.output.splitlines()[mark:])
+        assert 'lost: no renewal' not in lab.driver.lines_since(mark)
         status = lab.pma(hosts.rig, 'status')
         assert 'holding' in status.stdout or 'hold' in status.stdout, status.stdout
         assert 'setpoint 0.0 kPa' not in status.stdout, status.stdout

@@ -100,11 +100,23 @@ class Proc:
         with self._cond:
             return '\n'.join(self._lines)
 
-    def wait_for_line(self, predicate: Callable[[str], bool] | str, timeout: float = 20.0) -> str:
-        """Block until an output line matches (substring or predicate); return it."""
+    def mark(self) -> int:
+        """Where the output is now: `wait_for_line(..., after=mark)` and `lines_since(mark)`
+        look only at what came after (a test's own lines, not an earlier test's)."""
+        with self._cond:
+            return len(self._lines)
+
+    def lines_since(self, mark: int) -> str:
+        with self._cond:
+            return '\n'.join(self._lines[mark:])
+
+    def wait_for_line(self, predicate: Callable[[str], bool] | str, timeout: float = 20.0,
+                      after: int = 0) -> str:
+        """Block until an output line after line `after` (a `mark()`) matches (substring or
+        predicate); return it."""
         test = (lambda line: predicate in line) if isinstance(predicate, str) else predicate
         deadline = time.monotonic() + timeout
-        seen = 0
+        seen = after
         with self._cond:
             while True:
                 for line in self._lines[seen:]:
@@ -114,9 +126,11 @@ class Proc:
                 remaining = deadline - time.monotonic()
                 exited = self.popen.poll() is not None and not self._reader.is_alive()
                 if remaining <= 0 or exited:
+                    since = '\n'.join(self._lines[after:])[-4000:]
                     raise TimeoutError(
                         f'{self.name}: no line matching {predicate!r} within {timeout} s '
-                        f'(exit code {self.popen.poll()}); output:\n{self.output[-4000:]}')
+                        f'(exit code {self.popen.poll()}); output'
+                        f'{" since the mark" if after else ""}:\n{since}')
                 self._cond.wait(min(remaining, 0.2))
 
     def alive(self) -> bool:
