@@ -24,6 +24,7 @@ from action_msgs.msg import GoalStatus
 from lifecycle_msgs.srv import ChangeState
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
+from rclpy.duration import Duration
 from std_msgs.msg import Float64
 
 from pma_common import names
@@ -100,6 +101,14 @@ class Rig:
                    and self.probe.latest().gauge_pressure_pa < REST_PA
                    and self.probe.latest_control().mode == ControlState.MODE_IDLE, 15,
                    'the muscle at rest and the controller idle')
+        # A resent 0 Pa may still be on its way to the controller, which would take it for
+        # another node's command during the test's own stream or goal (a loaded run saw that):
+        # wait until the controller has it (acknowledged) and has handled states since (its
+        # one thread takes what was ready in the order of each wait).
+        assert self.pressure.wait_for_all_acked(Duration(seconds=10)), 'the 0 Pa unheard'
+        count = len(self.probe.control)
+        wait_until(lambda: len(self.probe.control) >= count + 3, 10,
+                   'the controller past the last 0 Pa')
 
     def stays_vented(self, seconds: float) -> None:
         """Over `seconds`: the device is asked for 0 Pa, nothing commands more, the muscle
