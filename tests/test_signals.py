@@ -34,7 +34,7 @@ from std_msgs.msg import Float64
 from pma_bag import BagWriter
 from pma_common import names, protocol
 from pma_common.stop import STOP_SIGNALS
-from pma_interfaces.msg import PmaState
+from pma_interfaces.msg import LengthSetpoint, PmaState
 from support import firmware
 from support.domains import another_domain
 from support.procs import (
@@ -188,6 +188,52 @@ def test_ctrl_c_under_launch_vents_the_muscle(procs, tmp_path):
             output = finish(driver)
             assert 'vented' in output, output[-3000:]
             assert device_setpoint_pa(port) == 0
+    finally:
+        probe.close()
+        shutdown()
+
+
+@pytest.mark.parametrize('seed', [3])
+def test_a_controller_holding_a_lease_lets_go_cleanly_under_any_burst(procs, tmp_path, seed):
+    """Ctrl-C under launch (and more signals) while the length controller streams a length,
+    holding a commander lease: it releases the lease before it exits, so the driver never
+    takes it for lost, and the muscle keeps the pressure it had (docs/control.md: a stopped
+    controller leaves the pressure where it is; a lost one would have been vented)."""
+    port = tmp_path / 'pma'
+    procs.ros2_run('pma_sim', 'fake_arduino', '--link', str(port),
+                   name='lease_fake').wait_for_line('device at', 20)
+    namespace = f'/lease{seed}'
+    driver = procs.ros2_run('pma_driver', 'driver_node', name='lease_driver',
+                            ros_args=['-r', f'__ns:={namespace}', '-p', f'port:={port}'])
+    driver.wait_for_line('active: publishing', 30)
+    probe = SpinningNode('lease_signal_probe')
+    states: list[PmaState] = []
+    probe.node.create_subscription(PmaState, f'{namespace}/{names.STATE}', states.append, 100)
+    lengths = probe.node.create_publisher(LengthSetpoint,
+                                          f'{namespace}/{names.LENGTH_SETPOINT}', 10)
+    try:
+        for k, rng in enumerate(trials(seed)[:2]):
+            controller = procs.ros2_run('pma_control', 'length_controller',
+                                        name=f'lease_controller{k}',
+                                        ros_args=['-r', f'__ns:={namespace}'])
+            controller.wait_for_line('length_controller ready', 30)
+            mark = driver.mark()
+
+            def pressurised() -> bool:
+                lengths.publish(LengthSetpoint(length_m=0.27))
+                return bool(states) and states[-1].gauge_pressure_pa > 150_000.0
+
+            wait_until(pressurised, 30, 'the controller filling the muscle', period=0.05)
+            send(controller, burst(rng))
+            finish(controller)
+            first = len(states)
+            time.sleep(1.5)                  # past the driver's 0.8 s commander timeout
+            said = driver.lines_since(mark)
+            assert 'lost: no renewal' not in said, said
+            since = states[first:]
+            assert len(since) > 15, 'pma/state stopped'
+            assert {s.gauge_setpoint_pa for s in since} == {since[0].gauge_setpoint_pa}
+            assert since[0].gauge_setpoint_pa > 0.0 and since[-1].gauge_pressure_pa > 150_000.0
     finally:
         probe.close()
         shutdown()
