@@ -205,6 +205,13 @@ class SigmoidBranch(Branch):
         return float(result) if result.ndim == 0 else result
 
     def inverse_unchecked(self, length_m):
+        if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
+            try:
+                u = math.log(self.a * self.l0_m / (self.l0_m - length_m)) / self.c
+                result = -math.log(math.expm1(u)) / self.b_per_pa
+            except (ValueError, ZeroDivisionError, OverflowError):   # numpy's NaN and inf
+                return math.nan
+            return result if math.isfinite(result) else math.nan
         length = np.asarray(length_m, dtype=float)
         with np.errstate(divide='ignore', invalid='ignore'):
             # u = log(1 + exp(-bP)); expm1 keeps precision near saturation, where u -> 0.
@@ -264,6 +271,14 @@ class HillBranch(Branch):
         return float(result) if result.ndim == 0 else result
 
     def inverse_unchecked(self, length_m):
+        if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
+            fraction = (self.l0_m - length_m) / self.dl_m
+            try:
+                result = self.k_pa * (fraction / (1.0 - fraction)) ** (1.0 / self.n)
+            except (ZeroDivisionError, OverflowError):
+                return math.nan
+            return result if isinstance(result, float) and math.isfinite(result) \
+                and fraction >= 0.0 else math.nan
         fraction = (self.l0_m - np.asarray(length_m, dtype=float)) / self.dl_m
         with np.errstate(divide='ignore', invalid='ignore'):
             result = self.k_pa * np.power(fraction / (1.0 - fraction), 1.0 / self.n)

@@ -150,6 +150,8 @@ class CorrectedBranch(Branch):
         return float(result) if np.ndim(result) == 0 else result
 
     def inverse_unchecked(self, length_m):
+        if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
+            return self._inverse_one(length_m)
         lengths = np.asarray(length_m, dtype=float)
         result = np.vectorize(self._inverse_one, otypes=[float])(lengths)
         return float(result) if result.ndim == 0 else result
