@@ -80,19 +80,25 @@ def _base_point(branch: Branch, p_pa: float) -> tuple[float, int, float]:
     on the base branch, so shared by every corrected branch over it: a commit makes new
     corrected branches and its replay asks for the same turning pressures again, and a
     sample's pressure is asked for by the length, the two shapes and the regressor."""
-    memo = branch.__dict__.get('_points')
-    if memo is None:   # a memo, not a field (frozen); with the knots' lengths (no hashing)
-        memo = ({}, _lengths_at_knots(branch))
-        object.__setattr__(branch, '_points', memo)
-    points = memo[0]
+    points, at_knots, _ = _base_memo(branch)
     point = points.get(p_pa)
     if point is None:
         base = float(branch.length(p_pa))
-        point = (base, *_knot_share(p_pa, base, memo[1]))
+        point = (base, *_knot_share(p_pa, base, at_knots))
         if len(points) >= _MAX_BASE_POINTS:   # a long noisy run: start again
             points.clear()
         points[p_pa] = point
     return point
+
+
+def _base_memo(branch: Branch) -> tuple[dict, tuple[float, ...], dict]:
+    """A base branch's memo: {pressure: _base_point}, its lengths at the knots and
+    {(rising, pressure): knot_sensitivity}."""
+    memo = branch.__dict__.get('_points')
+    if memo is None:   # a memo, not a field (frozen); with the knots' lengths (no hashing)
+        memo = ({}, _lengths_at_knots(branch), {})
+        object.__setattr__(branch, '_points', memo)
+    return memo
 
 
 @dataclass(frozen=True)
@@ -225,13 +231,22 @@ def monotone_correction(offsets, caps) -> tuple[float, ...]:
 def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
     """d branch length(p_pa) / d [increasing knots, decreasing knots, the two play shares]
     (memory.BranchSensitivity): the interpolation weights of the branch's own correction,
-    whichever branch of the pair `rising` says it is."""
-    knots = len(CORRECTION_KNOTS_PA)
-    gradient = np.zeros(2 * knots + 2)
-    start = 0 if rising else knots
+    whichever branch of the pair `rising` says it is. Read-only: it is kept on the base
+    branch (it does not depend on the learned offsets, and after a commit every turning
+    point's is asked for again)."""
     base = branch.base if isinstance(branch, CorrectedBranch) else branch
-    _, k, share = _base_point(base, p_pa)
-    gradient[start + k] = 1.0 - share
-    if share != 0.0:
-        gradient[start + k + 1] = share
+    known = _base_memo(base)[2]
+    gradient = known.get((rising, p_pa))
+    if gradient is None:
+        knots = len(CORRECTION_KNOTS_PA)
+        gradient = np.zeros(2 * knots + 2)
+        start = 0 if rising else knots
+        _, k, share = _base_point(base, p_pa)
+        gradient[start + k] = 1.0 - share
+        if share != 0.0:
+            gradient[start + k + 1] = share
+        gradient.flags.writeable = False
+        if len(known) >= _MAX_BASE_POINTS:   # a long noisy run: start again
+            known.clear()
+        known[rising, p_pa] = gradient
     return gradient

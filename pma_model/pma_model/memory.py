@@ -207,9 +207,12 @@ class HysteresisModel:
     def _resume_memory(self, other: HysteresisModel) -> None:
         """resume_from's memory part: everything but the detector."""
         self._reset_memory()
-        for p_pa, _ in other._stack:
-            self._step_madelung(p_pa)
-        self._step_madelung(other.pressure_pa)
+        if self._rule.replays_stack:
+            for p_pa, _ in other._stack:
+                self._step_madelung(p_pa)
+            self._step_madelung(other.pressure_pa)
+        else:
+            self._p = other.pressure_pa
         self._rule.resume(self, other)
 
     @property

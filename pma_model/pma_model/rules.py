@@ -47,6 +47,9 @@ class MemoryRule(Protocol):
     follows_path: bool
     # True: its curves mix the play-like and Madelung shapes by a learned share.
     has_play_share: bool
+    # True: a state taken over is rebuilt by replaying the other's turning points before
+    # `resume`; False: `resume` needs only the other's pressure and length.
+    replays_stack: bool
 
     def update(self, model: HysteresisModel, p_pa: float, branch: int) -> None:
         """Advance the state by one finite pressure (`branch`: the detector's, already
@@ -141,6 +144,7 @@ class MadelungRule:
 
     follows_path = True
     has_play_share = False
+    replays_stack = True
 
     def update(self, model, p_pa, branch):
         model._step_madelung(p_pa)
@@ -264,6 +268,7 @@ class SwitchRule:
 
     follows_path = False
     has_play_share = False
+    replays_stack = True   # its path_segments walk the stack a resume_from replayed
 
     def update(self, model, p_pa, branch):
         model._p, model._l = p_pa, float(model.major(branch == BRANCH_INCREASING).length(p_pa))
@@ -301,6 +306,7 @@ class PlayRule:
 
     follows_path = True
     has_play_share = False
+    replays_stack = False   # its state is the held length, which resume fits to the band
 
     def update(self, model, p_pa, branch):
         if p_pa > model._p:
