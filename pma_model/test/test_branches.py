@@ -70,15 +70,19 @@ def test_length_is_vectorised_and_monotone(name):
 @given(p_pa=st.floats(allow_nan=True, allow_infinity=True))
 def test_one_sample_and_an_array_give_the_same_length(name, p_pa):
     # A float takes math's path (online steps, the inverse's searches), an array numpy's.
-    branch = ALL_BRANCHES[name]
-    with np.errstate(invalid='ignore'):
-        from_array = branch.length(np.array([p_pa]))[0]
-    one = branch.length(p_pa)
+    assert_one_as_an_array(ALL_BRANCHES[name].length, p_pa, rel=1e-14, abs=1e-15)
+
+
+def assert_one_as_an_array(function, value: float, **tolerance) -> None:
+    """`function` of one float is a float, and what it gives for the one-element array."""
+    with np.errstate(invalid='ignore', over='ignore'):
+        from_array = function(np.array([value]))[0]
+    one = function(value)
     assert isinstance(one, float)
     if math.isnan(from_array):
         assert math.isnan(one)
     else:
-        assert one == pytest.approx(from_array, rel=1e-14, abs=1e-15)
+        assert one == pytest.approx(from_array, **tolerance)
 
 
 @pytest.mark.parametrize('name', sorted(ALL_BRANCHES))
@@ -108,15 +112,8 @@ def test_inverse_vectorised_matches_scalar(name):
                           st.floats(min_value=0.2, max_value=0.32)))
 def test_one_length_and_an_array_give_the_same_inverse(name, length_m):
     # A float takes math's path (the controller's inverse every sample), an array numpy's.
-    branch = ALL_BRANCHES[name]
-    with np.errstate(over='ignore'):
-        from_array = branch.inverse_unchecked(np.array([length_m]))[0]
-    one = branch.inverse_unchecked(length_m)
-    assert isinstance(one, float)
-    if math.isnan(from_array):
-        assert math.isnan(one)
-    else:
-        assert one == pytest.approx(from_array, rel=1e-12, abs=1e-9)
+    assert_one_as_an_array(ALL_BRANCHES[name].inverse_unchecked, length_m, rel=1e-12,
+                           abs=1e-9)
 
 
 def test_inverse_refuses_lengths_outside_the_reachable_range():
