@@ -379,8 +379,6 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     # While the goal runs, a commander lease: if this command's host or its network to the
     # rig is lost, the driver aborts the sweep and vents (docs/lab-network.md).
     lease = LeaseHolder(session.node, commander_name(session.node, 'pma sweep'))
-    heard = {'at': time.monotonic()}
-    state.on_message(lambda _: heard.update(at=time.monotonic()))
 
     def before() -> None:
         release_holding_controller(session, control, timeout_s)
@@ -395,7 +393,8 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
             lost=SWEEP_LOST, before=before, server='driver_node', heard_from=state)
     finally:
         progress.end()
-        if time.monotonic() - heard['at'] < DRIVER_HEARD_S:
+        heard_at = started if state.received_at is None else state.received_at
+        if time.monotonic() - heard_at < DRIVER_HEARD_S:
             lease.release_before_exit()
         else:
             lease.release()                  # a driver not heard from acknowledges nothing
@@ -411,7 +410,6 @@ def sweep(session: Session, goal: Sweep.Goal, *, timeout_s: float) -> int:
     if cancelled:
         return INTERRUPTED
     return OK if result.success else FAILED
-
 
 
 MOVE_GOAL_FIELDS = ('length_m', 'tolerance_m', 'settle_s', 'timeout_s')

@@ -241,6 +241,7 @@ class Latest:
 
     def __init__(self, node: Node, msg_type, topic: str, qos: QoSProfile, keep: int):
         self.message = None
+        self.received_at: float | None = None     # monotonic time of the newest message
         self.count = 0
         self.history: list = []
         self._keep = keep
@@ -249,6 +250,7 @@ class Latest:
 
     def _on_message(self, message) -> None:
         self.message = message
+        self.received_at = time.monotonic()
         self.count += 1
         if self._keep:
             self.history.append(message)
