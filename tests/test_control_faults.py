@@ -32,7 +32,7 @@ from pma_interfaces.msg import ControlState, LengthSetpoint
 from support.bursts import BurstClient, answered
 from support.control_probe import ControlProbe
 from support.procs import INSTALL, Proc
-from support.ros import shutdown, wait_until
+from support.ros import publish_until, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -92,11 +92,9 @@ class Rig:
         # The driver, the controller and the probe itself subscribe to it.
         wait_until(lambda: self.pressure.get_subscription_count() >= 3, 10,
                    'the driver and the controller on pma/pressure_setpoint')
-        self.pressure.publish(Float64(data=0.0))
-        # The driver takes setpoints best-effort: sent again until the device shows it.
-        wait_until(lambda: self.probe.latest().gauge_setpoint_pa == 0.0
-                   or self.pressure.publish(Float64(data=0.0)) or time.sleep(0.3), 10,
-                   'the device asked for 0 Pa')
+        publish_until(self.pressure, Float64(data=0.0),
+                      lambda: self.probe.latest().gauge_setpoint_pa == 0.0, 10,
+                      'the device asked for 0 Pa')
         wait_until(lambda: self.probe.latest().gauge_setpoint_pa == 0.0
                    and self.probe.latest().gauge_pressure_pa < REST_PA
                    and self.probe.latest_control().mode == ControlState.MODE_IDLE, 15,

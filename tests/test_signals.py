@@ -46,7 +46,7 @@ from support.procs import (
     popen_in_own_group,
     running,
 )
-from support.ros import SpinningNode, shutdown, wait_until
+from support.ros import SpinningNode, publish_until, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -177,13 +177,9 @@ def test_ctrl_c_under_launch_vents_the_muscle(procs, tmp_path):
             driver.wait_for_line('active: publishing', 30)
             # Published until the device has it, as `ros2 topic pub -r` would: the count of
             # subscribers may still include the previous attempt's driver, gone a moment ago.
-            def at_150_kpa() -> bool:
-                if states and states[-1].gauge_setpoint_pa == 150_000.0:
-                    return True
-                setpoint.publish(Float64(data=150_000.0))
-                return False
-
-            wait_until(at_150_kpa, 10, 'the device at 150 kPa', period=0.2)
+            publish_until(setpoint, Float64(data=150_000.0),
+                          lambda: bool(states) and states[-1].gauge_setpoint_pa == 150_000.0,
+                          10, 'the device at 150 kPa', period=0.2)
             send(driver, [(0.0, signal.SIGINT, True), (0.02, signal.SIGINT, False)])
             output = finish(driver)
             assert 'vented' in output, output[-3000:]

@@ -7,14 +7,13 @@ must follow, and answer for, its own muscle: nothing crosses between namespaces.
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 from std_msgs.msg import Float64
 
 from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import PressureForLength
-from support.ros import SpinningNode, shutdown, wait_until
+from support.ros import SpinningNode, publish_until, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -91,13 +90,9 @@ def test_setpoint_on_left_moves_left_only_and_each_model_follows_its_own(rigs, p
     wait_until(lambda: setpoint.get_subscription_count() > 0, 10,
                'left driver subscribed to its setpoint')
     start = {side: len(streams.snapshot('states', side)) for side in SIDES}
-    setpoint.publish(Float64(data=SETPOINT_PA))
-    # The driver takes setpoints best-effort (never late, docs/driver.md): the first one of a
-    # new publisher can be lost while the driver's reader has not matched it yet; sent again
-    # until the device shows it, as `pma set` does.
-    wait_until(lambda: streams.snapshot('states', 'left')[-1].gauge_setpoint_pa == SETPOINT_PA
-               or setpoint.publish(Float64(data=SETPOINT_PA)) or time.sleep(0.3), 10,
-               'left device asked for the setpoint')
+    publish_until(setpoint, Float64(data=SETPOINT_PA),
+                  lambda: streams.snapshot('states', 'left')[-1].gauge_setpoint_pa
+                  == SETPOINT_PA, 10, 'left device asked for the setpoint')
     wait_until(lambda: streams.snapshot('states', 'left')[-1].gauge_pressure_pa
                > SETPOINT_PA - 50_000.0, 30, 'left muscle inflated')
     wait_until(lambda: streams.snapshot('predictions', 'left')[-1].gauge_pressure_pa

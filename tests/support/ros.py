@@ -95,6 +95,14 @@ def wait_until(predicate: Callable[[], bool], timeout: float, what: str,
         raise TimeoutError(f'timed out after {timeout} s waiting for {what}')
 
 
+def publish_until(publisher, message, done: Callable[[], bool], timeout: float, what: str, *,
+                  period: float = 0.3) -> None:
+    """Publish `message` every `period` until `done()`, as `pma set` does: the driver takes
+    pma/pressure_setpoint best-effort, so one message may be lost (a new publisher's first,
+    before the driver's reader has matched it)."""
+    wait_until(lambda: done() or publisher.publish(message) or False, timeout, what, period)
+
+
 def shutdown() -> None:
     if rclpy.ok():
         rclpy.shutdown()
