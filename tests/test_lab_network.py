@@ -300,7 +300,7 @@ def test_the_link_dropping_during_a_sweep_aborts_it_on_the_rig(lab):
     mark = lab.driver.mark()
     sweep = lab.pma_in_background(hosts.workstation, 'sweep', '--max', '300kPa', '--step',
                                   '100kPa', '--hold', '4s', label='pma-sweep')
-    lab.driver.wait_for_line(lambda text: 'sweep: staircase' in text, 30, after=mark)
+    lab.driver.wait_for_line('sweep: staircase', 30, after=mark)
     time.sleep(3.0)
     cut = hosts.down()
     try:
