@@ -423,9 +423,14 @@ def test_a_rig_set_once_and_left_alone_keeps_its_pressure(at_rest):
     result = subprocess.run([str(PMA), 'set', '150kPa'], capture_output=True, text=True,
                             timeout=60, stdin=subprocess.DEVNULL, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
+    # From the first state the probe has with 150 kPa on (states already on their way to it
+    # when `pma set` saw the device follow may still carry 0 Pa; the driver sends in order).
+    wait_until(lambda: rig.probe.latest().gauge_setpoint_pa == 150_000.0, 5,
+               'the probe seeing the device asked for 150 kPa')
     since = time.monotonic()
     time.sleep(3.0)
-    assert {s.gauge_setpoint_pa for s in rig.probe.states_since(since)} == {150_000.0}
+    setpoints = [s.gauge_setpoint_pa for s in rig.probe.states_since(since)]
+    assert set(setpoints) == {150_000.0}, setpoints
     assert 'commander' not in rig.driver.lines_since(mark)
 
 

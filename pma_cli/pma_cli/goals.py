@@ -115,7 +115,9 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
     """(status, result, cancelled) of one goal; a stop signal cancels it and its result is
     still awaited, as long as the server is there (module docstring).
 
-    `before` runs once the server is there, before the goal is sent. `server` names the
+    `on_feedback` is called only once the goal is known as accepted, so whatever it shows
+    means that a stop signal will cancel the goal and wait for its result. `before` runs
+    once the server is there, before the goal is sent. `server` names the
     server's node, said (with how to start it) while it is waited for. `lost` says what a
     server gone during the goal leaves behind; `result_within_s` (from the acceptance), if
     given, is how long the result may take (`late` says why), after which the goal is
@@ -128,9 +130,18 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
     if heard_from is not None:
         heard_from.on_message(lambda _: watch.alive())
 
+    # Feedback can be taken before the acceptance it follows (another entity in the wait
+    # set): it is held until then, so that a stop signal after feedback was shown cancels
+    # a goal this client knows as accepted and waits for its result.
+    early: list = []
+    handle = None
+
     def feedback(message) -> None:
         watch.alive()
-        on_feedback(message.feedback)
+        if handle is None:
+            early[:] = [message.feedback]
+        else:
+            on_feedback(message.feedback)
 
     try:
         if not session.spin_until(client.server_is_ready, timeout_s, waiting_for=server):
@@ -149,6 +160,8 @@ def run_goal(session: Session, action_type, name: str, goal, *, on_feedback, tim
             raise
         if not handle.accepted:
             raise CliError(f'the {what} rejected the goal')
+        if early:
+            on_feedback(early.pop())
         result_future = handle.get_result_async()
         watch.alive()                             # the acceptance was just heard
         deadline = None if result_within_s is None else time.monotonic() + result_within_s
