@@ -63,7 +63,7 @@ from pma_bag.state_seq import pma_state_seq, state_seq_reader  # noqa: F401 (re-
 from pma_common import experiment, names
 from pma_common.commands import run_command
 from pma_common.diagnostics import publish_status
-from pma_common.node import ros_context, spin_until_stopped, without_ros_args
+from pma_common.node import ros_context, spin_until_stopped, take_queued, without_ros_args
 from pma_common.parameters import node_or_exit
 from pma_common.service import SERVICE_QOS
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
@@ -72,6 +72,8 @@ FLUSH_CHECK_S = 0.25
 GRAPH_PERIOD_S = 0.1         # rosbag2's default --topic-polling-interval
 START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its topics to be heard
 START_POLL_S = 0.01
+LOST_WARNING_PERIOD_S = 1.0  # message-lost warnings are summed over this long
+QUEUED_LIMIT = 100           # messages of one topic taken at once, so others get a turn
 DEFAULT_TOPICS = list(names.RECORDED)
 DIAGNOSTICS_TYPE = 'diagnostic_msgs/msg/DiagnosticArray'
 # Types of the PMA topics (and whether they are latched), subscribed before discovery.
@@ -138,6 +140,8 @@ class _Subscribed:
     qos: QoSProfile
     latched: bool
     received: int = 0                                 # messages so far
+    lost_unsaid: int = 0            # lost since the last warning (LOST_WARNING_PERIOD_S)
+    lost_said_at: float = -math.inf
     last_latched: tuple[bytes, dict] | None = None   # (data, info) of a latched topic
 
 
@@ -376,6 +380,9 @@ class Recorder(Node):
 
         def on_message(data, info, entry=entry):
             self.on_message(entry, data, info)
+            # A backlog is written now, not one executor wait per message (take_queued).
+            for queued, queued_info in take_queued(entry.subscription, QUEUED_LIMIT):
+                self.on_message(entry, queued, queued_info)
 
         def on_lost(event, entry=entry):
             self.on_message_lost(entry, event.total_count_change)
@@ -465,8 +472,15 @@ class Recorder(Node):
         with self._lock:
             if self.bag is not None:
                 self.bag.add_dds_lost(entry.topic, count)
-        self.get_logger().warning(f'{count} messages on {entry.topic} lost before reaching '
-                                  'the recorder (DDS message-lost event)')
+        # Said at most once a period: a recorder falling behind gets an event every few
+        # messages, and a warning each (rclpy's logger inspects the caller's frame) made it
+        # fall further behind. The bag's summary counts every one.
+        entry.lost_unsaid += count
+        now = time.monotonic()
+        if now - entry.lost_said_at >= LOST_WARNING_PERIOD_S:
+            self.get_logger().warning(f'{entry.lost_unsaid} messages on {entry.topic} lost '
+                                      'before reaching the recorder (DDS message-lost events)')
+            entry.lost_unsaid, entry.lost_said_at = 0, now
 
     def note_rig_info(self, data: bytes) -> None:
         """Remember the driver's firmware/protocol from its /diagnostics for custom_data."""

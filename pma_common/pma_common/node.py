@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import NoReturn
 
 import rclpy
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import (
     ConditionReachedException,
     Executor,
@@ -37,6 +38,7 @@ from rclpy.executors import (
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import Subscription
 from rclpy.utilities import remove_ros_args
 
 from pma_common.stop import StopRequest, stop_request
@@ -153,6 +155,26 @@ def spin_until_stopped(executor: Executor, node: Node | None, stop: StopRequest,
             executor.spin_once(timeout_sec=SPIN_PERIOD_S)
     except ExternalShutdownException:
         return
+
+
+def take_queued(subscription: Subscription, limit: int) -> Iterator[tuple[object, dict]]:
+    """(message, info) of up to `limit` messages already queued on `subscription`, taken as
+    its executor takes them, in order; ends early when the queue is empty or it is destroyed.
+
+    rclpy's executor takes one message per wait and rebuilds its wait set for each (tens
+    of microseconds in Python per entity of the node); a 1 kHz callback that takes what is
+    queued behind its message catches up on a backlog at the cost of the callbacks alone.
+    """
+    for _ in range(limit):
+        try:
+            with subscription.handle:
+                taken = subscription.handle.take_message(subscription.msg_type,
+                                                         subscription.raw)
+        except InvalidHandle:
+            return
+        if taken is None:
+            return
+        yield taken
 
 
 def run_single_threaded(make_node: Callable[[], Node], args: list[str] | None = None) -> int:

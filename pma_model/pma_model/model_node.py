@@ -25,7 +25,7 @@ from rclpy.qos import (
 
 from pma_common import names
 from pma_common.diagnostics import publish_status
-from pma_common.node import run_single_threaded
+from pma_common.node import run_single_threaded, take_queued
 from pma_common.parameters import declare_or_keep_default
 from pma_common.sequence import SequenceTracker
 from pma_common.service import SERVICE_QOS
@@ -58,6 +58,7 @@ _DESCRIPTIONS = {
 # bench/bench_model_node.py: docs/model.md §7-8).
 STATE_QUEUE_DEPTH = 2000        # 2 s
 PREDICTION_QUEUE_DEPTH = 1000   # 1 s
+QUEUED_STATES_LIMIT = 100       # states predicted at once before the service gets a turn
 
 _RANGES = {
     'deadband_pa': (0.0, 250_000.0),
@@ -153,7 +154,8 @@ class ModelNode(Node):
                                reliability=qos_profile_sensor_data.reliability,
                                durability=qos_profile_sensor_data.durability,
                                history=qos_profile_sensor_data.history)
-        self.create_subscription(PmaState, names.STATE, self._on_state, state_qos)
+        self._state_subscription = self.create_subscription(PmaState, names.STATE,
+                                                            self._on_states, state_qos)
         # Queues a burst (pma_common.service.SERVICE_QOS): with the default 10, of 200
         # requests in flight from 4 clients only 11-41 were answered.
         self.create_service(PressureForLength, names.PRESSURE_FOR_LENGTH,
@@ -309,6 +311,12 @@ class ModelNode(Node):
         self._params_pub.publish(msg)
 
     # --- stream ---------------------------------------------------------------------
+
+    def _on_states(self, state: PmaState) -> None:
+        """The executor's state, then those queued behind it (pma_common.node.take_queued)."""
+        self._on_state(state)
+        for queued, _info in take_queued(self._state_subscription, QUEUED_STATES_LIMIT):
+            self._on_state(queued)
 
     def _on_state(self, state: PmaState) -> None:
         pressure = state.gauge_pressure_pa
