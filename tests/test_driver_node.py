@@ -233,7 +233,10 @@ def test_publishes_plausible_state_pressure_and_range(rig, probe):
     seqs = [m.seq for m in states]
     assert seqs == sorted(seqs)
     stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in states]
-    assert all(b > a for a, b in itertools.pairwise(stamps))
+    back = [(a.seq, a.device_time_s, ta, b.seq, b.device_time_s, tb)
+            for (a, ta), (b, tb) in itertools.pairwise(zip(states, stamps, strict=True))
+            if tb <= ta]
+    assert not back, f'stamps not increasing (seq, device_time_s, stamp twice): {back}'
     now = probe.node.get_clock().now().nanoseconds * 1e-9
     assert abs(now - stamps[-1]) < 1.0                          # ROS time, not device time
     period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
@@ -268,9 +271,10 @@ def hold_setpoint(probe: Probe, setpoint_pa: float) -> list[PmaState]:
                f'pressure ~{setpoint_pa / 1000:.0f} kPa')
     time.sleep(1.0)                                   # past the overshoot of the first fill
     held = probe.wait_states(20)
-    off = [round(m.gauge_pressure_pa) for m in held
-           if abs(m.gauge_pressure_pa - setpoint_pa) > HOLD_BAND_PA]
-    assert not off, f'the device does not hold {setpoint_pa:.0f} Pa: it read {off}'
+    off = [(round(m.gauge_pressure_pa), m.seq, m.status, round(m.gauge_setpoint_pa))
+           for m in held if abs(m.gauge_pressure_pa - setpoint_pa) > HOLD_BAND_PA]
+    assert not off, (f'the device does not hold {setpoint_pa:.0f} Pa: it read (Pa, seq, '
+                     f'status, setpoint Pa) {off}')
     assert {m.gauge_setpoint_pa for m in held} == {setpoint_pa}
     return held
 
