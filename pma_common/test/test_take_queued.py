@@ -4,14 +4,13 @@ subscription ends it quietly."""
 
 from __future__ import annotations
 
-import time
-
 import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Int32
 
 from pma_common.node import take_queued
+from pma_common.service import poll
 
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -21,10 +20,7 @@ def queued_node(context, name: str, raw: bool, count: int):
     node = rclpy.create_node(name, context=context)
     subscription = node.create_subscription(Int32, name, lambda _msg: None, QOS, raw=raw)
     publisher = node.create_publisher(Int32, name, QOS)
-    deadline = time.monotonic() + 10
-    while publisher.get_subscription_count() < 1:
-        assert time.monotonic() < deadline, 'the subscription never matched'
-        time.sleep(0.01)
+    assert poll(lambda: publisher.get_subscription_count() >= 1, 10), 'never matched'
     for value in range(count):
         publisher.publish(Int32(data=value))
     assert publisher.wait_for_all_acked(rclpy.duration.Duration(seconds=10))
