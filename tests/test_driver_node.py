@@ -19,6 +19,7 @@ import json
 import math
 import os
 import random
+import statistics
 import threading
 import time
 from pathlib import Path
@@ -232,15 +233,19 @@ def test_publishes_plausible_state_pressure_and_range(rig, probe):
         assert 0 <= msg.pressure_adc <= 1023 and msg.echo_us > 0
     seqs = [m.seq for m in states]
     assert seqs == sorted(seqs)
-    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in states]
+    # Integer nanoseconds: a double holds today's stamps to ~0.2 us, and stamps a nanosecond
+    # apart are what clock_sync publishes while its estimate catches up with a late start.
+    stamps_ns = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in states]
     back = [(a.seq, a.device_time_s, ta, b.seq, b.device_time_s, tb)
-            for (a, ta), (b, tb) in itertools.pairwise(zip(states, stamps, strict=True))
+            for (a, ta), (b, tb) in itertools.pairwise(zip(states, stamps_ns, strict=True))
             if tb <= ta]
-    assert not back, f'stamps not increasing (seq, device_time_s, stamp twice): {back}'
-    now = probe.node.get_clock().now().nanoseconds * 1e-9
-    assert abs(now - stamps[-1]) < 1.0                          # ROS time, not device time
-    period = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
-    assert period == pytest.approx(1 / 20.0, rel=0.15)          # sample_rate_hz default 20
+    assert not back, f'stamps not increasing (seq, device_time_s, stamp_ns twice): {back}'
+    now_ns = probe.node.get_clock().now().nanoseconds
+    assert abs(now_ns - stamps_ns[-1]) < 10**9                  # ROS time, not device time
+    # The median step: the stamps of a driver that started late on a busy host close up until
+    # its clock estimate has caught up (docs/driver.md, Time stamps).
+    period = statistics.median(b - a for a, b in itertools.pairwise(stamps_ns)) / 1e9
+    assert period == pytest.approx(1 / 20.0, rel=0.15), stamps_ns    # sample_rate_hz 20
     wait_until(lambda: probe.pressures and probe.ranges, 5.0, 'pressure and range')
     pressure, ranged = probe.pressures[-1], probe.ranges[-1]
     assert pressure.fluid_pressure == pytest.approx(101_325.0, abs=10_000.0)   # absolute
