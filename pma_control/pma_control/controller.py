@@ -32,6 +32,7 @@ lengths is refused with the range.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import math
 from dataclasses import dataclass, fields
 
@@ -108,7 +109,7 @@ def _feedback_only_here(model: OnlineRule) -> OnlineRule:
 
 
 class LengthController:
-    """Feed it every sample (`update`); aim it with `set_target`."""
+    """Feed it every sample (`update`, or `command` then `explain`); aim it with `set_target`."""
 
     def __init__(self, model: OnlineRule, settings: ControllerSettings | None = None):
         self.settings = settings or ControllerSettings()
@@ -129,6 +130,8 @@ class LengthController:
         self._command_pa: float | None = None
         self._last_t: float | None = None
         self._dt = 0.0
+        # (aim, wanted, the command before) of the last `command`, until `explain`
+        self._unexplained: tuple[float, float, float] | None = None
 
     def replace_model(self, model: OnlineRule) -> None:
         """A new fit (a refit was loaded): keep the muscle's history and the learned bias."""
@@ -177,7 +180,16 @@ class LengthController:
 
     def update(self, t_s: float, gauge_pressure_pa: float, measured_length_m: float
                ) -> ControlOutput:
-        """One sample in, one command out. A NaN length (no echo) leaves the bias as it is."""
+        """One sample in, one command out, explained. A NaN length (no echo) leaves the bias
+        as it is."""
+        return self.explain(self.command(t_s, gauge_pressure_pa, measured_length_m))
+
+    def command(self, t_s: float, gauge_pressure_pa: float, measured_length_m: float
+                ) -> ControlOutput:
+        """`update` without its explanation: in 'ff_fb' the output's feedforward_pa is NaN
+        and its feedback_pa the whole command until `explain`. The pure feedforward costs an
+        inverse of its own, which a loop makes after sending the command."""
+        self._unexplained = None
         s = self.settings
         dt = 0.0 if self._last_t is None else max(0.0, t_s - self._last_t)
         self._last_t, self._dt = t_s, dt
@@ -238,8 +250,8 @@ class LengthController:
         bias = self._bias_m if s.mode == 'ff_fb' else 0.0
         # The model must make this much now: through creep, aimed ahead of the setpoint.
         aim = self.model.settled_aim_m(setpoint - bias, s.creep_lead_max_share)
-        feedforward, _, _ = self._inverse(aim)
         if s.mode == 'ff':
+            feedforward, _, _ = self._inverse(aim)
             return self._limited(feedforward, feedforward, setpoint=setpoint,
                                  estimate=estimate, model_m=model_m, low=False, high=False)
         integrate = abs(error) > s.error_deadband_m and not self._ramping
@@ -248,8 +260,20 @@ class LengthController:
         wanted, low, high = self._inverse(aim + s.kp * error + self._integral)
         if (low and error > 0) or (high and error < 0):
             self._integral -= step            # anti-windup: the inverse is at an end already
-        return self._limited(wanted, feedforward, setpoint=setpoint, estimate=estimate,
+        self._unexplained = (aim, wanted, self._command_pa)
+        return self._limited(wanted, math.nan, setpoint=setpoint, estimate=estimate,
                              model_m=model_m, low=low, high=high)
+
+    def explain(self, output: ControlOutput) -> ControlOutput:
+        """The last `command`'s output with its feedforward and feedback parts (the model has
+        not moved since, so its inverse is the one the command was made with)."""
+        if self._unexplained is None:
+            return output
+        aim, wanted, command_before = self._unexplained
+        self._unexplained = None
+        feedforward, _, _ = self._inverse(aim, command_before)
+        return dataclasses.replace(output, feedforward_pa=feedforward,
+                                   feedback_pa=wanted - feedforward)
 
     def _feedback_only(self, setpoint: float, estimate: float, error: float,
                        dt: float) -> ControlOutput:
@@ -265,13 +289,15 @@ class LengthController:
                              model_m=math.nan, low=wanted <= 0.0,
                              high=wanted >= s.max_gauge_pressure_pa)
 
-    def _inverse(self, model_length_m: float) -> tuple[float, bool, bool]:
-        """(pressure, at 0 Pa end, at max end) that makes the model this long from here."""
+    def _inverse(self, model_length_m: float, command_pa: float | None = None
+                 ) -> tuple[float, bool, bool]:
+        """(pressure, at 0 Pa end, at max end) that makes the model this long from here; a
+        model without an answer keeps the command (`command_pa`, else the last one)."""
         result = self.model.pressure_for_length(model_length_m, BRANCH_AUTO)
         if result.success:
             return result.gauge_pressure_pa, False, False
         if not math.isfinite(result.min_length_m):
-            return self._command_pa, False, False
+            return (self._command_pa if command_pa is None else command_pa), False, False
         if model_length_m < result.min_length_m:     # shorter than possible: full pressure
             return self.settings.max_gauge_pressure_pa, False, True
         return 0.0, True, False

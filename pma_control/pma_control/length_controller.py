@@ -260,7 +260,7 @@ class LengthControllerNode(Node):
                 self._fault = ''
         self._check_device_setpoint(state.gauge_setpoint_pa)
         t_s = state.header.stamp.sec + state.header.stamp.nanosec * 1e-9
-        output = self._controller.update(t_s, state.gauge_pressure_pa, state.length_m)
+        output = self._controller.command(t_s, state.gauge_pressure_pa, state.length_m)
         self._last_state, self._last_output = state, output
         if self._controller.target_m is not None and not self._fault:
             silent = self._lease.silent_s()
@@ -270,6 +270,7 @@ class LengthControllerNode(Node):
                              'and vented it', fault=True)
             else:
                 self._command(float(output.command_pa))
+        output = self._last_output = self._controller.explain(output)   # off the command's path
         self._state_pub.publish(self._control_state(state, output))
 
     # -- the muscle taken out of the controller's hands ---------------------------------

@@ -31,7 +31,7 @@ def track(mode: str, family: str, profile, duration_s: float, *, seed: int, rate
 
     def step(t_s, pressure_pa, length_m):
         control.set_target(profile(t_s))
-        return control.update(t_s, pressure_pa, length_m).command_pa
+        return control.command(t_s, pressure_pa, length_m).command_pa
 
     config = DeviceConfig(rate_hz=rate_hz, heartbeat_check=False, seed=seed)
     rig = Rig(config, muscle_family(family))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -62,6 +63,31 @@ def test_every_command_is_within_zero_and_the_maximum(mode, steps, max_pa):
             control.set_target(target)
         output = control.update(0.05 * k, pressure, length)
         assert 0.0 <= output.command_pa <= max_pa
+
+
+@settings(max_examples=50, deadline=None)
+@given(mode=st.sampled_from(MODES),
+       steps=st.lists(st.tuples(st.floats(0.0, 500_000.0),
+                                st.one_of(st.floats(0.24, 0.30), st.just(math.nan)),
+                                st.one_of(st.none(), st.floats(0.245, 0.295))),
+                      min_size=1, max_size=40))
+def test_a_command_explained_later_is_the_update_and_leaves_the_loop_as_it_was(mode, steps):
+    """The loop sends `command` and explains afterwards (length_controller): the same outputs
+    as `update`, and explaining now and then changes no later command."""
+    updated, commanded, unexplained = controller(mode), controller(mode), controller(mode)
+    for k, (pressure, length, target) in enumerate(steps):
+        if target is not None:
+            for control in (updated, commanded, unexplained):
+                control.set_target(target)
+        whole = updated.update(0.05 * k, pressure, length)
+        explained = commanded.explain(commanded.command(0.05 * k, pressure, length))
+        np.testing.assert_equal(dataclasses.astuple(explained), dataclasses.astuple(whole))
+        bare = unexplained.command(0.05 * k, pressure, length)
+        assert bare.command_pa == whole.command_pa
+        if mode == 'ff_fb' and math.isfinite(whole.feedforward_pa):
+            # Unexplained, what the feedback would add is the whole wanted command.
+            assert whole.feedforward_pa + whole.feedback_pa == pytest.approx(
+                bare.feedback_pa, abs=1e-6)
 
 
 def test_the_pressure_rate_limit_holds():

@@ -55,6 +55,11 @@ ATTACH_SETTLE_S = 0.05
 
 
 MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
+# A loop pass this much longer than MAX_WAIT_S means this process was not scheduled: the
+# device then ran through the gap without the host's bytes (which wait in the pty), so a
+# gap over the heartbeat timeout vents it, as a real board never would. Said, to tell the
+# two apart in a test's log.
+UNSCHEDULED_WARNING_S = 0.5
 
 
 class _ListMuscles(argparse.Action):
@@ -393,9 +398,15 @@ def run(args: argparse.Namespace, stop: StopRequest,
     port = plug_in()
     boot = time.monotonic()
     stalled = False
+    last_pass = time.monotonic()
     try:
         while not stop.is_set():
             now = time.monotonic()
+            if now - last_pass > MAX_WAIT_S + UNSCHEDULED_WARNING_S:
+                log.warning('the device loop was away for %.2f s (this process not '
+                            'scheduled, or simulating behind): the device ran through it '
+                            'without host input', now - last_pass)
+            last_pass = now
             if unplug_at is not None and now >= unplug_at:
                 log.warning('simulated unplug: closing %s', port.path)
                 link.remove()
