@@ -5,19 +5,20 @@ Plain Python, no ROS. The host sees each sample some time after the device took 
 long tail (USB polling, buffering, a busy host). So `receive - device_time` is the
 clock offset plus a latency, and its *lower envelope* is the offset plus the smallest
 latency. We track that envelope and stamp with it: the minimum of the observed offset
-in blocks of `block_s` of device time, a straight line through the block minima of the
-last `window_s` (the slope is the drift of the device's resonator against the host
-clock), lowered until no block minimum lies below it. A stamp is never later than the
-sample's receive time, and stamps only go forward while the host clock does: when the
-envelope drops (the first lines came late) or lines read together share a receive time, a
-stamp that would not follow the last one is put a nanosecond after it (for lines read
-together, a few nanoseconds past their shared receive time). docs/driver.md describes the
-method and its limits.
+in blocks of `block_s` of device time, and the highest straight line under the block
+minima of the last `window_s` on average (the slope is the drift of the device's resonator
+against the host clock; blocks a faster fall shows were late are dropped). A stamp is
+never later than the sample's receive time, and stamps only go forward while the host
+clock does: when the envelope drops (the first lines came late) or lines read together
+share a receive time, a stamp that would not follow the last one is put a nanosecond after
+it (for lines read together, a few nanoseconds past their shared receive time).
+docs/driver.md describes the method and its limits.
 """
 
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 
 from pma_common.protocol import U32
@@ -148,20 +149,46 @@ class ClockSync:
             self._intercept -= below
 
     def _fit(self) -> None:
+        """The offset line: the highest line under every block minimum at their mean time.
+
+        That is the lower convex hull's edge over the mean (Moon, Skelly and Towsley, 1999:
+        the linear program "below every point, as high as possible on average"), within the
+        drift bound. A hull edge that falls faster than any clock drifts is latency that
+        ended (the host read the first seconds late): the blocks before it were late, and are
+        forgotten. A least-squares line through the minima let such blocks tilt it to the
+        drift bound, and the stamps walked away from the samples by 20 ms a second until the
+        late blocks left the window.
+        """
+        hull = _lower_hull(list(self._blocks))
+        for (x0, y0), (x1, y1) in itertools.pairwise(hull):
+            if y1 - y0 < -self.max_drift * (x1 - x0):
+                while self._blocks[0][0] < x1:
+                    self._blocks.popleft()
         points = list(self._blocks)
         if len(points) < 3:
             self._slope = 0.0
             self._intercept = min(p[1] for p in points)
             return
-        n = len(points)
-        mean_x = sum(p[0] for p in points) / n
-        mean_y = sum(p[1] for p in points) / n
-        sxx = sum((p[0] - mean_x) ** 2 for p in points)
-        sxy = sum((p[0] - mean_x) * (p[1] - mean_y) for p in points)
-        slope = sxy / sxx if sxx > 0 else 0.0
-        slope = max(-self.max_drift, min(self.max_drift, slope))
-        intercept = mean_y - slope * mean_x
-        # Lower envelope: no block minimum may lie below the line.
-        intercept -= max(0.0, *(intercept + slope * p[0] - p[1] for p in points))
-        self._slope = slope
-        self._intercept = intercept
+        mean_x = sum(p[0] for p in points) / len(points)
+        slope = 0.0
+        for (x0, y0), (x1, y1) in itertools.pairwise(_lower_hull(points)):
+            if x0 <= mean_x <= x1:
+                slope = (y1 - y0) / (x1 - x0)
+                break
+        self._slope = max(-self.max_drift, min(self.max_drift, slope))
+        self._intercept = min(y - self._slope * x for x, y in points)
+
+
+def _lower_hull(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The lower convex hull of points in increasing x (Andrew's monotone chain)."""
+    hull: list[tuple[float, float]] = []
+    for point in points:
+        while len(hull) >= 2:
+            (x0, y0), (x1, y1) = hull[-2], hull[-1]
+            # Drop the middle point unless it lies strictly below the chord to the new one.
+            if (x1 - x0) * (point[1] - y0) - (y1 - y0) * (point[0] - x0) <= 0.0:
+                hull.pop()
+            else:
+                break
+        hull.append(point)
+    return hull
