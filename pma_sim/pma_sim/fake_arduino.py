@@ -55,6 +55,10 @@ ATTACH_SETTLE_S = 0.05
 
 
 MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
+# The most device time run before the host's waiting bytes are handed over. A simulator
+# behind the wall clock (simavr on a loaded machine) would otherwise run a second of firmware
+# in one go without the heartbeats the host sent meanwhile, and vent as no board would.
+MAX_ADVANCE_MS = 50
 # A loop pass this much longer than MAX_WAIT_S means this process was not scheduled: the
 # device then ran through the gap without the host's bytes (which wait in the pty), so a
 # gap over the heartbeat timeout vents it, as a real board never would. Said, to tell the
@@ -361,6 +365,17 @@ class TruthLog:
                     for row in csv.DictReader(stream)}
 
 
+def advance(device: SimDevice, port: PtyPort, t_ms: int) -> None:
+    """Run `device` to `t_ms`, handing it what the host wrote every MAX_ADVANCE_MS."""
+    while device.t_ms + MAX_ADVANCE_MS < t_ms:
+        device.advance_to(device.t_ms + MAX_ADVANCE_MS)
+        if port.wait_readable(0.0):
+            data = port.read()
+            if data:
+                device.receive(data)
+    device.advance_to(t_ms)
+
+
 def run(args: argparse.Namespace, stop: StopRequest,
         make_device: Callable[[DeviceConfig, Rig], SimDevice] = SimDevice,
         prog: str = 'fake_arduino') -> int:
@@ -427,7 +442,7 @@ def run(args: argparse.Namespace, stop: StopRequest,
                 boot = now
                 log.info('device rebooted: seq and clock restart')
 
-            device.advance_to(int((now - boot) * 1000))
+            advance(device, port, int((now - boot) * 1000))
             in_stall = stall is not None and stall[0] <= now < stall[1]
             if in_stall != stalled:
                 log.warning('simulated stall %s', 'begins' if in_stall else 'ends')
@@ -457,9 +472,9 @@ def run(args: argparse.Namespace, stop: StopRequest,
             deadlines += [t for t in (unplug_at, stall and stall[0], stall and stall[1])
                           if t is not None and t > now]
             if port.wait_readable(min(min(deadlines) - time.monotonic(), MAX_WAIT_S)):
+                advance(device, port, int((time.monotonic() - boot) * 1000))
                 data = port.read()
                 if data:
-                    device.advance_to(int((time.monotonic() - boot) * 1000))
                     device.receive(data)
         log.info('%s: shutting down', stop.reason)
     finally:

@@ -16,7 +16,10 @@ gets the rig's pressure reading (`Rig.read_adc`, as volts on A0), the end of a t
 gets the echo width (`Rig.read_echo_us`, played back on the echo pin 0.45 ms later). Valve
 pin changes come back stamped with their cycle, and the physics steps at 1 ms in that same
 simulated time, as in fake_arduino. simavr runs 2.5-4 times faster than the board on one
-core here, so the AVR keeps up with the wall clock and catches up after a stall.
+core here, so the AVR keeps up with the wall clock and catches up after a stall. On a
+loaded machine it can fall behind: the loop then runs it 50 ms at a time
+(fake_arduino.advance) and hands it what the host wrote in between, so the firmware never
+runs a second without the heartbeats the host did send.
 
 Prints what fake_arduino prints (`simavr_arduino: device at ...`, `simavr_arduino: stats
 ...`) and, at exit, `simavr_arduino: firmware ...` with what only the real image can tell:

@@ -4,6 +4,7 @@ import itertools
 import os
 import re
 import signal
+import threading
 import time
 
 import pytest
@@ -14,6 +15,7 @@ from pma_common.calibration import PressureCalibration
 from pma_common.protocol import Ack, FrameDecoder, Hello, Sample
 from pma_common.sequence import SequenceStats, SequenceTracker
 from pma_sim import fake_arduino
+from pma_sim.device import DeviceConfig, SimDevice
 
 DEVICE_LINE = re.compile(r'^fake_arduino: device at (/dev/pts/\d+)$')
 STATS_FIELDS = ('sent', 'bad_checksum', 'garbage', 'dropped', 'split', 'echo_timeouts')
@@ -184,6 +186,49 @@ def test_what_a_host_wrote_just_before_it_closed_is_still_received():
         assert port.read() == vent
         assert not port.wait_readable(0.0)    # then nothing: no busy loop on a closed pty
     finally:
+        port.close()
+
+
+class SlowDevice(SimDevice):
+    """SimDevice taking 1.5 ms of wall time per simulated millisecond, as simavr does on a
+    loaded machine."""
+
+    def _step(self):
+        super()._step()
+        time.sleep(0.0015)
+
+
+@pytest.mark.parametrize('in_chunks', [True, False])
+def test_a_device_behind_the_wall_clock_gets_the_heartbeats_sent_meanwhile(in_chunks):
+    """Two seconds of device time run in three of wall time while the host sends a heartbeat
+    every 200 ms. Handed over as they come (fake_arduino.advance), the device holds; run in
+    one go, as the loop did before, it goes a second without them and vents (the simavr
+    failures of the full runs: status 'heartbeat lost' while holding 200 kPa)."""
+    port = fake_arduino.PtyPort()
+    host = os.open(port.path, os.O_RDWR | os.O_NOCTTY)
+    stop = threading.Event()
+
+    def heartbeats():
+        while not stop.wait(0.2):
+            os.write(host, protocol.encode_command('HB'))
+
+    try:
+        assert port.check_host()
+        device = SlowDevice(DeviceConfig(rate_hz=50))
+        device.receive(protocol.encode_command('SET', 100_000))
+        sender = threading.Thread(target=heartbeats)
+        sender.start()
+        if in_chunks:
+            fake_arduino.advance(device, port, 2_000)
+        else:
+            device.advance_to(2_000)
+        samples = samples_of(FrameDecoder().feed(b''.join(device.take_output())))
+        vented = [s.t_ms for s in samples if s.status & protocol.STATUS_HEARTBEAT_LOST]
+        assert len(samples) >= 90
+        assert (not vented) == in_chunks, vented[:3]
+    finally:
+        stop.set()
+        os.close(host)
         port.close()
 
 
