@@ -251,20 +251,27 @@ class CommandMatcher:
         self.latencies: list[float] = []
 
     def command(self, value: float, arrived_ns: int) -> None:
-        for k, (wanted, state_ns) in enumerate(self.waiting):
-            if wanted == value:
-                del self.waiting[k]
-                self.latencies.append((arrived_ns - state_ns) / 1e6)
-                return
-        self.commands.append((value, arrived_ns))
+        state_ns = self._take(self.waiting, value)
+        if state_ns is None:
+            self.commands.append((value, arrived_ns))
+        else:
+            self.latencies.append((arrived_ns - state_ns) / 1e6)
 
     def control_state(self, value: float, state_ns: int) -> None:
-        for k, (sent, arrived_ns) in enumerate(self.commands):
-            if sent == value:
-                del self.commands[k]
-                self.latencies.append((arrived_ns - state_ns) / 1e6)
-                return
-        self.waiting.append((value, state_ns))
+        arrived_ns = self._take(self.commands, value)
+        if arrived_ns is None:
+            self.waiting.append((value, state_ns))
+        else:
+            self.latencies.append((arrived_ns - state_ns) / 1e6)
+
+    @staticmethod
+    def _take(pending: list[tuple[float, int]], value: float) -> int | None:
+        """Remove the oldest entry of `pending` for `value`; its time, or None."""
+        for k, (pending_value, ns) in enumerate(pending):
+            if pending_value == value:
+                del pending[k]
+                return ns
+        return None
 
     def clear(self) -> None:
         self.commands.clear()

@@ -273,7 +273,7 @@ class LengthController:
         self._unexplained = None
         feedforward, _, _ = self._inverse(aim, command_before)
         return dataclasses.replace(output, feedforward_pa=feedforward,
-                                   feedback_pa=wanted - feedforward)
+                                   feedback_pa=_feedback_part(wanted, feedforward))
 
     def _feedback_only(self, setpoint: float, estimate: float, error: float,
                        dt: float) -> ControlOutput:
@@ -308,9 +308,9 @@ class LengthController:
         clamped = min(max(wanted, 0.0), s.max_gauge_pressure_pa)
         step = s.max_pressure_rate_pa_s * self._dt
         command = min(max(clamped, self._command_pa - step), self._command_pa + step)
-        feedback = wanted - feedforward if math.isfinite(feedforward) else wanted
-        return self._output(command, feedforward, feedback, setpoint=setpoint,
-                            estimate=estimate, model_m=model_m, low=low or wanted < 0.0,
+        return self._output(command, feedforward, _feedback_part(wanted, feedforward),
+                            setpoint=setpoint, estimate=estimate, model_m=model_m,
+                            low=low or wanted < 0.0,
                             high=high or wanted > s.max_gauge_pressure_pa,
                             rate_limited=command != clamped)
 
@@ -320,6 +320,11 @@ class LengthController:
         self._command_pa = command
         return ControlOutput(command, feedforward, feedback, setpoint, estimate, model_m,
                              self._bias_m, low, high, rate_limited)
+
+
+def _feedback_part(wanted: float, feedforward: float) -> float:
+    """What the feedback adds to the feedforward (all of `wanted` without a feedforward)."""
+    return wanted - feedforward if math.isfinite(feedforward) else wanted
 
 
 class RecentMean:

@@ -160,10 +160,15 @@ class ClockSync:
         late blocks left the window.
         """
         hull = _lower_hull(list(self._blocks))
+        late_until = None
         for (x0, y0), (x1, y1) in itertools.pairwise(hull):
             if y1 - y0 < -self.max_drift * (x1 - x0):
-                while self._blocks[0][0] < x1:
-                    self._blocks.popleft()
+                late_until = x1
+        if late_until is not None:
+            while self._blocks[0][0] < late_until:
+                self._blocks.popleft()
+            # The lower hull of the points from one of its vertices on is its rest.
+            hull = [point for point in hull if point[0] >= late_until]
         points = list(self._blocks)
         if len(points) < 3:
             self._slope = 0.0
@@ -171,7 +176,7 @@ class ClockSync:
             return
         mean_x = sum(p[0] for p in points) / len(points)
         slope = 0.0
-        for (x0, y0), (x1, y1) in itertools.pairwise(_lower_hull(points)):
+        for (x0, y0), (x1, y1) in itertools.pairwise(hull):
             if x0 <= mean_x <= x1:
                 slope = (y1 - y0) / (x1 - x0)
                 break

@@ -59,10 +59,10 @@ MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
 # behind the wall clock (simavr on a loaded machine) would otherwise run a second of firmware
 # in one go without the heartbeats the host sent meanwhile, and vent as no board would.
 MAX_ADVANCE_MS = 50
-# A loop pass this much longer than MAX_WAIT_S means this process was not scheduled: the
-# device then ran through the gap without the host's bytes (which wait in the pty), so a
-# gap over the heartbeat timeout vents it, as a real board never would. Said, to tell the
-# two apart in a test's log.
+# A loop pass this much longer than MAX_WAIT_S: this process was not scheduled, or the device
+# simulates slower than real time. A process away longer than the heartbeat timeout hands
+# the device the host's bytes of the gap at its start only, so it vents as a real board
+# never would. Said, so that a test's log shows a simulator that could not keep up.
 UNSCHEDULED_WARNING_S = 0.5
 
 
@@ -418,9 +418,9 @@ def run(args: argparse.Namespace, stop: StopRequest,
         while not stop.is_set():
             now = time.monotonic()
             if now - last_pass > MAX_WAIT_S + UNSCHEDULED_WARNING_S:
-                log.warning('the device loop was away for %.2f s (this process not '
-                            'scheduled, or simulating behind): the device ran through it '
-                            'without host input', now - last_pass)
+                log.warning('a pass of the device loop took %.2f s (this process not '
+                            'scheduled, or the device simulating slower than real time)',
+                            now - last_pass)
             last_pass = now
             if unplug_at is not None and now >= unplug_at:
                 log.warning('simulated unplug: closing %s', port.path)
