@@ -382,6 +382,15 @@ def test_a_port_that_is_not_a_number_is_refused_in_one_line(procs):
         in bridge.output and 'Traceback' not in bridge.output
 
 
+# The demo test's own deadlines: its URL, 20 states and predictions through the viewer, its
+# stop. With two test workers and the in-process tests beside it, the demo's six children take
+# a minute or more to start (106 and 140 s for the whole test in one local run); pytest-timeout
+# must come after these, so a slow run fails where it was, not wherever 180 s fell (CI: inside
+# a decode after every wait had been met).
+DEMO_URL_S, DEMO_STREAM_S, DEMO_STOP_S = 60, 90, 60
+
+
+@pytest.mark.timeout(DEMO_URL_S + DEMO_STREAM_S + DEMO_STOP_S + 60)
 @pytest.mark.parametrize('stop_signal', [signal.SIGINT, signal.SIGHUP],
                          ids=['ctrl-c', 'terminal-closed'])
 def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path, stop_signal):
@@ -396,16 +405,19 @@ def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path, stop_sign
     demo = procs.ros2_run('pma_bringup', 'demo', '--runs-dir', str(tmp_path), '--live-port',
                           '0', '--hold-s', '0.3', name='demo',
                           env={'ROS_DOMAIN_ID': str(another_domain())})
-    client = None
+    client, started = None, time.monotonic()
     try:
-        url = URL.search(demo.wait_for_line('live view: ws://', 60)).group(0)
+        url = URL.search(demo.wait_for_line('live view: ws://', DEMO_URL_S)).group(0)
+        print(f'demo: its URL after {time.monotonic() - started:.1f} s')
         layout = demo.wait_for_line('its layout: ', 5).split('its layout: ')[1].split('  (')[0]
         assert json.loads(open(layout).read()) == json.loads(LAYOUT.read_text())
         client = FoxgloveClient(url)
         client.follow([STATE, PREDICTION])
-        client.wait(lambda c: min(len(c.received(t)) for t in (STATE, PREDICTION)) >= 20, 90,
-                    '20 states and 20 predictions')
-        states = [Decoder(client.channel_for(STATE))(m)[0] for m in client.received(STATE)]
+        client.wait(lambda c: min(len(c.received(t)) for t in (STATE, PREDICTION)) >= 20,
+                    DEMO_STREAM_S, '20 states and 20 predictions')
+        print(f'demo: 20 states and predictions after {time.monotonic() - started:.1f} s')
+        decode = Decoder(client.channel_for(STATE))   # one: each compiles its decoder
+        states = [decode(m)[0] for m in client.received(STATE)]
         assert all(0.2 < s.length_m < 0.35 for s in states)
     finally:
         if client is not None:
@@ -414,7 +426,9 @@ def test_the_demo_prints_a_working_url_and_the_layout(procs, tmp_path, stop_sign
         # it gets the signal and the time to do so (the fixture's escalation is shorter).
         children = children_of(demo.popen.pid)
         demo.signal(stop_signal)
-        code = demo.popen.wait(60)
+        stopping = time.monotonic()
+        code = demo.popen.wait(DEMO_STOP_S)
+        print(f'demo: stopped {time.monotonic() - stopping:.1f} s after the signal')
         left_running = [pid for pid in children if running(pid)]
         for pid in left_running:             # not to burden the tests that follow
             os.kill(pid, signal.SIGKILL)

@@ -16,6 +16,7 @@ the entry point on, every signal is a clean stop.
 
 from __future__ import annotations
 
+import itertools
 import os
 import random
 import signal
@@ -228,8 +229,12 @@ def test_a_controller_holding_a_lease_lets_go_cleanly_under_any_burst(procs, tmp
             assert 'lost: no renewal' not in said, said
             since = states[first:]
             assert len(since) > 15, 'pma/state stopped'
-            assert {s.gauge_setpoint_pa for s in since} == {since[0].gauge_setpoint_pa}
-            assert since[0].gauge_setpoint_pa > 0.0 and since[-1].gauge_pressure_pa > 150_000.0
+            # Held, not vented: the states in flight when the controller exited may still
+            # show the setpoint before its last one, so at most one change, to a non-zero one.
+            setpoints = [s.gauge_setpoint_pa for s in since]
+            changes = [(a, b) for a, b in itertools.pairwise(setpoints) if a != b]
+            assert len(changes) <= 1 and min(setpoints) > 0.0, setpoints
+            assert since[-1].gauge_pressure_pa > 150_000.0, since[-1]
     finally:
         probe.close()
         shutdown()

@@ -82,6 +82,8 @@ class DeviceControl:
         self.commander_lost_action = commander_lost_action
         self._lease_lock = threading.Lock()
         self.last_commander_lost = ''            # who was lost last, and why we think so
+        # The last check came late with a lease held, so it judged nobody (CommanderLeases).
+        self.lease_check_held_up = False
 
     # -- state ---------------------------------------------------------------------------
 
@@ -269,7 +271,10 @@ class DeviceControl:
         vent, or hold the pressure; a running sweep aborts either way (it sees lost_count
         rise). What happened, one line per commander."""
         with self._lease_lock:
+            late_before = self.leases.late_checks
             lost = self.leases.expired(self.clock())
+            self.lease_check_held_up = (self.leases.late_checks > late_before
+                                        and bool(self.leases.holders()))
             whats = [f'commander {lease.commander} lost: no renewal of its lease for '
                      f'{self.leases.timeout_s:g} s (network down, or its host stopped)'
                      for lease in lost]

@@ -35,7 +35,9 @@ class CommanderLeases:
         self._held: dict[str, Lease] = {}
         self._revoked: dict[str, Lease] = {}
         self.lost_count = 0
+        self.late_checks = 0      # checks that judged nobody because they came late
         self._checked_at: float | None = None
+        self._skipped_last = False
 
     def renew(self, lease_id: str, commander: str, holding: bool, now: float) -> bool:
         """Note a lease message; False when it renews a revoked lease (it is ignored)."""
@@ -61,11 +63,15 @@ class CommanderLeases:
 
         Called every tenth of the timeout. A call that comes more than half a timeout after
         the last one finds the checker itself was held up (a starved process): renewals may
-        be waiting behind it, so it judges nobody this time, only the next."""
+        be waiting behind it, so it judges nobody this time, only the next, however late that
+        one is: a checker late at every call must still find a silent commander lost."""
         late = self._checked_at is not None and now - self._checked_at > 0.5 * self.timeout_s
         self._checked_at = now
-        if late:
+        if late and not self._skipped_last:
+            self._skipped_last = True
+            self.late_checks += 1
             return []
+        self._skipped_last = False
         for lease_id in [key for key, lease in self._revoked.items()
                          if now - lease.renewed_at > REVOKED_KEEP_S]:
             del self._revoked[lease_id]

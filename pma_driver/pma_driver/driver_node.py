@@ -344,7 +344,13 @@ class PmaDriver(Node):
                 'are refused until it lets go', throttle_duration_sec=2.0)
 
     def _check_leases(self) -> None:
-        for event in self._control.check_leases():
+        events = self._control.check_leases()
+        if self._control.lease_check_held_up:
+            # Judged at the next check instead: said, since a vent then comes that much later.
+            self.get_logger().warning(
+                'commander-lease check came over half a commander_timeout_s late (this '
+                'process was held up); judging at the next one', throttle_duration_sec=5.0)
+        for event in events:
             self._last_commander_lost = (event, f'{self.get_clock().now().nanoseconds / 1e9:.3f}',
                                          time.monotonic())
             self.get_logger().error(event)
@@ -454,6 +460,7 @@ class PmaDriver(Node):
                 'last fault': (f'{self._last_fault[0]} at {self._last_fault[1]} s'
                                if self._last_fault[0] else '-'),
                 'commanders holding a lease': ', '.join(self._control.leases.holders()) or '-',
+                'lease checks held up': str(self._control.leases.late_checks),
                 'last commander lost': (f'{self._last_commander_lost[0]} at '
                                         f'{self._last_commander_lost[1]} s'
                                         if self._last_commander_lost[0] else '-'),

@@ -44,6 +44,28 @@ def test_a_late_check_judges_nobody_until_the_next():
     assert [lease.commander for lease in leases.expired(2.6)] == ['controller']
 
 
+def test_a_checker_late_at_every_call_still_finds_a_silent_lease_lost():
+    """A driver starved for good (its timer 0.6 s apart, past half the timeout each time)
+    skips one late check, never two in a row: the silent commander, judged fairly at 0.6 s,
+    is skipped at 1.2 s and lost at 1.8 s."""
+    leases = CommanderLeases(TIMEOUT_S)
+    leases.renew('a', 'controller', True, 0.0)
+    found = {}
+    for check in range(1, 11):
+        for lease in leases.expired(0.6 * check):
+            found.setdefault(lease.commander, 0.6 * check)
+    assert found == {'controller': pytest.approx(1.8)}
+
+
+def test_a_starved_checker_keeps_a_lease_renewed_between_its_checks():
+    """... and a commander renewing between those late checks is never taken for lost."""
+    leases = CommanderLeases(TIMEOUT_S)
+    for check in range(1, 21):
+        leases.renew('a', 'controller', True, 0.6 * check - 0.05)
+        assert leases.expired(0.6 * check) == []
+    assert leases.holders() == ['controller']
+
+
 def test_nothing_is_lost_on_an_idle_rig(leases):
     assert leases.expired(0.0) == [] and leases.expired(1e6) == []
     assert leases.setpoint_refusal(1e6) == '' and leases.holders() == []
