@@ -30,7 +30,8 @@
   out) measured the same way in the same run, alternating with the controller. On a quiet
   machine and again with --load busy processes beside it (2 by default: a load average of
   about 2 on the two cores of the development machine, issue 47's condition). Target: the
-  setpoint's p99 < 5 ms under load.
+  setpoint's p99 under load at most RELAY_P99_RATIO times the relay's p99 in the same run;
+  the absolute figure is reported (docs/control.md says why it is not the target).
   --latency-only skips the tracking table.
 It exits 1 when a target is missed.
 """
@@ -69,6 +70,11 @@ TOLERANCE_M = 0.002
 # 150 ms seen on a loaded one. The 2 % target holds up to DELAY_TARGET_S.
 COMMAND_DELAYS_S = (0.05, 0.15)
 DELAY_TARGET_S = 0.05
+# The loop's latency target under load, against a bare relay timed in the same run: the
+# model's work per state may at most double what DDS and the scheduler already cost. An
+# absolute bound would judge the machine: the relay alone has a p99 of 6-12 ms at a load
+# average of 2 on the 2-core development machine.
+RELAY_P99_RATIO = 2.0
 RESOLUTION_M = 0.003
 
 
@@ -382,16 +388,17 @@ def latency_rows(seconds: float, load: int) -> tuple[list[tuple[str, str, str]],
             where = (f'{busy_count} busy processes, load average {load_average:.1f}'
                      if busy_count else f'quiet, load average {load_average:.1f}')
             target_here = busy_count == load
-            ok &= bool(p99 < 5.0) or not target_here
+            within = bool(p99 <= RELAY_P99_RATIO * r99)
+            ok &= within or not target_here
             rows += [
                 (f'loop latency state -> setpoint p50 [ms] ({where})', f'{p50:.2f}',
                  f'relay {r50:.2f} ms'),
-                ('loop latency state -> setpoint p99 [ms]', f'{p99:.2f}',
-                 check(p99 < 5.0, '< 5 ms') if target_here else 'reported'),
+                ('loop latency state -> setpoint p99 [ms]', f'{p99:.2f}', 'reported'),
                 ('  p50 / relay p50', f'{p50 / r50:.2f}', f'{command.size} setpoints of '
                  f'{controller.size} states'),
-                ('  p99 / relay p99', f'{p99 / r99:.2f}', f'relay p99 {r99:.2f} ms, '
-                 f'{relay.size} samples'),
+                ('  p99 / relay p99', f'{p99 / r99:.2f}',
+                 (check(within, f'<= {RELAY_P99_RATIO:g}') + '; ' if target_here else '')
+                 + f'relay p99 {r99:.2f} ms, {relay.size} samples'),
                 ('  state -> control state p50 / p99 [ms]', f'{c50:.2f} / {c99:.2f}',
                  'after the setpoint, with its explanation'),
             ]
