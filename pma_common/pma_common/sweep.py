@@ -179,6 +179,19 @@ class StreamPlan:
         """The newest setpoint due `elapsed_s` after the start."""
         return min(self.setpoint_count - 1, math.floor(elapsed_s * self.rate_hz + 1e-9))
 
+    def first_turn(self, first: int, last: int) -> int | None:
+        """The first setpoint index in first..last-1 where the profile turns or stops (a
+        reversal, a hold's or a rest's start), or None: a late stream skips stale setpoints,
+        but not these, since a hysteresis loop is defined by where its pressure turned."""
+        def at(index: int) -> float:
+            return self.pressure_at(self.time_of(index))
+
+        for index in range(max(first, 1), min(last, self.setpoint_count - 1)):
+            before, here, after = at(index - 1), at(index), at(index + 1)
+            if here != before and (here - before) * (after - here) <= 0.0:
+                return index
+        return None
+
     def pressure_at(self, t_s: float) -> float:
         period = self.cycle_s + self.rest_s
         cycle = min(self.cycles - 1, max(0, math.floor(t_s / period)))

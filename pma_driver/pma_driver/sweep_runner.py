@@ -8,7 +8,9 @@ simulated device in simulated time: timeouts, retries, cancels and vent-on-abort
 Stepped profiles (staircase, FORC) reach and hold each setpoint; streamed ones (ramp, sine,
 csv) reach their first point, then send a setpoint every 1/STREAM_RATE_HZ, each SET awaited
 (one in flight): when an answer comes late, the setpoints that fell due meanwhile are skipped
-and the newest goes, so the stream never builds a backlog. Every profile ends at 0 Pa.
+and the newest goes, so the stream never builds a backlog; but one where the profile turns
+(its peak, a trough, a hold's start) is sent, late, before the stream skips on, since the
+loop's reversal pressures are what a hysteresis sweep measures. Every profile ends at 0 Pa.
 
 A sweep starts from rest: before its first level it vents (setpoint 0) and waits until the
 pressure is at rest (`rest_check`: the mean of the readings over the last `rest_time_s` below
@@ -547,9 +549,10 @@ class SweepRunner:
                     return stop
                 self.sleep(min(settings.poll_period_s, due - now))
             newest = plan.index_at(now - start)
-            if newest > index:           # a late answer: never send what is already stale
-                skipped += newest - index
-                index = newest
+            if newest > index:           # a late answer: never send what is already stale,
+                turn = plan.first_turn(index, newest)   # but a turn of the loop, late, first
+                skipped += (newest if turn is None else turn) - index
+                index = newest if turn is None else turn
             t = plan.time_of(index)
             setpoint = plan.pressure_at(t)
             # A lost reply is not sent again: the next setpoint, newer, goes instead.

@@ -630,6 +630,33 @@ def test_a_late_answer_skips_the_stale_setpoints_and_sends_the_newest(rig):
         assert abs(value - plan.pressure_at(t - start)) <= 50_000 / 20 + 1, (t, value)
 
 
+def test_a_late_answer_never_skips_the_peak_of_the_loop(rig):
+    """The reply lost at 390 kPa on the way up costs 0.5 s, over the ramp's peak at 8 s:
+    the peak goes (late), then the newest point; the reversal pressure is the loop's."""
+    send = rig.link.send
+
+    def lose_at_390_kpa(command, *args, **kwargs):
+        if args == (390_000,) and not getattr(rig, 'lost', False):
+            rig.lost = rig.link.lost_replies = 1
+        return send(command, *args, **kwargs)
+    rig.link.send = lose_at_390_kpa
+    report = rig.run(**RAMP)
+    assert report.success, report.message
+    values = rig.sets()
+    top = values.index(400_000)             # sent, where the old stream skipped it
+    assert values[top - 1] == 390_000 and values[top + 1] < 400_000 - 50_000 / 20, values
+    assert values.count(400_000) == 1 and 'skipped: the device answered late' in report.message
+
+
+def test_a_plan_names_where_its_profile_turns():
+    ramp = plan_of(**RAMP)                               # 0 -> 400 kPa at 50 kPa/s -> 0
+    assert ramp.first_turn(0, ramp.setpoint_count) == 160 and ramp.first_turn(161, 320) is None
+    held = plan_of(**RAMP, hold_s=1.0)                   # 400 kPa held from 8 s to 9 s
+    assert held.first_turn(150, 200) == 160 and held.first_turn(161, 200) is None
+    sine = plan_of(**SINE)                               # peaks at 2.5 and 7.5 s
+    assert [sine.first_turn(k, k + 60) for k in (1, 51, 101)] == [50, 100, 150]
+
+
 def test_two_lost_replies_in_a_row_abort_a_stream_and_vent(rig):
     rig.on_feedback = lambda f: f.progress > 0.3 and not rig.link.commands('VENT') and \
         setattr(rig.link, 'lost_replies', 2)
