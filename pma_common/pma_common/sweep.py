@@ -186,10 +186,13 @@ class StreamPlan:
         def at(index: int) -> float:
             return self.pressure_at(self.time_of(index))
 
-        for index in range(max(first, 1), min(last, self.setpoint_count - 1)):
-            before, here, after = at(index - 1), at(index), at(index + 1)
+        start = max(first, 1)
+        before, here = at(start - 1), at(start)
+        for index in range(start, min(last, self.setpoint_count - 1)):
+            after = at(index + 1)
             if here != before and (here - before) * (after - here) <= 0.0:
                 return index
+            before, here = here, after
         return None
 
     def pressure_at(self, t_s: float) -> float:

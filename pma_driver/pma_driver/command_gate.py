@@ -271,9 +271,8 @@ class DeviceControl:
         vent, or hold the pressure; a running sweep aborts either way (it sees lost_count
         rise). What happened, one line per commander."""
         with self._lease_lock:
-            late_before = self.leases.late_checks
             lost = self.leases.expired(self.clock())
-            self.lease_check_held_up = (self.leases.late_checks > late_before
+            self.lease_check_held_up = (self.leases.last_check_skipped
                                         and bool(self.leases.holders()))
             whats = [f'commander {lease.commander} lost: no renewal of its lease for '
                      f'{self.leases.timeout_s:g} s (network down, or its host stopped)'

@@ -37,7 +37,7 @@ class CommanderLeases:
         self.lost_count = 0
         self.late_checks = 0      # checks that judged nobody because they came late
         self._checked_at: float | None = None
-        self._skipped_last = False
+        self.last_check_skipped = False   # the latest call came late and judged nobody
 
     def renew(self, lease_id: str, commander: str, holding: bool, now: float) -> bool:
         """Note a lease message; False when it renews a revoked lease (it is ignored)."""
@@ -67,11 +67,11 @@ class CommanderLeases:
         one is: a checker late at every call must still find a silent commander lost."""
         late = self._checked_at is not None and now - self._checked_at > 0.5 * self.timeout_s
         self._checked_at = now
-        if late and not self._skipped_last:
-            self._skipped_last = True
+        if late and not self.last_check_skipped:
+            self.last_check_skipped = True
             self.late_checks += 1
             return []
-        self._skipped_last = False
+        self.last_check_skipped = False
         for lease_id in [key for key, lease in self._revoked.items()
                          if now - lease.renewed_at > REVOKED_KEEP_S]:
             del self._revoked[lease_id]

@@ -551,8 +551,9 @@ class SweepRunner:
             newest = plan.index_at(now - start)
             if newest > index:           # a late answer: never send what is already stale,
                 turn = plan.first_turn(index, newest)   # but a turn of the loop, late, first
-                skipped += (newest if turn is None else turn) - index
-                index = newest if turn is None else turn
+                target = newest if turn is None else turn
+                skipped += target - index
+                index = target
             t = plan.time_of(index)
             setpoint = plan.pressure_at(t)
             # A lost reply is not sent again: the next setpoint, newer, goes instead.
