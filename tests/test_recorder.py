@@ -6,6 +6,7 @@ that calls the services and watches the topics is a node in this test process.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import signal
 import subprocess
@@ -26,9 +27,10 @@ from std_srvs.srv import Trigger
 
 from pma_bag import BagReader, BagWriteError, BagWriter, recover_bag
 from pma_bag.reader import TruncatedBagWarning
+from pma_bag.record import STOP_CATCH_UP_S
 from pma_common import names
 from pma_common.commands import run_command
-from pma_interfaces.msg import PmaState
+from pma_interfaces.msg import PmaPrediction, PmaState
 from pma_interfaces.srv import IsPaused, StartRecording, StopRecording
 from support.bursts import BurstClient, answered
 from support.filesystems import small_filesystem
@@ -334,6 +336,90 @@ def test_start_of_a_new_bag_on_a_running_recorder_misses_nothing(procs, probe, t
     with BagReader(tmp_path / 'next') as reader:      # published before the call returned
         assert next(iter(reader.messages(['/pma/state']))).publish_time_ns <= start_returned
     assert seqs == list(range(seqs[0], seqs[-1] + 1))
+
+
+class LaggingModel:
+    """Publishes each pma/state's prediction (its header copied, as model_node does) `lag_s`
+    late: model_node as it runs on a loaded machine, which cannot be made to lag on demand."""
+
+    def __init__(self, node, lag_s: float):
+        self.node, self.lag_s = node, lag_s
+        self.waiting: collections.deque = collections.deque()
+        self.published = 0
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.publisher = node.create_publisher(PmaPrediction, '/pma/prediction', qos)
+        self.subscription = node.create_subscription(
+            PmaState, '/pma/state', lambda state: self.waiting.append(
+                (time.monotonic(), state)), qos)
+        self.timer = node.create_timer(0.005, self.publish_due)
+
+    def publish_due(self) -> None:
+        while self.waiting and time.monotonic() - self.waiting[0][0] >= self.lag_s:
+            state = self.waiting.popleft()[1]
+            self.publisher.publish(PmaPrediction(header=state.header,
+                                                 gauge_pressure_pa=state.gauge_pressure_pa))
+            self.published += 1
+
+    def stop(self) -> None:
+        self.node.destroy_timer(self.timer)
+        self.node.destroy_subscription(self.subscription)
+        self.node.destroy_publisher(self.publisher)
+
+
+def stamps(bag: Path, topic: str, msg_type) -> list[int]:
+    with BagReader(bag) as reader:
+        headers = [deserialize_message(m.data, msg_type).header.stamp
+                   for m in reader.messages([topic])]
+    return [stamp.sec * 10**9 + stamp.nanosec for stamp in headers]
+
+
+def test_stop_lets_a_lagging_models_predictions_catch_up_and_records_nothing_newer(
+        procs, probe, tmp_path):
+    """A recording sweep stops its bag when the sweep ends, while model_node may still be
+    1-2 s behind: ~/stop ends the bag at its last sample and waits (at most STOP_CATCH_UP_S)
+    for those samples' predictions, so every state in the bag has its prediction. Without a
+    model publishing, it answers at once."""
+    recorder = procs.ros2_run('pma_bag', 'record', '--idle', '--topics', names.STATE,
+                              names.PREDICTION, cwd=tmp_path)
+    recorder.wait_for_line('recorder: idle', timeout=30)
+    watch = probe()
+    model = watch.spinning.in_executor(lambda: LaggingModel(watch.node, lag_s=1.5))
+    publisher(procs, rate=100, count=100 * 60)
+    wait_until(lambda: model.published, 30, 'the lagging model publishing')
+    watch.wait_heard('/pma/prediction')
+    # Made now, so the timed call below does not include a new client's settling.
+    assert watch.call(StopRecording, '/recorder/stop').message == 'not recording'
+    assert watch.call(StartRecording, '/recorder/start',
+                      StartRecording.Request(bag_path='lagging')).success
+    time.sleep(1.0)
+    called_ns = time.time_ns()
+    stopped = watch.call(StopRecording, '/recorder/stop')
+    waited = (time.time_ns() - called_ns) / 1e9
+    assert stopped.success, stopped.message
+    states = stamps(tmp_path / 'lagging', '/pma/state', PmaState)
+    predictions = stamps(tmp_path / 'lagging', '/pma/prediction', PmaPrediction)
+    assert len(states) >= 50, len(states)
+    missing = sorted(set(states) - set(predictions))
+    assert not missing, (f'{len(missing)} of {len(states)} states without their prediction, '
+                         f'the last {(states[-1] - missing[0]) / 1e9:.2f} s; '
+                         f'the stop took {waited:.2f} s')
+    assert max(predictions) == max(states), 'a prediction of a sample after the bag ended'
+    assert max(states) < called_ns + 0.3e9, \
+        f'states recorded {(max(states) - called_ns) / 1e9:.2f} s after the stop was called'
+    assert 1.0 < waited < STOP_CATCH_UP_S + 1.0, waited
+    recorder.wait_for_line('~/stop waited', timeout=10)
+
+    watch.spinning.in_executor(model.stop)
+    wait_until(lambda: not watch.node.get_publishers_info_by_topic('/pma/prediction'), 30,
+               'the model gone from the graph')
+    assert watch.call(StartRecording, '/recorder/start',
+                      StartRecording.Request(bag_path='no_model')).success
+    time.sleep(0.5)
+    called = time.monotonic()
+    assert watch.call(StopRecording, '/recorder/stop').success
+    waited = time.monotonic() - called
+    assert waited < 1.0, f'~/stop waited {waited:.2f} s with no model publishing'
+    assert stamps(tmp_path / 'no_model', '/pma/state', PmaState)
 
 
 def test_sigterm_with_more_signals_while_finishing_leaves_a_complete_bag(procs, tmp_path):

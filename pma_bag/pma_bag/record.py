@@ -72,6 +72,10 @@ FLUSH_CHECK_S = 0.25
 GRAPH_PERIOD_S = 0.1         # rosbag2's default --topic-polling-interval
 START_MATCH_TIMEOUT_S = 3.0  # ~/start waits at most this long for its topics to be heard
 START_POLL_S = 0.01
+# ~/stop lets a lagging model's predictions of the bag's samples arrive: at most this long
+# (under the 5 s its callers wait for the answer), and only while they keep coming.
+STOP_CATCH_UP_S = 3.0
+DERIVED_QUIET_S = 1.0
 LOST_WARNING_PERIOD_S = 1.0  # message-lost warnings are summed over this long
 QUEUED_LIMIT = 100           # messages of one topic taken at once, so others get a turn
 DEFAULT_TOPICS = list(names.RECORDED)
@@ -100,6 +104,8 @@ EVENT_TOPICS = (names.SWEEP_RECORD,)
 # a message heard is the one proof, so ~/start waits for one on these (waiting for the
 # reader's side only, a bag on a loaded CI machine missed predictions after the sweep began).
 PER_SAMPLE_TOPICS = (names.STATE, names.PRESSURE, names.RANGE, names.PREDICTION)
+# Published for each pma/state sample with its header (docs/bags.md, "Stopping").
+DERIVED_TOPICS = (names.PREDICTION,)
 COMPRESSION_CHOICES = ('none', 'zstd', 'lz4')
 
 
@@ -140,6 +146,7 @@ class _Subscribed:
     qos: QoSProfile
     latched: bool
     received: int = 0                                 # messages so far
+    last_received: float = -math.inf                  # monotonic time of the latest
     lost_unsaid: int = 0            # lost since the last warning (LOST_WARNING_PERIOD_S)
     lost_said_at: float = -math.inf
     last_latched: tuple[bytes, dict] | None = None   # (data, info) of a latched topic
@@ -157,6 +164,7 @@ class Recorder(Node):
                  graph_period_s: float = GRAPH_PERIOD_S, **node_kwargs):
         super().__init__('recorder', **node_kwargs)
         self.event_topics = set(self.resolve_topics(EVENT_TOPICS))
+        self.derived_topics = set(self.resolve_topics(DERIVED_TOPICS))
         self.options = options
         self.default_topics: list[str] = []
         self.subscribed: dict[str, _Subscribed] = {}
@@ -190,7 +198,8 @@ class Recorder(Node):
         # sent at once 11-39 were answered, the rest lost without an error.
         self.create_service(StartRecording, '~/start', self.on_start, qos_profile=SERVICE_QOS,
                             callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_service(StopRecording, '~/stop', self.on_stop, qos_profile=SERVICE_QOS)
+        self.create_service(StopRecording, '~/stop', self.on_stop, qos_profile=SERVICE_QOS,
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.create_service(Trigger, '~/split_bagfile', self.on_split, qos_profile=SERVICE_QOS)
         self.create_service(Trigger, '~/pause', self.on_pause, qos_profile=SERVICE_QOS)
         self.create_service(Trigger, '~/resume', self.on_resume, qos_profile=SERVICE_QOS)
@@ -259,7 +268,7 @@ class Recorder(Node):
                 path, self.resolve_topics(topics) if topics else self.default_topics,
                 self.options, read_seq=self.read_seq, custom_data=custom_data,
                 rig_info=self.rig_info, event_topics=self.event_topics,
-                on_fail=self._report_failure)
+                derived_topics=self.derived_topics, on_fail=self._report_failure)
             if self.bag is not None:
                 self.finish_bag()
             self.bag, self.error, self.target = bag, '', path
@@ -445,7 +454,7 @@ class Recorder(Node):
     # -- messages --------------------------------------------------------------------------
 
     def on_message(self, entry: _Subscribed, data: bytes, info: dict) -> None:
-        self.last_message = time.monotonic()
+        self.last_message = entry.last_received = time.monotonic()
         entry.received += 1
         if entry.latched:
             entry.last_latched = (data, info)
@@ -549,11 +558,21 @@ class Recorder(Node):
         finally:
             self.destroy_timer(timer)
 
-    def on_stop(self, _request, response):
-        bag, error = self.finish_bag()
-        if bag is None:
-            response.success, response.message = False, 'not recording'
+    async def on_stop(self, _request, response):
+        """Finish the bag, once the derived topics have caught up with its last sample.
+
+        A coroutine in its own callback group, like on_start: while it waits, the executor
+        writes the late predictions into the bag.
+        """
+        bag = self.bag
+        if bag is not None:
+            await self.catch_up_derived(bag)
+        if bag is None or self.bag is not bag:
+            response.success = False
+            response.message = ('not recording' if bag is None else f'{bag.path} was '
+                                'finished meanwhile (a new ~/start or a stop signal)')
             return response
+        bag, error = self.finish_bag()
         summary = bag.summary()
         response.success = not error
         response.message = error or f'wrote {summary.message_count} messages to {bag.path}'
@@ -561,6 +580,33 @@ class Recorder(Node):
         response.message_count = summary.message_count
         response.lost_message_count = summary.loss['lost_messages']
         return response
+
+    async def catch_up_derived(self, bag: RecordingSession) -> None:
+        """End `bag` at its last sample, then wait (<= STOP_CATCH_UP_S) for each derived
+        topic to reach that sample, while its publisher is there and its messages keep coming:
+        without a model running nothing is waited for."""
+        with self._lock:
+            bag.end_at_last_sample()
+        started = time.monotonic()
+        while True:
+            lagging = bag.lagging_topics()
+            waited = time.monotonic() - started
+            if (self.bag is not bag or waited > STOP_CATCH_UP_S
+                    or not any(self.still_coming(topic) for topic in lagging)):
+                break
+            await self.yield_to_executor(START_POLL_S)
+        if lagging:
+            self.get_logger().warning(
+                f'~/stop: {", ".join(lagging)} had not reached the last sample of {bag.path} '
+                f'after {waited:.1f} s; the bag ends without the rest')
+        elif waited > 0.1:
+            self.get_logger().info(f'~/stop waited {waited:.1f} s for the last predictions')
+
+    def still_coming(self, topic: str) -> bool:
+        """Is `topic`'s publisher there, and was it heard within DERIVED_QUIET_S?"""
+        entry = self.subscribed.get(topic)
+        return (entry is not None and entry.subscription.get_publisher_count() > 0
+                and time.monotonic() - entry.last_received < DERIVED_QUIET_S)
 
     def on_split(self, _request, response):
         with self._lock:

@@ -11,6 +11,7 @@ is tested by writing and reading real bags without a ROS graph.
 
 from __future__ import annotations
 
+import struct
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -30,6 +31,17 @@ EVENT_HISTORY_SLACK_NS = 1_000_000_000
 PAUSED_FOREVER = 2 ** 63
 # Keys of the driver's /diagnostics copied into custom_data when the bag has none of its own.
 RIG_DIAGNOSTIC_KEYS = ('firmware', 'protocol')
+_STAMP = {1: struct.Struct('<iI'), 0: struct.Struct('>iI')}   # by the CDR's byte-order flag
+
+
+def header_stamp_ns(cdr: bytes) -> int:
+    """header.stamp in ns of a raw message whose first field is a std_msgs/Header.
+
+    The stamp (int32 sec, uint32 nanosec) follows the 4-byte encapsulation header at once,
+    so, unlike PmaState.seq (state_seq.py), it needs no layout check.
+    """
+    sec, nanosec = _STAMP[cdr[1] & 1].unpack_from(cdr, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 @dataclass
@@ -93,13 +105,16 @@ class RecordingSession:
                  custom_data: Mapping[str, str] | None = None,
                  rig_info: Mapping[str, str] | None = None,
                  event_topics: Iterable[str] = (),
+                 derived_topics: Iterable[str] = (),
                  on_fail: Callable[[str], None] | None = None,
                  clock: Callable[[], int] = time.time_ns):
         """Create the bag (BagError if it cannot be made: a path holding a bag, ...).
 
         custom_data: this bag's entries over the options' ones; rig_info fills keys neither
-        sets. read_seq: PmaState.seq from its CDR (pma_bag.state_seq). clock: the receive
-        time of a message that came without one, and of pauses.
+        sets. read_seq: PmaState.seq from its CDR (pma_bag.state_seq). derived_topics: topics
+        published for each PmaState with its header (a model's predictions), which a stop
+        lets catch up (end_at_last_sample). clock: the receive time of a message that came
+        without one, and of pauses.
         """
         data = {**options.custom_data, **(custom_data or {})}
         for key, value in (rig_info or {}).items():
@@ -112,6 +127,7 @@ class RecordingSession:
         self.path = path
         self.topics = list(topics)
         self.event_topics = frozenset(event_topics)
+        self.derived_topics = frozenset(derived_topics)
         self._read_seq = read_seq
         self._on_fail = on_fail
         self._clock = clock
@@ -122,6 +138,10 @@ class RecordingSession:
         self.heard: set[str] = set()       # topics with a message since the bag started
         self.paused = False
         self._pause_ns = (0, 0)            # receive-time window of the latest pause
+        # Header stamps: of the last PmaState written, and of the last derived message heard.
+        self.last_stamp_ns: dict[str, int] = {}
+        self.closing = False               # end_at_last_sample was called
+        self.end_stamp_ns: int | None = None
 
     # -- topics ----------------------------------------------------------------------------
 
@@ -147,7 +167,13 @@ class RecordingSession:
 
         pma/state is counted while paused too: not recorded is not lost.
         """
+        derived = topic in self.derived_topics
+        if self.closing and not (derived and self.end_stamp_ns is not None
+                                 and header_stamp_ns(data) <= self.end_stamp_ns):
+            return
         self.heard.add(topic)
+        if derived:
+            self._note_stamp(topic, data)
         tracker = self.state_trackers.get(topic)
         if tracker is not None:
             tracker.add(self._read_seq(data))
@@ -155,8 +181,31 @@ class RecordingSession:
                 < self.opened_ns - EVENT_HISTORY_SLACK_NS:
             return
         received_ns = received_ns or self._clock()
-        if not self.was_paused_at(received_ns):
-            self.write(topic, data, received_ns, source_ns)
+        if not self.was_paused_at(received_ns) and self.write(topic, data, received_ns,
+                                                                 source_ns):
+            if tracker is not None:
+                self._note_stamp(topic, data)
+
+    def _note_stamp(self, topic: str, data: bytes) -> None:
+        stamp = header_stamp_ns(data)
+        if stamp > self.last_stamp_ns.get(topic, -1):
+            self.last_stamp_ns[topic] = stamp
+
+    def end_at_last_sample(self) -> None:
+        """Take nothing that arrives from now on, except derived messages of samples already
+        in the bag: a model running behind (1-2 s on a loaded machine) has not yet published
+        the predictions of the last samples when a sweep stops its bag."""
+        self.closing = True
+        self.end_stamp_ns = max((self.last_stamp_ns[t] for t in self.state_trackers
+                                 if t in self.last_stamp_ns), default=None)
+
+    def lagging_topics(self) -> list[str]:
+        """Derived topics heard in this bag whose latest message is for a sample before the
+        bag's last one (none until end_at_last_sample, or when the bag holds no sample)."""
+        if self.end_stamp_ns is None:
+            return []
+        return sorted(t for t in self.derived_topics
+                      if t in self.heard and self.last_stamp_ns.get(t, -1) < self.end_stamp_ns)
 
     def write(self, topic: str, data: bytes, received_ns: int,
               source_ns: int | None = None) -> bool:

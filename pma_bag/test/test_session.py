@@ -26,6 +26,7 @@ from pma_bag.session import (
     STATE_TYPE,
     RecordingSession,
     RecordOptions,
+    header_stamp_ns,
     rig_info_from,
 )
 from pma_bag.state_seq import (
@@ -36,9 +37,10 @@ from pma_bag.state_seq import (
     serialized_state,
     state_seq_reader,
 )
-from pma_interfaces.msg import PmaState, SweepRecord
+from pma_interfaces.msg import PmaPrediction, PmaState, SweepRecord
 
 STATE = '/pma/state'
+PREDICTION = '/pma/prediction'
 EVENTS = '/pma/sweep_record'
 T0 = 1_700_000_000 * 10**9
 MS = 1_000_000
@@ -221,6 +223,76 @@ def test_a_failed_write_stops_the_session_once_and_says_how_to_recover(tmp_path,
     assert 'No space left' in summary.error
     assert summary.lines()[0].startswith(f'ERROR bag {bag} is incomplete (')
     assert 'recover' in summary.lines()[0] and str(bag) in summary.lines()[0]
+
+
+def stamped(message, stamp_ns: int):
+    message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+    return serialize_message(message)
+
+
+@pytest.mark.in_process
+def test_a_stop_ends_the_bag_at_its_last_sample_and_lets_its_predictions_catch_up(tmp_path):
+    """A model behind the driver publishes the last samples' predictions after ~/stop came:
+    those are still written, and nothing newer is (a sample after the end, or its prediction)."""
+    bag = tmp_path / 'bag'
+    session = open_session(bag, topics=(STATE, PREDICTION), derived_topics=(PREDICTION,))
+    session.declare(PREDICTION, 'pma_interfaces/msg/PmaPrediction')
+
+    def state(seq):
+        session.receive(STATE, stamped(PmaState(seq=seq), T0 + seq * MS), T0 + seq * MS)
+
+    def prediction(seq):
+        session.receive(PREDICTION, stamped(PmaPrediction(gauge_pressure_pa=float(seq)),
+                                            T0 + seq * MS), T0 + (seq + 50) * MS)
+
+    for seq in range(10):
+        state(seq)
+    for seq in range(6):
+        prediction(seq)
+    assert session.lagging_topics() == [], 'nothing lags before the stop'
+    session.end_at_last_sample()
+    assert session.lagging_topics() == [PREDICTION]
+    state(10)                                   # arrived after the stop: not the bag's
+    for seq in range(6, 9):
+        prediction(seq)
+    assert session.lagging_topics() == [PREDICTION]
+    prediction(9)
+    prediction(10)                              # of the sample after the end
+    assert session.lagging_topics() == []
+    summary = session.finish()
+    assert summary.message_count == 20 and summary.loss['lost_messages'] == 0
+    assert seqs_read_back(bag) == list(range(10))
+    with BagReader(bag) as reader:
+        predicted = [deserialize_message(m.data, PmaPrediction).gauge_pressure_pa
+                     for m in reader.messages([PREDICTION])]
+    assert predicted == [float(seq) for seq in range(10)]
+
+
+@pytest.mark.in_process
+def test_a_stop_waits_for_nothing_without_a_model_or_samples(tmp_path):
+    quiet = open_session(tmp_path / 'no_model', topics=(STATE, PREDICTION),
+                         derived_topics=(PREDICTION,))
+    quiet.receive(STATE, stamped(PmaState(seq=1), T0), T0)
+    quiet.end_at_last_sample()
+    assert quiet.lagging_topics() == [], 'no prediction heard in the bag: no model to wait for'
+    empty = open_session(tmp_path / 'no_samples', topics=(STATE, PREDICTION),
+                         derived_topics=(PREDICTION,))
+    empty.declare(PREDICTION, 'pma_interfaces/msg/PmaPrediction')
+    empty.receive(PREDICTION, stamped(PmaPrediction(), T0), T0)
+    empty.end_at_last_sample()
+    assert empty.lagging_topics() == [] and empty.end_stamp_ns is None
+    for session in (quiet, empty):
+        assert session.finish().error == ''
+
+
+@pytest.mark.in_process
+@pytest.mark.parametrize('stamp_ns', [0, 1, T0 + 123_456_789, -5 * 10**9 + 7])
+def test_the_header_stamp_is_read_from_the_raw_message(stamp_ns):
+    for message in (PmaState(seq=7), PmaPrediction(predicted_length_m=0.25)):
+        message.header.frame_id = 'pma_link'
+        assert header_stamp_ns(stamped(message, stamp_ns)) == stamp_ns
+    big_endian = b'\x00\x00\x00\x00' + struct.pack('>iI', 3, 5) + bytes(8)
+    assert header_stamp_ns(big_endian) == 3 * 10**9 + 5
 
 
 def test_the_session_module_imports_no_rclpy():

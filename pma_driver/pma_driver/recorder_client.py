@@ -107,8 +107,8 @@ class RecorderClient:
             f'{self.recorder!r}) within {self.timeout_s:g} s: ' + how_to_start(self.start_service))
 
     def stop(self) -> RecordingSummary:
-        # The recorder finishes the bag at once: what is still on its way to it is not in
-        # the bag (a sweep's END record was lost so). Acknowledged by its reader first, a
+        # The recorder ends the bag at the request: what is still on its way to it is not in
+        # the bag, but for a model's late predictions (a sweep's END record was lost so). Acknowledged by its reader first, a
         # message is handled before the request (rclpy takes subscriptions before services).
         for publisher in self._last_words():
             publisher.wait_for_all_acked(Duration(seconds=min(self.timeout_s, 2.0)))
