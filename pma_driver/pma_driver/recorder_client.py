@@ -108,8 +108,9 @@ class RecorderClient:
 
     def stop(self) -> RecordingSummary:
         # The recorder ends the bag at the request: what is still on its way to it is not in
-        # the bag, but for a model's late predictions (a sweep's END record was lost so). Acknowledged by its reader first, a
-        # message is handled before the request (rclpy takes subscriptions before services).
+        # the bag, but for a model's late predictions (a sweep's END record was lost so).
+        # Acknowledged by its reader first, a message is handled before the request (rclpy
+        # takes subscriptions before services).
         for publisher in self._last_words():
             publisher.wait_for_all_acked(Duration(seconds=min(self.timeout_s, 2.0)))
         response = self._call(self._stop, StopRecording.Request())

@@ -55,10 +55,14 @@ ATTACH_SETTLE_S = 0.05
 
 
 MAX_WAIT_S = 0.1             # longest sleep, so a stop request is seen promptly
-# The most device time run before the host's waiting bytes are handed over. A simulator
-# behind the wall clock (simavr on a loaded machine) would otherwise run a second of firmware
-# in one go without the heartbeats the host sent meanwhile, and vent as no board would.
+# The most device time run in one pass of the loop, between which the host's waiting bytes
+# are handed over and the device's output goes out. A simulator behind the wall clock (simavr
+# on a loaded machine) would otherwise run seconds of firmware in one go, without the
+# heartbeats the host sent meanwhile (it vented as no board would) and without a word out
+# (the driver saw the link stall).
 MAX_ADVANCE_MS = 50
+# Said when the device runs this far behind the wall clock, and when it has caught up.
+LAG_WARNING_MS = 500
 # A loop pass this much longer than MAX_WAIT_S: this process was not scheduled, or the device
 # simulates slower than real time. A process away longer than the heartbeat timeout hands
 # the device the host's bytes of the gap at its start only, so it vents as a real board
@@ -365,15 +369,17 @@ class TruthLog:
                     for row in csv.DictReader(stream)}
 
 
-def advance(device: SimDevice, port: PtyPort, t_ms: int) -> None:
-    """Run `device` to `t_ms`, handing it what the host wrote every MAX_ADVANCE_MS."""
-    while device.t_ms + MAX_ADVANCE_MS < t_ms:
-        device.advance_to(device.t_ms + MAX_ADVANCE_MS)
-        if port.wait_readable(0.0):
-            data = port.read()
-            if data:
-                device.receive(data)
-    device.advance_to(t_ms)
+def advance(device: SimDevice, port: PtyPort, t_ms: int) -> bool:
+    """Run `device` toward `t_ms` by at most MAX_ADVANCE_MS, handing it first what the host
+    wrote; True while it is still behind. The loop emits the device's output between calls, so
+    a device that simulates slower than real time answers late but keeps talking, as a slow
+    board would: caught up in one go, it fell silent for seconds and the driver saw a stall."""
+    if device.t_ms + MAX_ADVANCE_MS < t_ms and port.wait_readable(0.0):
+        data = port.read()
+        if data:
+            device.receive(data)
+    device.advance_to(min(t_ms, device.t_ms + MAX_ADVANCE_MS))
+    return device.t_ms < t_ms
 
 
 def run(args: argparse.Namespace, stop: StopRequest,
@@ -412,7 +418,7 @@ def run(args: argparse.Namespace, stop: StopRequest,
 
     port = plug_in()
     boot = time.monotonic()
-    stalled = False
+    stalled = lagging = False
     last_pass = time.monotonic()
     try:
         while not stop.is_set():
@@ -442,7 +448,15 @@ def run(args: argparse.Namespace, stop: StopRequest,
                 boot = now
                 log.info('device rebooted: seq and clock restart')
 
-            advance(device, port, int((now - boot) * 1000))
+            now_ms = int((now - boot) * 1000)
+            behind = advance(device, port, now_ms)
+            if (now_ms - device.t_ms > LAG_WARNING_MS) != lagging:
+                lagging = not lagging
+                if lagging:
+                    log.warning('the device runs %.1f s behind the wall clock (it simulates '
+                                'slower than real time)', (now_ms - device.t_ms) / 1000)
+                else:
+                    log.warning('the device has caught up with the wall clock')
             in_stall = stall is not None and stall[0] <= now < stall[1]
             if in_stall != stalled:
                 log.warning('simulated stall %s', 'begins' if in_stall else 'ends')
@@ -471,8 +485,9 @@ def run(args: argparse.Namespace, stop: StopRequest,
                          else writer.next_due() or next_sample]
             deadlines += [t for t in (unplug_at, stall and stall[0], stall and stall[1])
                           if t is not None and t > now]
-            if port.wait_readable(min(min(deadlines) - time.monotonic(), MAX_WAIT_S)):
-                advance(device, port, int((time.monotonic() - boot) * 1000))
+            wait = 0.0 if behind else min(min(deadlines) - time.monotonic(), MAX_WAIT_S)
+            if port.wait_readable(wait):
+                behind = advance(device, port, int((time.monotonic() - boot) * 1000))
                 data = port.read()
                 if data:
                     device.receive(data)

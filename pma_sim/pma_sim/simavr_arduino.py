@@ -18,12 +18,14 @@ pin changes come back stamped with their cycle, and the physics steps at 1 ms in
 simulated time, as in fake_arduino. simavr runs 2.5-4 times faster than the board on one
 core here, so the AVR keeps up with the wall clock and catches up after a stall. On a
 loaded machine it can fall behind: the loop then runs it 50 ms at a time
-(fake_arduino.advance) and hands it what the host wrote in between, so the firmware never
-runs a second without the heartbeats the host did send.
+(fake_arduino.advance), handing it what the host wrote and sending out what it wrote in
+between, so the firmware never runs a second without the heartbeats the host did send, and
+the host hears it answer late rather than not at all.
 
 Prints what fake_arduino prints (`simavr_arduino: device at ...`, `simavr_arduino: stats
 ...`) and, at exit, `simavr_arduino: firmware ...` with what only the real image can tell:
-its longest main-loop pass, its stack high-water mark and free RAM, UART overruns.
+its longest main-loop pass (busy: asleep between passes excluded), how much of the time it
+idled asleep, its stack high-water mark and free RAM, UART overruns.
 docs/hardware.md ("Firmware in the loop") has the measurements and the differences.
 """
 
@@ -99,6 +101,11 @@ class FirmwareStats:
         return self.values['window_loop_max_cycles'] * 1e6 / self.values['frequency']
 
     @property
+    def asleep_percent(self) -> float:
+        """Share of the time the CPU idled asleep between passes of loop()."""
+        return 100 * self.values['asleep_cycles'] / max(self.values['cycle'], 1)
+
+    @property
     def stack_peak_bytes(self) -> int:
         return self.values['ramend'] - self.values['min_sp']
 
@@ -111,6 +118,7 @@ class FirmwareStats:
         v = self.values
         return (f'{PROG}: firmware loops={v["loops"]} '
                 f'longest_loop_us={self.longest_loop_us:.0f} '
+                f'asleep_percent={self.asleep_percent:.0f} '
                 f'stack_peak_bytes={self.stack_peak_bytes} free_ram_bytes={self.free_ram_bytes} '
                 f'rx_bytes={v["rx_bytes"]} rx_overruns={v["rx_overruns"]} '
                 f'rx_dropped={v["rx_dropped"]} tx_bytes={v["tx_bytes"]} '

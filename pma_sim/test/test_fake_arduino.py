@@ -14,6 +14,7 @@ from pma_common import protocol
 from pma_common.calibration import PressureCalibration
 from pma_common.protocol import Ack, FrameDecoder, Hello, Sample
 from pma_common.sequence import SequenceStats, SequenceTracker
+from pma_common.stop import StopRequest
 from pma_sim import fake_arduino
 from pma_sim.device import DeviceConfig, SimDevice
 
@@ -201,9 +202,9 @@ class SlowDevice(SimDevice):
 @pytest.mark.parametrize('in_chunks', [True, False])
 def test_a_device_behind_the_wall_clock_gets_the_heartbeats_sent_meanwhile(in_chunks):
     """Two seconds of device time run in three of wall time while the host sends a heartbeat
-    every 200 ms. Handed over as they come (fake_arduino.advance), the device holds; run in
-    one go, as the loop did before, it goes a second without them and vents (the simavr
-    failures of the full runs: status 'heartbeat lost' while holding 200 kPa)."""
+    every 200 ms. Handed over as they come (fake_arduino.advance, 50 ms at a time), the device
+    holds; run in one go, it goes a second without them and vents (the simavr failures of the
+    full runs: status 'heartbeat lost' while holding 200 kPa)."""
     port = fake_arduino.PtyPort()
     host = os.open(port.path, os.O_RDWR | os.O_NOCTTY)
     stop = threading.Event()
@@ -219,7 +220,8 @@ def test_a_device_behind_the_wall_clock_gets_the_heartbeats_sent_meanwhile(in_ch
         sender = threading.Thread(target=heartbeats)
         sender.start()
         if in_chunks:
-            fake_arduino.advance(device, port, 2_000)
+            while fake_arduino.advance(device, port, 2_000):
+                pass
         else:
             device.advance_to(2_000)
         samples = samples_of(FrameDecoder().feed(b''.join(device.take_output())))
@@ -230,6 +232,38 @@ def test_a_device_behind_the_wall_clock_gets_the_heartbeats_sent_meanwhile(in_ch
         stop.set()
         os.close(host)
         port.close()
+
+
+def test_a_device_slower_than_real_time_keeps_talking_while_it_falls_behind(tmp_path):
+    """The loop with a device at 2/3 of real time (simavr on a loaded machine), read as the
+    driver reads it: answers come late, but samples keep arriving, never a second apart (the
+    driver's stall timeout). When the loop caught a lag up in one go, output stopped for as
+    long as the catch-up took (CI: 'link no data during the sweep' with simavr)."""
+    args = fake_arduino.parse_args(['--rate', '20', '--link', str(tmp_path / 'link')])
+    stop = StopRequest()
+    loop = threading.Thread(target=fake_arduino.run, args=(args, stop),
+                            kwargs={'make_device': lambda config, rig: SlowDevice(config)})
+    loop.start()
+    try:
+        link = tmp_path / 'link'
+        deadline = time.monotonic() + 10
+        while not link.exists() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        port = Port(link)
+        frames = port.collect(6.0)
+        port.close()
+    finally:
+        stop.request('test over')
+        loop.join(30)
+    arrivals = [at for at, frame in port.arrivals if isinstance(frame, Sample)]
+    samples = samples_of(frames)
+    gaps = [b - a for a, b in itertools.pairwise(arrivals)]
+    device_s = (samples[-1].t_ms - samples[0].t_ms) / 1e3 if samples else 0.0
+    behind_s = (arrivals[-1] - arrivals[0]) - device_s if samples else 0.0
+    assert len(samples) >= 40, len(samples)
+    assert behind_s > 1.0, f'the device kept up ({behind_s:.2f} s behind): not the case tested'
+    assert max(gaps) < 0.5, f'{max(gaps):.2f} s without a sample ({behind_s:.2f} s behind)'
+    assert not any(s.status & protocol.STATUS_HEARTBEAT_LOST for s in samples)
 
 
 def test_host_may_open_close_and_stop_reading(procs):

@@ -9,6 +9,9 @@
 // timeout that vents when the host link is lost, and venting when the pressure sensor reads
 // outside its span. The simulated rig (pma_sim/pma_sim/device.py) follows the same rules.
 
+#include <avr/interrupt.h>
+#include <avr/sleep.h>
+
 #include "pma_protocol.h"
 
 // ---- Pins: docs/hardware.md has the same table (test_firmware_build.py compares them).
@@ -57,6 +60,11 @@ const uint8_t REGULATION_PERIOD_MS = 5;
 // The sensor sits within ~0.5 m of the plate; anything farther is no echo from it.
 const uint32_t ECHO_TIMEOUT_US = 6000;
 const uint8_t TRIGGER_PULSE_US = 10;
+
+// ---- Idling. Between passes of loop() the CPU sleeps in idle mode (timers, UART and ADC run
+// on) until the next interrupt, unless the next sample is due within this: a sleep ends at
+// the latest on timer 0's next tick, 1.024 ms away, and the sample must not wait for it.
+const int32_t IDLE_MARGIN_US = 1100;
 
 // ---- State.
 int32_t setpointPa = 0;
@@ -481,6 +489,22 @@ void checkHeartbeat() {
   }
 }
 
+// Nothing is answered later for it: millis() moves only on timer 0's tick, which wakes the
+// CPU, and a received byte wakes it at once. The board draws less, and a simulated board
+// (simavr fast-forwards a sleep) costs the host a fraction of the CPU it took spinning.
+void idleUntilNextInterrupt() {
+  if ((int32_t)(nextSampleUs - micros()) <= IDLE_MARGIN_US) return;
+  set_sleep_mode(SLEEP_MODE_IDLE);
+  cli();
+  if (Serial.available() == 0) {  // a byte that came after readCommands() is handled first
+    sleep_enable();
+    sei();  // the instruction after SEI runs before any interrupt: a wake-up cannot slip by
+    sleep_cpu();
+    sleep_disable();
+  }
+  sei();
+}
+
 void setup() {
   // Closed first, then outputs: the pins never drive a valve open during boot.
   digitalWrite(PIN_INLET_VALVE, INLET_CLOSED_LEVEL);
@@ -516,4 +540,5 @@ void loop() {
   }
 
   digitalWrite(PIN_STATUS_LED, (latchedStatus != 0 || !sensorInSpan) ? HIGH : LOW);
+  idleUntilNextInterrupt();
 }

@@ -8,7 +8,7 @@
 
 const uint8_t PROTOCOL_VERSION = 1;
 const char FIRMWARE_NAME[] PROGMEM = "pma_firmware";
-const char FIRMWARE_VERSION[] PROGMEM = "0.1.1";
+const char FIRMWARE_VERSION[] PROGMEM = "0.1.2";
 const uint32_t SERIAL_BAUD = 115200;
 // One line either way, including '$', '*HH' and the line end.
 const uint8_t MAX_LINE_BYTES = 96;

@@ -36,6 +36,10 @@ uint64_t loopOverheadUs = 40;
 
 }  // namespace
 
+// Timer 0 overflows every 1024 us on the Mega (16 MHz, prescaler 64): it ends an idle sleep.
+const uint64_t TIMER0_TICK_US = 1024;
+void hostSleepUntilNextInterrupt() { nowUs = (nowUs / TIMER0_TICK_US + 1) * TIMER0_TICK_US; }
+
 uint32_t millis() { return (uint32_t)(nowUs / 1000); }
 uint32_t micros() { return (uint32_t)nowUs; }
 void delayMicroseconds(unsigned int us) { nowUs += us; }
