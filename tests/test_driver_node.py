@@ -139,7 +139,13 @@ class Probe:
                 found[:] = [d for d in self.diagnostics[since:] if predicate(d)]
             return bool(found)
 
-        wait_until(check, timeout, what)
+        try:
+            wait_until(check, timeout, what)
+        except TimeoutError as timeout_error:
+            with self.lock:
+                last = self.diagnostics[since:][-3:]
+            raise TimeoutError(f'{timeout_error}; the last statuses: ' + '; '.join(
+                f'{d.level!r} {d.message!r} {values(d)}' for d in last)) from None
         return found[-1]
 
     def publish_setpoint(self, value: float) -> None:

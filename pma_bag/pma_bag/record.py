@@ -796,6 +796,9 @@ def main(argv: list[str] | None = None) -> int:
             spin_until_stopped(executor, node, stop)
             drain(executor, node)
         finally:
+            # Its guard conditions go before the context does: left to the executor's __del__,
+            # after rclpy's shutdown, they raised InvalidHandle at exit.
+            executor.shutdown(timeout_sec=0.0)
             node.finish_bag()
             node.destroy_node()
         if stop.extra_signals:
