@@ -48,9 +48,11 @@ import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+from pma_model import kernel
 from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
 from pma_model.curves import ScanningCurve
 from pma_model.detector import (
@@ -71,11 +73,28 @@ MEMORY_MODES = tuple(MEMORY_RULES)
 MAX_TURNING_POINTS = 512
 
 # Branches closer than this [m] at a reversal's pressure: no loop to place it in.
-_NARROW_LOOP_M = 1e-4
+NARROW_LOOP_M = 1e-4
 
 # Lengths this close [m] count as equal when deciding whether a curve reaches a target: a
 # curve evaluated at its own origin can differ from the stored length in the last bit.
 ROUNDING_M = 1e-12
+
+
+class PathState(NamedTuple):
+    """What the path pressure would follow from the current state depends on
+    (`HysteresisModel.path_state`; kernel.mixed_path_pressure builds the path from it)."""
+
+    pressure_pa: float
+    length_m: float
+    rising: bool                 # pressure last moved up
+    turning_points: tuple[tuple[float, float], ...]   # (pressure_pa, length_m), oldest first
+    increasing: Branch
+    decreasing: Branch
+    path_kind: int               # the rule's (kernel.PATH_STACK or kernel.PATH_BAND)
+    has_play_share: bool         # its curves mix two shapes by the shares ('identify')
+    play_shares: tuple[float, float]    # (rising, falling)
+    share_slopes: tuple[float, float]
+    max_gauge_pressure_pa: float
 
 
 @dataclass(frozen=True)
@@ -251,6 +270,13 @@ class HysteresisModel:
         """Madelung stack (pressure_pa, length_m), oldest first."""
         return tuple(self._stack)
 
+    def path_state(self) -> PathState:
+        """The state a path from here is built from, as named public values."""
+        rule = self._rule
+        return PathState(self._p, self._l, self._rising, tuple(self._stack), self.increasing,
+                         self.decreasing, rule.path_kind, rule.has_play_share,
+                         self.play_shares, self.share_slopes, self.max_gauge_pressure_pa)
+
     def major(self, rising: bool) -> Branch:
         """The major branch pressure follows when moving up (True) or down."""
         return self.increasing if rising else self.decreasing
@@ -277,11 +303,9 @@ class HysteresisModel:
         excursion.
         """
         p_origin, l_origin = origin
-        toward = float(self.major(rising).length(p_origin))
-        width = float(self.major(not rising).length(p_origin)) - toward
-        if abs(width) < _NARROW_LOOP_M:
-            return 1.0
-        return min(1.0, max(0.0, (l_origin - toward) / width))
+        return kernel.origin_depth(float(self.major(rising).length(p_origin)),
+                                   float(self.major(not rising).length(p_origin)), l_origin,
+                                   NARROW_LOOP_M)
 
     def current_origin_depth(self) -> float:
         """origin_depth of the scanning curve in force (MID_DEPTH on a major branch)."""

@@ -23,6 +23,7 @@ import numpy as np
 from pma_model.branches import Branch
 from pma_model.curves import MID_DEPTH, CurveEnds, ScanningCurve, play_share_at
 from pma_model.detector import BRANCH_INCREASING
+from pma_model.kernel import PATH_BAND, PATH_STACK
 
 if TYPE_CHECKING:
     from pma_model.memory import HysteresisModel
@@ -47,6 +48,9 @@ class MemoryRule(Protocol):
     follows_path: bool
     # True: its curves mix the play-like and Madelung shapes by a learned share.
     has_play_share: bool
+    # How `path_segments` goes on from a state, for the compiled path (kernel.py): along the
+    # turning-point stack's curves (PATH_STACK) or the friction band's hold (PATH_BAND).
+    path_kind: int
     # True: a state taken over is rebuilt by replaying the other's turning points before
     # `resume`; False: `resume` needs only the other's pressure and length.
     replays_stack: bool
@@ -144,6 +148,7 @@ class MadelungRule:
 
     follows_path = True
     has_play_share = False
+    path_kind = PATH_STACK
     replays_stack = True
 
     def update(self, model, p_pa, branch):
@@ -268,6 +273,7 @@ class SwitchRule:
 
     follows_path = False
     has_play_share = False
+    path_kind = PATH_STACK
     replays_stack = True   # its path_segments walk the stack a resume_from replayed
 
     def update(self, model, p_pa, branch):
@@ -306,6 +312,7 @@ class PlayRule:
 
     follows_path = True
     has_play_share = False
+    path_kind = PATH_BAND
     replays_stack = False   # its state is the held length, which resume fits to the band
 
     def update(self, model, p_pa, branch):
