@@ -1,9 +1,12 @@
-"""The model's scalar formulas, compiled (numba).
+"""The model's scalar formulas, compiled (numba), and the mix's inverse along the path in one call.
 
 Each formula has its one home here: a branch form's length and closed-form inverse, the knot
 interpolation of the learned correction, a scanning curve's length, where a reversal lies
-across the loop and its play share, the local offset's fade. The classes (branches.py,
-correction.py, curves.py, local_offset.py, memory.py) call them for one value.
+across the loop and its play share, the local offset's fade, the path pressure would follow
+from a state (the turning-point stack's curves, or the friction band's hold), the mixed length
+along it and a root find (scipy's brentq.c, step for step). The classes (branches.py,
+correction.py, curves.py, local_offset.py) call them for one value; mix.RuleMix's inverse
+calls `mixed_path_pressure` once, with the state packed as arrays.
 
 This module imports nothing of pma_model: numba freezes a global's value into a cached
 kernel and only notices a change of this file, so every number that belongs to another
@@ -11,7 +14,7 @@ module (the knots, the constants) comes in as an argument, never as a global.
 
 A branch row (`Branch.kernel_row`): [formula, four parameters, knot count K, K knot
 pressures, K base lengths at the knots, K offsets]; K = 0 for a branch without a learned
-correction (the three blocks absent).
+correction (the three blocks absent). A branch table stacks rows, zero-padded.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numba
+import numpy as np
 
 
 def _probe():
@@ -239,3 +243,226 @@ def faded_offset(offset_m, play_at_pa, p, half_play_pa, fade_pa):
         return offset_m
     travel = py_max(abs(p - play_at_pa) - half_play_pa, 0.0)
     return offset_m * math.exp(-travel / fade_pa)
+
+
+# --- the mix's inverse along the path -------------------------------------------------------
+
+# An expert's row (RuleMix packs it from OnlineModel.drift and HysteresisModel.path_state).
+(E_WEIGHT, E_REFERENCE, E_SHIFT, E_GAIN, E_PRESSURE, E_LENGTH, E_RISING, E_PATH, E_SHARED,
+ E_SHARE_UP, E_SHARE_DOWN, E_SLOPE_UP, E_SLOPE_DOWN, E_INCREASING, E_DECREASING, E_STACK,
+ E_DEPTH, E_MAX) = range(18)
+EXPERT_COLUMNS = 18
+# The call's numbers: the state's, then the constants (from the modules that own them).
+(S_HERE, S_MAX, S_SETTLED, S_OFFSET, S_PLAY_AT, S_HALF_PLAY, S_FADE, S_MID_DEPTH, S_NARROW,
+ S_FLAT_SPAN, S_XTOL, S_RTOL, S_ROUNDING, S_MAXITER) = range(14)
+SCALARS = 14
+# A path segment: the expert's curve from p_from to p_to (major: a branch table row).
+(G_FROM, G_TO, G_MAJOR, G_ORIGIN, G_L_ORIGIN, G_L_TARGET, G_B_ORIGIN, G_B_TARGET, G_FLAT,
+ G_SHARE, G_KNEE) = range(11)
+SEGMENT_COLUMNS = 11
+
+
+@compiled()
+def _curve_segment(out, j, branches, major, other, shared, share, slope, origin_p, origin_l,
+                   target_p, target_l, scalars):
+    """The scanning curve from reversal O toward T on branch row `major`, into out[j]
+    (HysteresisModel._curve with its rule's curve)."""
+    toward = branch_length(branches[major], origin_p)
+    w = 0.0
+    if shared:   # 'identify': its play share at O's depth across the loop
+        depth = origin_depth(toward, branch_length(branches[other], origin_p), origin_l,
+                             scalars[S_NARROW])
+        w = play_share(share, slope, depth, scalars[S_MID_DEPTH])
+    b_target = branch_length(branches[major], target_p)
+    flat, knee = curve_knee(origin_l, target_l, toward, b_target, scalars[S_FLAT_SPAN])
+    out[j, G_ORIGIN] = 1.0
+    out[j, G_L_ORIGIN], out[j, G_L_TARGET] = origin_l, target_l
+    out[j, G_B_ORIGIN], out[j, G_B_TARGET] = toward, b_target
+    out[j, G_FLAT] = 1.0 if flat else 0.0
+    out[j, G_SHARE], out[j, G_KNEE] = w, knee
+
+
+@compiled()
+def path_segments(expert, stacks, branches, rising, scalars, out, count):
+    """The pieces of the path pressure would follow one way from an expert's state, into
+    out[count:]; the new count. The stack rules' (rules.future_segments): the curve in
+    force, then through wiping-out each older one, to 0 Pa or the maximum. The band's
+    (rules.PlayRule.path_segments): the length holds until the major branch meets it."""
+    p_here, l_here = expert[E_PRESSURE], expert[E_LENGTH]
+    major = int(expert[E_INCREASING] if rising else expert[E_DECREASING])
+    other = int(expert[E_DECREASING] if rising else expert[E_INCREASING])
+    limit = expert[E_MAX] if rising else 0.0
+    if expert[E_PATH] == PATH_BAND:
+        meets = branch_pressure(branches[major], l_here)
+        if math.isnan(meets):
+            meets = p_here
+        out[count, G_MAJOR] = major
+        out[count, G_FROM] = py_max(p_here, meets) if rising else py_min(p_here, meets)
+        out[count, G_TO] = limit
+        return count + 1
+    shared = expert[E_SHARED] != 0.0
+    share = expert[E_SHARE_UP] if rising else expert[E_SHARE_DOWN]
+    slope = expert[E_SLOPE_UP] if rising else expert[E_SLOPE_DOWN]
+    start, depth = int(expert[E_STACK]), int(expert[E_DEPTH])
+    # The turning points the path meets, oldest first: the stack, and the current state
+    # when going this way is a reversal.
+    points = np.empty((depth + 1, 2))
+    points[:depth] = stacks[start:start + depth]
+    if rising != (expert[E_RISING] != 0.0):
+        points[depth, 0], points[depth, 1] = p_here, l_here
+        depth += 1
+    p_from = p_here
+    while True:
+        out[count, G_MAJOR] = major
+        if depth >= 2:
+            _curve_segment(out, count, branches, major, other, shared, share, slope,
+                           points[depth - 1, 0], points[depth - 1, 1],
+                           points[depth - 2, 0], points[depth - 2, 1], scalars)
+        elif depth == 1:   # toward the anchor at the end of the major branch
+            _curve_segment(out, count, branches, major, other, shared, share, slope,
+                           points[0, 0], points[0, 1], limit,
+                           branch_length(branches[major], limit), scalars)
+        p_to = points[depth - 2, 0] if depth >= 2 else limit
+        final = depth < 2 or ((p_to >= limit) if rising else (p_to <= limit))
+        if final:
+            p_to = limit
+        out[count, G_FROM], out[count, G_TO] = p_from, p_to
+        count += 1
+        if final:
+            return count
+        depth -= 2
+        p_from = p_to
+
+
+@compiled()
+def segment_length(segment, branches, p):
+    """A path segment's curve at one pressure."""
+    shape = branch_length(branches[int(segment[G_MAJOR])], p)
+    if segment[G_ORIGIN] == 0.0:
+        return shape
+    return curve_length(shape, segment[G_L_ORIGIN], segment[G_L_TARGET], segment[G_B_ORIGIN],
+                        segment[G_B_TARGET], segment[G_FLAT] != 0.0, segment[G_SHARE],
+                        segment[G_KNEE])
+
+
+@compiled()
+def mixed_length(p, rising, experts, paths, segments, branches, scalars):
+    """The mixture's settled length at p along the path (each expert's length on its path,
+    drift applied, weighted; the local offset faded by the travel to p).
+    paths[i]: (first, count) of expert i's segments."""
+    total = 0.0
+    for i in range(experts.shape[0]):
+        expert = experts[i]
+        weight = expert[E_WEIGHT]
+        if not weight > 0.0:
+            continue
+        first, count = paths[i, 0], paths[i, 1]
+        j = first
+        while j < first + count:   # HysteresisModel.path_map
+            segment = segments[j]
+            if (p < segment[G_FROM]) if rising else (p > segment[G_FROM]):
+                length = expert[E_LENGTH]   # the band's hold, before its branch is met
+                break
+            if (p <= segment[G_TO]) if rising else (p >= segment[G_TO]):
+                length = segment_length(segment, branches, p)
+                break
+            j += 1
+        else:   # beyond the last segment's end: its curve goes on
+            length = segment_length(segments[first + count - 1], branches, p)
+        reference = expert[E_REFERENCE]   # adaptation.Drift.correct
+        total += weight * (reference + expert[E_SHIFT] + expert[E_GAIN] * (length - reference))
+    return total + faded_offset(scalars[S_OFFSET], scalars[S_PLAY_AT], p,
+                                scalars[S_HALF_PLAY], scalars[S_FADE])
+
+
+@compiled()
+def brentq(target, xa, xb, rising, experts, paths, segments, branches, scalars):
+    """scipy's brentq.c on mixed_length(p) - target: (root, converged)."""
+    xtol, rtol = scalars[S_XTOL], scalars[S_RTOL]
+    xpre, xcur = xa, xb
+    xblk, fblk, spre, scur = 0.0, 0.0, 0.0, 0.0
+    fpre = mixed_length(xpre, rising, experts, paths, segments, branches, scalars) - target
+    fcur = mixed_length(xcur, rising, experts, paths, segments, branches, scalars) - target
+    if fpre == 0.0:
+        return xpre, True
+    if fcur == 0.0:
+        return xcur, True
+    if (fpre < 0.0) == (fcur < 0.0):
+        return math.nan, False
+    for _ in range(int(scalars[S_MAXITER])):
+        if fpre != 0.0 and fcur != 0.0 and ((fpre < 0.0) != (fcur < 0.0)):
+            xblk, fblk = xpre, fpre
+            spre = scur = xcur - xpre
+        if abs(fblk) < abs(fcur):
+            xpre, xcur, xblk = xcur, xblk, xcur
+            fpre, fcur, fblk = fcur, fblk, fcur
+        delta = (xtol + rtol * abs(xcur)) / 2.0
+        sbis = (xblk - xcur) / 2.0
+        if fcur == 0.0 or abs(sbis) < delta:
+            return xcur, True
+        if abs(spre) > delta and abs(fcur) < abs(fpre):
+            if xpre == xblk:   # secant
+                stry = -fcur * (xcur - xpre) / (fcur - fpre)
+            else:              # inverse quadratic interpolation
+                dpre = (fpre - fcur) / (xpre - xcur)
+                dblk = (fblk - fcur) / (xblk - xcur)
+                stry = -fcur * (fblk * dblk - fpre * dpre) / (dblk * dpre * (fblk - fpre))
+            if 2.0 * abs(stry) < min(abs(spre), 3.0 * abs(sbis) - delta):
+                spre, scur = scur, stry
+            else:
+                spre, scur = sbis, sbis
+        else:
+            spre, scur = sbis, sbis
+        xpre, fpre = xcur, fcur
+        if abs(scur) > delta:
+            xcur += scur
+        else:
+            xcur += delta if sbis > 0.0 else -delta
+        fcur = mixed_length(xcur, rising, experts, paths, segments, branches, scalars) - target
+    return xcur, False
+
+
+@compiled()
+def mixed_path_pressure(length_m, experts, stacks, branches, scalars):
+    """RuleMix.pressure_for_length along the path (AUTO), after its delegations:
+    (status, pressure, low, high, rising). status 1: found; 0: length_m is outside
+    [low, high], what the path reaches from here to 0 Pa or the maximum; -1: the root find
+    did not converge (scipy raises there)."""
+    rising = length_m < scalars[S_SETTLED]
+    n = experts.shape[0]
+    capacity = 0
+    for i in range(n):   # a path has at most one segment per two turning points, plus two
+        capacity += int(experts[i, E_DEPTH]) // 2 + 2
+    segments = np.zeros((capacity, SEGMENT_COLUMNS))
+    segments[:, G_KNEE] = 1.0
+    paths = np.zeros((n, 2), dtype=np.int64)
+    count = 0
+    for i in range(n):
+        if experts[i, E_WEIGHT] > 0.0:
+            paths[i, 0] = count
+            count = path_segments(experts[i], stacks, branches, rising, scalars, segments,
+                                  count)
+            paths[i, 1] = count - paths[i, 0]
+    start = scalars[S_HERE]
+    end = scalars[S_MAX] if rising else 0.0
+    at_start = mixed_length(start, rising, experts, paths, segments, branches, scalars)
+    at_end = mixed_length(end, rising, experts, paths, segments, branches, scalars)
+    low, high = py_min(at_start, at_end), py_max(at_start, at_end)
+    rounding = scalars[S_ROUNDING]
+    if not low - rounding <= length_m <= high + rounding:
+        return 0, math.nan, low, high, rising
+    if abs(at_start - length_m) <= rounding:
+        return 1, start, low, high, rising
+    if abs(at_end - length_m) <= rounding:
+        return 1, end, low, high, rising
+    root, converged = brentq(length_m, min(start, end), max(start, end), rising, experts, paths,
+                             segments, branches, scalars)
+    return (1 if converged else -1), root, low, high, rising
+
+
+def branch_table(rows) -> np.ndarray:
+    """Branch rows stacked into one array, zero-padded to the longest."""
+    table = np.zeros((len(rows), max(row.size for row in rows)))
+    for i, row in enumerate(rows):
+        table[i, :row.size] = row
+    return table
