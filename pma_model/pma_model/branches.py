@@ -210,7 +210,7 @@ class SigmoidBranch(Branch):
 
     def length(self, p_pa):
         if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
-            return kernel.sigmoid_length(self.l0_m, self.a, self.b_per_pa, self.c, p_pa)
+            return kernel.base_length(self.kernel_row, p_pa)
         # The same formula on an array (kernel.sigmoid_length's comment).
         p = np.maximum(np.asarray(p_pa, dtype=float), 0.0)
         saturation = np.exp(-self.c * np.logaddexp(0.0, -self.b_per_pa * p))
@@ -219,7 +219,7 @@ class SigmoidBranch(Branch):
 
     def inverse_unchecked(self, length_m):
         if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            return kernel.sigmoid_pressure(self.l0_m, self.a, self.b_per_pa, self.c, length_m)
+            return kernel.base_pressure(self.kernel_row, length_m)
         length = np.asarray(length_m, dtype=float)
         with np.errstate(divide='ignore', invalid='ignore'):
             # u = log(1 + exp(-bP)); expm1 keeps precision near saturation, where u -> 0.
@@ -265,7 +265,7 @@ class HillBranch(Branch):
 
     def length(self, p_pa):
         if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
-            return kernel.hill_length(self.l0_m, self.dl_m, self.k_pa, self.n, p_pa)
+            return kernel.base_length(self.kernel_row, p_pa)
         ratio = np.maximum(np.asarray(p_pa, dtype=float), 0.0) / self.k_pa
         with np.errstate(over='ignore'):
             powered = np.power(ratio, self.n)
@@ -276,7 +276,7 @@ class HillBranch(Branch):
 
     def inverse_unchecked(self, length_m):
         if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            return kernel.hill_pressure(self.l0_m, self.dl_m, self.k_pa, self.n, length_m)
+            return kernel.base_pressure(self.kernel_row, length_m)
         fraction = (self.l0_m - np.asarray(length_m, dtype=float)) / self.dl_m
         with np.errstate(divide='ignore', invalid='ignore'):
             result = self.k_pa * np.power(fraction / (1.0 - fraction), 1.0 / self.n)

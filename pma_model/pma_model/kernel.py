@@ -307,7 +307,8 @@ def path_segments(expert, stacks, branches, rising, scalars, out, count):
     # The turning points the path meets, oldest first: the stack, and the current state
     # when going this way is a reversal.
     points = np.empty((depth + 1, 2))
-    points[:depth] = stacks[start:start + depth]
+    for k in range(depth):   # not a slice assignment: that costs seconds more to compile
+        points[k, 0], points[k, 1] = stacks[start + k, 0], stacks[start + k, 1]
     if rising != (expert[E_RISING] != 0.0):
         points[depth, 0], points[depth, 1] = p_here, l_here
         depth += 1
@@ -433,9 +434,15 @@ def mixed_path_pressure(length_m, experts, stacks, branches, scalars):
     capacity = 0
     for i in range(n):   # a path has at most one segment per two turning points, plus two
         capacity += int(experts[i, E_DEPTH]) // 2 + 2
-    segments = np.zeros((capacity, SEGMENT_COLUMNS))
-    segments[:, G_KNEE] = 1.0
-    paths = np.zeros((n, 2), dtype=np.int64)
+    # np.empty and loops: np.zeros and slice assignments cost seconds more to compile.
+    segments = np.empty((capacity, SEGMENT_COLUMNS))
+    for j in range(capacity):
+        for column in range(SEGMENT_COLUMNS):
+            segments[j, column] = 0.0
+        segments[j, G_KNEE] = 1.0
+    paths = np.empty((n, 2), dtype=np.int64)
+    for i in range(n):
+        paths[i, 0], paths[i, 1] = 0, 0
     count = 0
     for i in range(n):
         if experts[i, E_WEIGHT] > 0.0:
