@@ -256,10 +256,11 @@ EXPERT_COLUMNS = 18
 (S_HERE, S_MAX, S_SETTLED, S_OFFSET, S_PLAY_AT, S_HALF_PLAY, S_FADE, S_MID_DEPTH, S_NARROW,
  S_FLAT_SPAN, S_XTOL, S_RTOL, S_ROUNDING, S_MAXITER) = range(14)
 SCALARS = 14
-# A path segment: the expert's curve from p_from to p_to (major: a branch table row).
+# A path segment: the expert's curve from p_from to p_to (major: a branch table row; origin
+# 0: the major branch itself), through O and T, its play share and O's depth across the loop.
 (G_FROM, G_TO, G_MAJOR, G_ORIGIN, G_L_ORIGIN, G_L_TARGET, G_B_ORIGIN, G_B_TARGET, G_FLAT,
- G_SHARE, G_KNEE) = range(11)
-SEGMENT_COLUMNS = 11
+ G_SHARE, G_KNEE, G_P_ORIGIN, G_P_TARGET, G_DEPTH) = range(14)
+SEGMENT_COLUMNS = 14
 
 
 @compiled()
@@ -269,10 +270,12 @@ def _curve_segment(out, j, branches, major, other, shared, share, slope, origin_
     (HysteresisModel._curve with its rule's curve)."""
     toward = branch_length(branches[major], origin_p)
     w = 0.0
+    depth = scalars[S_MID_DEPTH]
     if shared:   # 'identify': its play share at O's depth across the loop
         depth = origin_depth(toward, branch_length(branches[other], origin_p), origin_l,
                              scalars[S_NARROW])
         w = play_share(share, slope, depth, scalars[S_MID_DEPTH])
+    out[j, G_P_ORIGIN], out[j, G_P_TARGET], out[j, G_DEPTH] = origin_p, target_p, depth
     b_target = branch_length(branches[major], target_p)
     flat, knee = curve_knee(origin_l, target_l, toward, b_target, scalars[S_FLAT_SPAN])
     out[j, G_ORIGIN] = 1.0
@@ -333,6 +336,26 @@ def path_segments(expert, stacks, branches, rising, scalars, out, count):
             return count
         depth -= 2
         p_from = p_to
+
+
+@compiled()
+def empty_segments(capacity):
+    """A segment table to fill: every curve the major branch itself (no origin, knee 1)."""
+    # np.empty and loops: np.zeros and slice assignments cost seconds more to compile.
+    segments = np.empty((capacity, SEGMENT_COLUMNS))
+    for j in range(capacity):
+        for column in range(SEGMENT_COLUMNS):
+            segments[j, column] = 0.0
+        segments[j, G_KNEE] = 1.0
+    return segments
+
+
+@compiled()
+def path_of(expert, stacks, branches, rising, scalars):
+    """The segment table of one expert's path (`path_segments`), for the classes' inverse."""
+    segments = empty_segments(int(expert[E_DEPTH]) // 2 + 2)
+    count = path_segments(expert, stacks, branches, rising, scalars, segments, 0)
+    return segments[:count]
 
 
 @compiled()
@@ -434,12 +457,7 @@ def mixed_path_pressure(length_m, experts, stacks, branches, scalars):
     capacity = 0
     for i in range(n):   # a path has at most one segment per two turning points, plus two
         capacity += int(experts[i, E_DEPTH]) // 2 + 2
-    # np.empty and loops: np.zeros and slice assignments cost seconds more to compile.
-    segments = np.empty((capacity, SEGMENT_COLUMNS))
-    for j in range(capacity):
-        for column in range(SEGMENT_COLUMNS):
-            segments[j, column] = 0.0
-        segments[j, G_KNEE] = 1.0
+    segments = empty_segments(capacity)
     paths = np.empty((n, 2), dtype=np.int64)
     for i in range(n):
         paths[i, 0], paths[i, 1] = 0, 0

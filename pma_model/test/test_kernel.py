@@ -1,5 +1,6 @@
-"""The compiled formulas (kernel.py): the mix's inverse along the path gives what the search in
-Python gives, to the bit, and the kernel runs where numba has nowhere to keep its cache.
+"""The compiled formulas (kernel.py): the path it builds is the one the classes built, the mix's
+inverse along it gives what the search in Python gives, to the bit, and the kernel runs where
+numba has nowhere to keep its cache.
 """
 
 import math
@@ -23,9 +24,12 @@ from pma_model.correction import (
     correction_caps,
     monotone_correction,
 )
+from pma_model.curves import ScanningCurve
 from pma_model.detector import BRANCH_AUTO
+from pma_model.memory import HysteresisModel
 from pma_model.mix import RuleMix
 from pma_model.params import default_params
+from pma_model.rules import MEMORY_RULES
 
 RULE_SETS = (('identify', 'play'), ('madelung', 'play'), ('identify', 'switch'),
              ('identify', 'play', 'madelung', 'switch'))
@@ -122,6 +126,59 @@ def test_the_kernel_keeps_the_branch_table_until_a_commit_makes_new_branches():
     mix.pressure_for_length(0.27)
     assert mix._branch_table[1] is not kept
     assert_the_same(mix, 0.27)
+
+
+def reference_path(model: HysteresisModel, rising: bool) -> list:
+    """The path as the classes built it before kernel.path_segments did (rules.py's
+    future_segments and PlayRule.path_segments, kept here as the reference)."""
+    limit_pa = model.max_gauge_pressure_pa if rising else 0.0
+    if model.memory == 'play':
+        major = model.major(rising)
+        meets_pa = float(major.inverse_unchecked(model.length_m))
+        if math.isnan(meets_pa):
+            meets_pa = model.pressure_pa
+        join_pa = max(model.pressure_pa, meets_pa) if rising else min(model.pressure_pa,
+                                                                         meets_pa)
+        return [(ScanningCurve(major), join_pa, limit_pa)]
+    stack = list(model.turning_points)
+    if rising != model.rising:
+        stack.append((model.pressure_pa, model.length_m))
+    segments = []
+    p_from = model.pressure_pa
+    while True:
+        curve = model._curve(rising, stack)
+        p_to = stack[-2][0] if len(stack) >= 2 else limit_pa
+        final = len(stack) < 2 or ((p_to >= limit_pa) if rising else (p_to <= limit_pa))
+        if final:
+            p_to = limit_pa
+        segments.append((curve, p_from, p_to))
+        if final:
+            return segments
+        del stack[-2:]
+        p_from = p_to
+
+
+@settings(max_examples=60)
+@given(rule=st.sampled_from(tuple(MEMORY_RULES)), form=st.sampled_from(('sigmoid', 'hill')),
+       pressures_kpa=st.lists(st.floats(min_value=0.0, max_value=500.0), min_size=0,
+                              max_size=40),
+       offsets=st.lists(st.floats(min_value=-0.01, max_value=0.01), min_size=2, max_size=2),
+       shares=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+       slopes=st.tuples(st.floats(-2.0, 2.0), st.floats(-2.0, 2.0)))
+def test_the_compiled_path_is_the_one_the_classes_built(rule, form, pressures_kpa, offsets,  # noqa: PLR0917
+                                                       shares, slopes):
+    increasing, decreasing = replace(default_params(), branch_form=form).branches()
+    knots = len(CORRECTION_KNOTS_PA)
+    increasing, decreasing = (  # learned corrections: each branch's own, kept monotone
+        CorrectedBranch(b, monotone_correction([d * math.cos(k) for k in range(knots)],
+                                               correction_caps(b)))
+        for b, d in ((increasing, offsets[0]), (decreasing, offsets[1])))
+    model = HysteresisModel(increasing, decreasing, memory=rule, play_shares=shares,
+                            share_slopes=slopes)
+    for p_kpa in pressures_kpa:
+        model.update(1e3 * p_kpa)
+    for rising in (True, False):
+        assert model.path_segments(rising) == reference_path(model, rising)
 
 
 @given(p_pa=st.floats(min_value=-1e5, max_value=2e6),
