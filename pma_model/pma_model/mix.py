@@ -47,7 +47,7 @@ from pma_model.identification import (
     elapsed_s,
 )
 from pma_model.local_offset import FADE_PA, PLAY_PA, LocalOffset
-from pma_model.memory import NARROW_LOOP_M, InverseResult
+from pma_model.memory import NARROW_LOOP_M, InverseResult, expert_row
 
 MIX_MEMORY = 'mix'            # the model's memory setting that runs MIX_RULES mixed
 MIX_RULES = ('identify', 'play')
@@ -324,11 +324,8 @@ class RuleMix:
             state = expert.model.path_state()
             drift = expert.drift
             settled.append(float(drift.correct(state.length_m)))
-            rows.append((weight, drift.reference_length_m, drift.shift_m, drift.gain,
-                         state.pressure_pa, state.length_m, state.rising, state.path_kind,
-                         state.has_play_share, *state.play_shares, *state.share_slopes,
-                         2 * i, 2 * i + 1, len(stacks), len(state.turning_points),
-                         state.max_gauge_pressure_pa))
+            rows.append(expert_row(state, weight, (drift.reference_length_m, drift.shift_m,
+                                                   drift.gain), 2 * i, len(stacks)))
             stacks += state.turning_points
             branches += (state.increasing, state.decreasing)
         kept, table = self._branch_table
