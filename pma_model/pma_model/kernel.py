@@ -491,3 +491,35 @@ def branch_table(rows) -> np.ndarray:
     for i, row in enumerate(rows):
         table[i, :row.size] = row
     return table
+
+
+def warm_up() -> None:
+    """Compile what the model calls, or load it from the cache: a short run of the default
+    `mix` on each branch form, its inverses, a learned correction and each rule's path, so
+    that no process's first inverse waits seconds for the compiler (tools/setup.sh runs
+    this after a build, which fills the cache)."""
+    # Imported here: at module level this file imports nothing of pma_model (see above).
+    from dataclasses import replace
+
+    from pma_model.branches import BRANCH_FORMS
+    from pma_model.correction import CORRECTION_KNOTS_PA, CorrectedBranch
+    from pma_model.memory import HysteresisModel
+    from pma_model.params import default_params
+    from pma_model.rules import MEMORY_RULES
+
+    for form in BRANCH_FORMS:
+        params = replace(default_params(), branch_form=form)
+        online = replace(params, memory='mix').build_online()
+        for k, p_pa in enumerate((0.0, 2e5, 4e5, 1e5, 3e5, 2e5)):
+            online.step(p_pa, float(params.build_model().increasing.length(p_pa)) + 1e-3,
+                        0.02 * k)
+        for branch in (0, 1, 2):
+            online.pressure_for_length(0.27, branch)
+        increasing, decreasing = params.branches()
+        corrected = CorrectedBranch(increasing, (1e-4,) * len(CORRECTION_KNOTS_PA))
+        corrected.inverse_unchecked(float(corrected.length(1e5)))
+        for rule in MEMORY_RULES:
+            model = HysteresisModel(corrected, decreasing, memory=rule)
+            for p_pa in (3e5, 1e5, 2e5):
+                model.update(p_pa)
+            model.pressure_for_length(0.27)

@@ -243,3 +243,7 @@ def test_with_a_cache_directory_the_compiled_code_is_kept_there(tmp_path):
     assert caching
     assert answer == SigmoidBranch(0.3, 0.2, 1e-5, 6.0).length(1e5)
     assert any(path.suffix == '.nbi' for path in cache.rglob('*'))
+
+
+def test_the_warm_up_runs_what_the_model_calls():
+    kernel.warm_up()   # tools/setup.sh's: it must not fail on the default parameters
