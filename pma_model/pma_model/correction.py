@@ -106,7 +106,7 @@ class CorrectedBranch(Branch):
         """The base branch's row with the knots, its lengths there and the offsets."""
         if isinstance(self.base, CorrectedBranch):
             raise TypeError('a corrected branch corrects a branch form, not another correction')
-        row = _knot_row(self.base).copy()
+        row = _base_memo(self.base)[1].copy()   # a commit makes new ones: the base's is kept
         row[kernel.ROW_HEAD + 2 * len(CORRECTION_KNOTS_PA):] = self.offsets_m
         return row
 

@@ -288,9 +288,9 @@ def _curve_segment(out, j, branches, major, other, shared, share, slope, origin_
 @compiled()
 def path_segments(expert, stacks, branches, rising, scalars, out, count):
     """The pieces of the path pressure would follow one way from an expert's state, into
-    out[count:]; the new count. The stack rules' (rules.future_segments): the curve in
-    force, then through wiping-out each older one, to 0 Pa or the maximum. The band's
-    (rules.PlayRule.path_segments): the length holds until the major branch meets it."""
+    out[count:]; the new count. The stack rules' (PATH_STACK): the curve in force, then
+    through wiping-out each older one, to 0 Pa or the maximum. The band's (PATH_BAND): the
+    length holds until the major branch meets it, then follows that branch."""
     p_here, l_here = expert[E_PRESSURE], expert[E_LENGTH]
     major = int(expert[E_INCREASING] if rising else expert[E_DECREASING])
     other = int(expert[E_DECREASING] if rising else expert[E_INCREASING])
