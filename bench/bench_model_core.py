@@ -114,7 +114,7 @@ def main() -> None:
                 lambda p=settings: [online.step(*sample) for online in [p.build_online()]
                                     for sample in samples], repeats)
         # The controller's inverse every cycle: along the path from a learned state (the
-        # mix has no closed form: a bracketed root of the mixed path, scipy's brentq).
+        # mix has no closed form: a bracketed root of the mixed path, one compiled call).
         online = replace(params, memory=memory).build_online()
         for sample in samples:
             online.step(*sample)

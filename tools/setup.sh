@@ -118,3 +118,15 @@ if [ "${changed}" = 1 ]; then
 else
     say "workspace up to date"
 fi
+
+# --- 4. The model's compiled formulas ---------------------------------------------
+# numba compiles pma_model/kernel.py on first use (seconds) and caches it beside the source;
+# an edit of the file invalidates the cache. Compile here, once, so that no test or node
+# process waits for the compiler in its first inverse.
+kernel_py="${ROOT}/pma_model/pma_model/kernel.py"
+if [ -z "$(find "${ROOT}/pma_model/pma_model/__pycache__" -name 'kernel.*.nbi' \
+        -newer "${kernel_py}" -print -quit 2>/dev/null)" ]; then
+    say "compiling the model's kernel (numba, once after each change of kernel.py)"
+    python3 -c 'from pma_model import kernel; kernel.warm_up()' \
+        || die "could not compile pma_model/kernel.py (is numba installed? make setup installs it)"
+fi

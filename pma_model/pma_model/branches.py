@@ -20,6 +20,8 @@ from typing import ClassVar
 import numpy as np
 from scipy.optimize import least_squares
 
+from pma_model import kernel
+
 DEFAULT_MAX_GAUGE_PRESSURE_PA = 500_000.0
 
 # Sanity limits that catch unit mix-ups (cm for m, b per kPa for per Pa, K in kPa). The
@@ -63,6 +65,18 @@ class Branch(abc.ABC):
     """
 
     form: ClassVar[str]
+    # The compiled formula of this form (kernel.SIGMOID, kernel.HILL): the one home of its
+    # length and inverse at one value, which `length` and `inverse_unchecked` call for a float.
+    kernel_formula: ClassVar[float]
+
+    @functools.cached_property
+    def kernel_row(self) -> np.ndarray:
+        """This branch as the compiled formulas read it (kernel.py's branch row, without a
+        correction); computed once, as branches are frozen."""
+        row = np.zeros(kernel.ROW_HEAD)
+        row[kernel.ROW_FORMULA] = self.kernel_formula
+        row[kernel.ROW_PARAMETERS:kernel.ROW_KNOTS] = self.vector()
+        return row
 
     @abc.abstractmethod
     def length(self, p_pa):
@@ -181,6 +195,7 @@ class SigmoidBranch(Branch):
     """The paper's branch: L = L0 - a*L0 / (1 + exp(-b*P))**c."""
 
     form: ClassVar[str] = 'sigmoid'
+    kernel_formula: ClassVar[float] = kernel.SIGMOID
 
     l0_m: float
     a: float
@@ -194,11 +209,9 @@ class SigmoidBranch(Branch):
         _require(_finite_positive(self.c), 'c', self.c, 'finite and > 0')
 
     def length(self, p_pa):
-        # (1 + exp(-bP))**-c written as exp(-c*log(1 + exp(-bP))) so no power overflows.
         if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
-            saturation = math.exp(-self.c * math.log1p(math.exp(-self.b_per_pa
-                                                                * max(p_pa, 0.0))))
-            return self.l0_m - self.a * self.l0_m * saturation
+            return kernel.base_length(self.kernel_row, p_pa)
+        # The same formula on an array (kernel.sigmoid_length's comment).
         p = np.maximum(np.asarray(p_pa, dtype=float), 0.0)
         saturation = np.exp(-self.c * np.logaddexp(0.0, -self.b_per_pa * p))
         result = self.l0_m - self.a * self.l0_m * saturation
@@ -206,12 +219,7 @@ class SigmoidBranch(Branch):
 
     def inverse_unchecked(self, length_m):
         if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            try:
-                u = math.log(self.a * self.l0_m / (self.l0_m - length_m)) / self.c
-                result = -math.log(math.expm1(u)) / self.b_per_pa
-            except (ValueError, ZeroDivisionError, OverflowError):   # numpy's NaN and inf
-                return math.nan
-            return result if math.isfinite(result) else math.nan
+            return kernel.base_pressure(self.kernel_row, length_m)
         length = np.asarray(length_m, dtype=float)
         with np.errstate(divide='ignore', invalid='ignore'):
             # u = log(1 + exp(-bP)); expm1 keeps precision near saturation, where u -> 0.
@@ -241,6 +249,7 @@ class HillBranch(Branch):
     """
 
     form: ClassVar[str] = 'hill'
+    kernel_formula: ClassVar[float] = kernel.HILL
 
     l0_m: float
     dl_m: float
@@ -256,12 +265,7 @@ class HillBranch(Branch):
 
     def length(self, p_pa):
         if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
-            try:
-                powered = (max(p_pa, 0.0) / self.k_pa) ** self.n
-            except OverflowError:     # numpy's inf, below
-                powered = math.inf
-            fraction = 1.0 if powered == math.inf else powered / (1.0 + powered)
-            return self.l0_m - self.dl_m * fraction
+            return kernel.base_length(self.kernel_row, p_pa)
         ratio = np.maximum(np.asarray(p_pa, dtype=float), 0.0) / self.k_pa
         with np.errstate(over='ignore'):
             powered = np.power(ratio, self.n)
@@ -272,13 +276,7 @@ class HillBranch(Branch):
 
     def inverse_unchecked(self, length_m):
         if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            fraction = (self.l0_m - length_m) / self.dl_m
-            try:
-                result = self.k_pa * (fraction / (1.0 - fraction)) ** (1.0 / self.n)
-            except (ZeroDivisionError, OverflowError):
-                return math.nan
-            return result if isinstance(result, float) and math.isfinite(result) \
-                and fraction >= 0.0 else math.nan
+            return kernel.base_pressure(self.kernel_row, length_m)
         fraction = (self.l0_m - np.asarray(length_m, dtype=float)) / self.dl_m
         with np.errstate(divide='ignore', invalid='ignore'):
             result = self.k_pa * np.power(fraction / (1.0 - fraction), 1.0 / self.n)

@@ -9,14 +9,13 @@ branches from them; `knot_sensitivity` is the derivative it learns through.
 
 from __future__ import annotations
 
-import bisect
 import functools
-import math
 from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
+from pma_model import kernel
 from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
 
 # Every 50 kPa (Table 1's pressures) and 75 kPa: between 50 and 100 kPa the muscle leaves its
@@ -33,34 +32,6 @@ INCREASING_KNOTS = slice(0, len(CORRECTION_KNOTS_PA))
 DECREASING_KNOTS = slice(len(CORRECTION_KNOTS_PA), 2 * len(CORRECTION_KNOTS_PA))
 
 
-def _knot_position(p_pa: float, knots=CORRECTION_KNOTS_PA) -> tuple[int, bool]:
-    """(interval k, inside) for a pressure: knots k and k + 1 bracket it when inside."""
-    if p_pa <= knots[0]:
-        return 0, False
-    if p_pa >= knots[-1]:
-        return len(knots) - 1, False
-    return bisect.bisect_right(knots, p_pa) - 1, True
-
-
-def _knot_share(p_pa: float, base_length_m: float, at_knots,
-                knots=CORRECTION_KNOTS_PA) -> tuple[int, float]:
-    """(k, share): the correction at p_pa is d_k + (d_{k+1} - d_k) * share, interpolated
-    along the base branch's own length (`at_knots`: its lengths at the knots); share is 0
-    beyond the knots and on an interval where the base does not fall."""
-    k, inside = _knot_position(p_pa, knots)
-    if not inside:
-        return k, 0.0
-    drop = at_knots[k] - at_knots[k + 1]
-    return k, ((at_knots[k] - base_length_m) / drop if drop > 0.0 else 0.0)
-
-
-def _interpolated(offsets, k: int, share: float) -> float:
-    """The correction d_k + (d_{k+1} - d_k) * share (`_knot_share`'s k and share)."""
-    if share == 0.0:
-        return offsets[k]
-    return offsets[k] + (offsets[k + 1] - offsets[k]) * share
-
-
 _MAX_KNOWN_LENGTHS = 256     # single-pressure lengths a CorrectedBranch keeps
 
 
@@ -75,30 +46,40 @@ _MAX_BASE_POINTS = 4096      # single-pressure entries a base branch keeps (_bas
 
 
 def _base_point(branch: Branch, p_pa: float) -> tuple[float, int, float]:
-    """(base length, knot interval k, share) at one pressure: what a corrected branch's
-    length and its knot sensitivity are made of, independent of the learned offsets. Kept
-    on the base branch, so shared by every corrected branch over it: a commit makes new
-    corrected branches and its replay asks for the same turning pressures again, and a
-    sample's pressure is asked for by the length, the two shapes and the regressor."""
-    points, at_knots, _ = _base_memo(branch)
+    """(base length, knot interval k, share) at one pressure (kernel.knot_share's k and
+    share): what a corrected branch's knot sensitivity is made of, independent of the learned
+    offsets. Kept on the base branch, so shared by every corrected branch over it: a commit
+    makes new corrected branches and its replay asks for the same turning pressures again,
+    and a sample's pressure is asked for by the length, the two shapes and the regressor."""
+    points, row, _ = _base_memo(branch)
     point = points.get(p_pa)
     if point is None:
         base = float(branch.length(p_pa))
-        point = (base, *_knot_share(p_pa, base, at_knots))
+        point = (base, *kernel.knot_share(row, p_pa, base))
         if len(points) >= _MAX_BASE_POINTS:   # a long noisy run: start again
             points.clear()
         points[p_pa] = point
     return point
 
 
-def _base_memo(branch: Branch) -> tuple[dict, tuple[float, ...], dict]:
-    """A base branch's memo: {pressure: _base_point}, its lengths at the knots and
-    {(rising, pressure): knot_sensitivity}."""
+def _base_memo(branch: Branch) -> tuple[dict, np.ndarray, dict]:
+    """A base branch's memo: {pressure: _base_point}, its kernel row with the knots and its
+    lengths there (`_knot_row`) and {(rising, pressure): knot_sensitivity}."""
     memo = branch.__dict__.get('_points')
     if memo is None:   # a memo, not a field (frozen); with the knots' lengths (no hashing)
-        memo = ({}, _lengths_at_knots(branch), {})
+        memo = ({}, _knot_row(branch), {})
         object.__setattr__(branch, '_points', memo)
     return memo
+
+
+def _knot_row(branch: Branch) -> np.ndarray:
+    """The base branch's kernel row with the knots and its lengths at them (a corrected
+    branch's row, but for the offsets)."""
+    knots = len(CORRECTION_KNOTS_PA)
+    row = np.concatenate((branch.kernel_row[:kernel.ROW_HEAD], CORRECTION_KNOTS_PA,
+                          _lengths_at_knots(branch), np.zeros(knots)))
+    row[kernel.ROW_KNOTS] = knots
+    return row
 
 
 @dataclass(frozen=True)
@@ -121,8 +102,13 @@ class CorrectedBranch(Branch):
     offsets_m: tuple[float, ...]
 
     @functools.cached_property
-    def _base_at_knots(self) -> tuple[float, ...]:
-        return _lengths_at_knots(self.base)
+    def kernel_row(self) -> np.ndarray:
+        """The base branch's row with the knots, its lengths there and the offsets."""
+        if isinstance(self.base, CorrectedBranch):
+            raise TypeError('a corrected branch corrects a branch form, not another correction')
+        row = _base_memo(self.base)[1].copy()   # a commit makes new ones: the base's is kept
+        row[kernel.ROW_HEAD + 2 * len(CORRECTION_KNOTS_PA):] = self.offsets_m
+        return row
 
     def __post_init__(self):
         # Lengths already computed at single pressures. A sample asks for the same few (its
@@ -136,16 +122,15 @@ class CorrectedBranch(Branch):
 
     def correction_at(self, p_pa: float, base_length_m: float) -> float:
         """delta at one pressure, given the base length there."""
-        return _interpolated(self.offsets_m,
-                             *_knot_share(p_pa, base_length_m, self._base_at_knots))
+        row = self.kernel_row
+        return kernel.interpolated(row, *kernel.knot_share(row, p_pa, base_length_m))
 
     def length(self, p_pa):
         if isinstance(p_pa, float):   # the online path: one sample, no numpy round trip
             known = self._known_lengths
             length = known.get(p_pa)
             if length is None:
-                base, k, share = _base_point(self.base, p_pa)
-                length = base + _interpolated(self.offsets_m, k, share)
+                length = kernel.branch_length(self.kernel_row, p_pa)
                 if len(known) >= _MAX_KNOWN_LENGTHS:   # a long noisy hold: start again
                     known.clear()
                 known[p_pa] = length
@@ -156,31 +141,13 @@ class CorrectedBranch(Branch):
         return float(result) if np.ndim(result) == 0 else result
 
     def inverse_unchecked(self, length_m):
+        row = self.kernel_row
         if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            return self._inverse_one(length_m)
+            return kernel.branch_pressure(row, length_m)
         lengths = np.asarray(length_m, dtype=float)
-        result = np.vectorize(self._inverse_one, otypes=[float])(lengths)
+        result = np.vectorize(lambda one: kernel.branch_pressure(row, one),
+                              otypes=[float])(lengths)
         return float(result) if result.ndim == 0 else result
-
-    def _inverse_one(self, length_m: float) -> float:
-        if not math.isfinite(length_m):
-            return math.nan
-        base, offsets = self._base_at_knots, self.offsets_m
-        corrected = [b + d for b, d in zip(base, offsets, strict=True)]
-        if length_m > corrected[0]:
-            return math.nan    # longer than at 0 Pa (flat below: the least pressure is 0)
-        if length_m <= corrected[-1]:
-            return float(self.base.inverse_unchecked(length_m - offsets[-1]))
-        first = next(i for i, value in enumerate(corrected) if value <= length_m)
-        if corrected[first] == length_m:
-            return CORRECTION_KNOTS_PA[first]   # the least pressure of a flat stretch too
-        k = first - 1
-        drop = base[k] - base[k + 1]
-        ratio = (offsets[k + 1] - offsets[k]) / drop if drop > 0.0 else 1.0
-        if ratio >= 1.0:       # a flat interval: its lowest pressure
-            return CORRECTION_KNOTS_PA[k]
-        target = (length_m - offsets[k] - ratio * base[k]) / (1.0 - ratio)
-        return float(self.base.inverse_unchecked(target))
 
     def invertible_pressure_limit(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
         """The base branch's: a learned flat stretch (a plateau) is answered with its least

@@ -12,11 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pma_model import kernel
 from pma_model.branches import Branch
 
 # Below this |B(P_O) - B(P_T)| [m] the rescaling is 0/0 (both points in the flat region
 # below 0 Pa): the curve is then B shifted through O instead.
-_FLAT_SPAN_M = 1e-15
+FLAT_SPAN_M = 1e-15
 
 # The 'identify' share of a curve is play_share + slope * (origin_depth - MID_DEPTH): the
 # shares are those of a reversal mid-loop, the slopes how they change across it.
@@ -26,7 +27,7 @@ MID_DEPTH = 0.5
 def play_share_at(share: float, slope: float, depth: float) -> float:
     """The 'identify' share of a curve whose reversal lies at `depth` across the loop
     (HysteresisModel.origin_depth), within 0..1."""
-    return min(1.0, max(0.0, share + slope * (depth - MID_DEPTH)))
+    return kernel.play_share(share, slope, depth, MID_DEPTH)
 
 
 
@@ -64,13 +65,12 @@ class ScanningCurve:
         (_, l_origin), (_, l_target) = self.origin, self.target
         b_origin = float(self.major.length(self.origin[0]))
         b_target = float(self.major.length(self.target[0]))
-        flat = abs(b_origin - b_target) < _FLAT_SPAN_M
-        ratio = 1.0 if flat else (l_origin - l_target) / (b_origin - b_target)
+        # q: where the play-like shape stops holding (1 when it would not reach T).
+        flat, knee = kernel.curve_knee(l_origin, l_target, b_origin, b_target, FLAT_SPAN_M)
         object.__setattr__(self, '_span', (b_origin, b_target))
         object.__setattr__(self, '_is_flat', flat)
-        # q: where the play-like shape stops holding (1 when it would not reach T).
-        object.__setattr__(self, '_knee', ratio if 0.0 < ratio < 1.0 else 1.0)
-        object.__setattr__(self, '_knee_moves', not flat and 0.0 < ratio < 1.0)
+        object.__setattr__(self, '_knee', knee)
+        object.__setattr__(self, '_knee_moves', not flat and knee < 1.0)
 
     def _flat(self) -> bool:
         return self._is_flat
@@ -88,6 +88,10 @@ class ScanningCurve:
             return shape
         (_, l_origin), (_, l_target) = self.origin, self.target
         b_origin, b_target = self._span
+        if isinstance(shape, float):   # one sample: the compiled formula
+            return kernel.curve_length(shape, l_origin, l_target, b_origin, b_target,
+                                       self._is_flat, self.play_share, self._knee)
+        # The same formula on an array (kernel.curve_length).
         if self._flat():
             return l_origin + (shape - b_origin)
         if self.play_share == 0.0:
@@ -95,10 +99,8 @@ class ScanningCurve:
         s = self._coordinate(shape)
         w = self.play_share
         knee = self._knee
-        held = min(1.0, s / knee) if isinstance(s, float) else np.minimum(1.0, s / knee)
+        held = np.minimum(1.0, s / knee)
         result = l_target + (l_origin - l_target) * (w * held + (1.0 - w) * s)
-        if isinstance(result, float):   # one sample (np.ndim costs more than the curve)
-            return float(result)
         return float(result) if np.ndim(result) == 0 else result
 
     def shapes_at(self, p_pa: float) -> tuple[float, float]:

@@ -24,6 +24,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from pma_model import kernel
+
 FADE_PA = 100_000.0       # pressure travel over which an unexplained offset fades (1/e)
 WALK_M2_PER_PA = 3e-12    # offset variance gained per pascal travelled (0.55 mm per 100 kPa)
 PLAY_PA = 10_000.0        # +/-4 sigma of the pressure reading's noise (10 bits: 1.3 kPa)
@@ -65,7 +67,10 @@ class LocalOffset:
     def at(self, pressure_pa: float) -> float:
         """The offset expected once pressure has gone straight from here to `pressure_pa`
         (what the inverse adds along the path)."""
-        if math.isnan(self._play_pa) or self.offset_m == 0.0:
-            return self.offset_m
-        travel = max(abs(pressure_pa - self._play_pa) - 0.5 * PLAY_PA, 0.0)
-        return self.offset_m * math.exp(-travel / FADE_PA)
+        return kernel.faded_offset(self.offset_m, self._play_pa, pressure_pa, 0.5 * PLAY_PA,
+                                   FADE_PA)
+
+    @property
+    def play_pa(self) -> float:
+        """Where the play through which travel is counted stands (NaN before any pressure)."""
+        return self._play_pa

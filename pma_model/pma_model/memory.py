@@ -48,11 +48,13 @@ import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+from pma_model import kernel
 from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
-from pma_model.curves import ScanningCurve
+from pma_model.curves import FLAT_SPAN_M, MID_DEPTH, ScanningCurve
 from pma_model.detector import (
     BRANCH_AUTO,
     BRANCH_DECREASING,
@@ -71,11 +73,46 @@ MEMORY_MODES = tuple(MEMORY_RULES)
 MAX_TURNING_POINTS = 512
 
 # Branches closer than this [m] at a reversal's pressure: no loop to place it in.
-_NARROW_LOOP_M = 1e-4
+NARROW_LOOP_M = 1e-4
 
 # Lengths this close [m] count as equal when deciding whether a curve reaches a target: a
 # curve evaluated at its own origin can differ from the stored length in the last bit.
 ROUNDING_M = 1e-12
+
+# The numbers kernel.path_segments takes from the modules that own them (kernel.py says why);
+# the rest of its scalars are the inverse's (mix.py).
+PATH_SCALARS = np.zeros(kernel.SCALARS)
+PATH_SCALARS[[kernel.S_MID_DEPTH, kernel.S_NARROW, kernel.S_FLAT_SPAN]] = (
+    MID_DEPTH, NARROW_LOOP_M, FLAT_SPAN_M)
+
+
+class PathState(NamedTuple):
+    """What the path pressure would follow from the current state depends on
+    (`HysteresisModel.path_state`; kernel.mixed_path_pressure builds the path from it)."""
+
+    pressure_pa: float
+    length_m: float
+    rising: bool                 # pressure last moved up
+    turning_points: tuple[tuple[float, float], ...]   # (pressure_pa, length_m), oldest first
+    increasing: Branch
+    decreasing: Branch
+    path_kind: int               # the rule's (kernel.PATH_STACK or kernel.PATH_BAND)
+    has_play_share: bool         # its curves mix two shapes by the shares ('identify')
+    play_shares: tuple[float, float]    # (rising, falling)
+    share_slopes: tuple[float, float]
+    max_gauge_pressure_pa: float
+
+
+def expert_row(state: PathState, weight: float = 1.0, drift: tuple = (0.0, 0.0, 1.0),
+               first_branch: int = 0, first_point: int = 0) -> tuple:
+    """A rule's path state as a row of the kernel's expert table (kernel.E_ layout): its
+    branches are rows first_branch (increasing) and first_branch + 1 of the branch table, its
+    turning points rows first_point... of the stack table; `drift`: (reference length, shift,
+    gain), `weight`: its share of a mix."""
+    return (weight, *drift, state.pressure_pa, state.length_m, state.rising, state.path_kind,
+            state.has_play_share, *state.play_shares, *state.share_slopes, first_branch,
+            first_branch + 1, first_point, len(state.turning_points),
+            state.max_gauge_pressure_pa)
 
 
 @dataclass(frozen=True)
@@ -164,6 +201,8 @@ class HysteresisModel:
         # and the current curve with its ends' gradients.
         self._gradient_cache: tuple[list, list] = ([], [])
         self._gradient_ends: tuple = (None, None)
+        # path_segments': (increasing, decreasing, their kernel branch table).
+        self._kernel_branches: tuple = (None, None, None)
 
     def __copy__(self) -> HysteresisModel:
         # copy.copy's default goes through pickling's reduce protocol, five times the cost
@@ -251,6 +290,13 @@ class HysteresisModel:
         """Madelung stack (pressure_pa, length_m), oldest first."""
         return tuple(self._stack)
 
+    def path_state(self) -> PathState:
+        """The state a path from here is built from, as named public values."""
+        rule = self._rule
+        return PathState(self._p, self._l, self._rising, tuple(self._stack), self.increasing,
+                         self.decreasing, rule.path_kind, rule.has_play_share,
+                         self.play_shares, self.share_slopes, self.max_gauge_pressure_pa)
+
     def major(self, rising: bool) -> Branch:
         """The major branch pressure follows when moving up (True) or down."""
         return self.increasing if rising else self.decreasing
@@ -277,11 +323,9 @@ class HysteresisModel:
         excursion.
         """
         p_origin, l_origin = origin
-        toward = float(self.major(rising).length(p_origin))
-        width = float(self.major(not rising).length(p_origin)) - toward
-        if abs(width) < _NARROW_LOOP_M:
-            return 1.0
-        return min(1.0, max(0.0, (l_origin - toward) / width))
+        return kernel.origin_depth(float(self.major(rising).length(p_origin)),
+                                   float(self.major(not rising).length(p_origin)), l_origin,
+                                   NARROW_LOOP_M)
 
     def current_origin_depth(self) -> float:
         """origin_depth of the scanning curve in force (MID_DEPTH on a major branch)."""
@@ -424,8 +468,29 @@ class HysteresisModel:
                                  math.nan, 0, math.nan, math.nan)
         name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
         where = f'{name} path from the current state ({self._p:.6g} Pa, {self._l:.6g} m)'
-        return self._invert_along(self._rule.path_segments(self, rising), rising, length_m,
+        return self._invert_along(self.path_segments(rising), rising, length_m,
                                   where)
+
+    def path_segments(self, rising: bool) -> list[Segment]:
+        """The pieces (curve, from_pa, to_pa) of the path pressure would follow moving one
+        way from here, as kernel.path_segments builds them for the rule's `path_kind`: the
+        turning-point stack's curves through wiping-out to 0 Pa or the maximum, or the band's
+        hold until the major branch meets the length, then that branch."""
+        state = self.path_state()
+        kept = self._kernel_branches
+        if kept[0] is not self.increasing or kept[1] is not self.decreasing:
+            kept = (self.increasing, self.decreasing, kernel.branch_table(
+                [self.increasing.kernel_row, self.decreasing.kernel_row]))
+            self._kernel_branches = kept
+        rows = kernel.path_of(np.array(expert_row(state), dtype=float),
+                              np.array(state.turning_points, dtype=float).reshape(-1, 2),
+                              kept[2], rising, PATH_SCALARS).tolist()
+        major = self.major(rising)
+        return [(ScanningCurve(major) if row[kernel.G_ORIGIN] == 0.0 else ScanningCurve(
+                     major, (row[kernel.G_P_ORIGIN], row[kernel.G_L_ORIGIN]),
+                     (row[kernel.G_P_TARGET], row[kernel.G_L_TARGET]), row[kernel.G_SHARE],
+                     row[kernel.G_DEPTH]),
+                 row[kernel.G_FROM], row[kernel.G_TO]) for row in rows]
 
     def path_map(self, rising: bool) -> Callable[[float], float]:
         """length(p_pa) if pressure moved to p_pa one way from the current state.
@@ -434,7 +499,7 @@ class HysteresisModel:
         (a mix of rules has no closed-form inverse: mix.RuleMix). The pieces of the
         path are built once, here; the map is for the current state only.
         """
-        segments = self._rule.path_segments(self, rising)
+        segments = self.path_segments(rising)
         held_m = self._l
 
         def length_at(p_pa: float) -> float:

@@ -21,7 +21,9 @@ large errors on the asymmetric muscle into the mix).
 
 The inverse (`pressure_for_length`) has no closed form: the mixture of monotone lengths along
 the path is monotone, so it is bracketed and solved (scipy's brentq) on the lengths each rule
-gives along the path pressure would follow from the current state.
+gives along the path pressure would follow from the current state. Along the path (AUTO) the
+whole of it, the path included, is one compiled call (kernel.mixed_path_pressure, brentq's
+steps as scipy takes them), as in Python the path's evaluations were most of its cost.
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ from typing import ClassVar
 import numpy as np
 from scipy.optimize import brentq
 
+from pma_model import kernel
 from pma_model.adaptation import Drift
+from pma_model.curves import FLAT_SPAN_M, MID_DEPTH
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING, BRANCH_NAMES
 from pma_model.identification import (
     IdentificationSettings,
@@ -42,8 +46,8 @@ from pma_model.identification import (
     Prediction,
     elapsed_s,
 )
-from pma_model.local_offset import LocalOffset
-from pma_model.memory import InverseResult
+from pma_model.local_offset import FADE_PA, PLAY_PA, LocalOffset
+from pma_model.memory import NARROW_LOOP_M, InverseResult, expert_row
 
 MIX_MEMORY = 'mix'            # the model's memory setting that runs MIX_RULES mixed
 MIX_RULES = ('identify', 'play')
@@ -53,7 +57,15 @@ PRESSURE_TOLERANCE_PA = 1e-3
 # Rules whose weight is below this move the mixed length by less than 1e-10 m (they differ by
 # centimetres at most), less than the pressure tolerance does on the steepest branch.
 NEGLIGIBLE_WEIGHT = 1e-9
-
+# A target this close [m] to a reachable end counts as reached (rounding, not a gap).
+REACH_ROUNDING_M = 1e-12
+# scipy's brentq defaults, which the compiled root find (kernel.brentq) is given too.
+BRENTQ_RTOL = 4.0 * np.finfo(float).eps
+BRENTQ_MAXITER = 100
+# The numbers the compiled inverse takes from the modules that own them (kernel.py says why),
+# in the order of its scalars from S_HALF_PLAY on.
+_KERNEL_CONSTANTS = (0.5 * PLAY_PA, FADE_PA, MID_DEPTH, NARROW_LOOP_M, FLAT_SPAN_M,
+                     PRESSURE_TOLERANCE_PA, BRENTQ_RTOL, REACH_ROUNDING_M, BRENTQ_MAXITER)
 
 def _first_rule(name: str) -> property:
     """A RuleMix attribute that is its first rule's (OnlineModel's of that name)."""
@@ -98,6 +110,7 @@ class RuleMix:
         first = self.experts[0]
         self.local = LocalOffset(first.identification.length_noise_m,
                                  first.adaptation.outlier_m)
+        self._branch_table: tuple[tuple, np.ndarray | None] = ((), None)   # _path_arrays'
 
     def without_local_offset(self) -> RuleMix:
         """This mix with its local offset off and forgotten (for a caller that feeds the
@@ -228,8 +241,9 @@ class RuleMix:
 
         AUTO: along the path pressure would follow from the current state, in the
         direction the target needs (shorter than now: rising), the local offset fading along
-        it as pressure travels; INCREASING / DECREASING: on that direction's major branches,
-        mixed (no local offset: it belongs to the current state).
+        it as pressure travels (one compiled call, kernel.mixed_path_pressure);
+        INCREASING / DECREASING: on that direction's major branches, mixed (no local offset:
+        it belongs to the current state).
         """
         if branch not in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING) or \
                 not math.isfinite(float(length_m)):
@@ -238,12 +252,30 @@ class RuleMix:
         weights = self.weights
         path = branch == BRANCH_AUTO
         carried = path and self.local.offset_m != 0.0    # the major branches have none
-        local = self.local.at if carried else (lambda _p_pa: 0.0)
         if np.count_nonzero(weights > NEGLIGIBLE_WEIGHT) == 1 and not carried:
             # One rule carries the mix (the others move it by < 1e-10 m): its exact inverse.
             return self.experts[int(np.argmax(weights))].pressure_for_length(length_m, branch)
+        if not path:
+            return self.searched_pressure_for_length(length_m, branch == BRANCH_INCREASING,
+                                                     path=False)
+        experts, stacks, branches, scalars = self._path_arrays(weights)
+        status, pressure, low, high, rising = kernel.mixed_path_pressure(
+            length_m, experts, stacks, branches, scalars)
+        if status < 0:   # as scipy's brentq would have raised
+            raise RuntimeError(f'the mixed path\'s root find did not converge for {length_m!r} m')
+        return self._result(length_m, rising, True, reached=status > 0, pressure=pressure,
+                            low=low, high=high)
+
+    def searched_pressure_for_length(self, length_m: float, rising: bool,
+                                     path: bool = True) -> InverseResult:
+        """The inverse found in Python (scipy's brentq on the rules' `settled_map`s): on the
+        major branches of one direction, or along the path (`path`; what the compiled AUTO
+        inverse is checked against)."""
+        weights = self.weights
+        local = self.local.at if path and self.local.offset_m != 0.0 else (lambda _p_pa: 0.0)
+        if path:
+            rising = length_m < self.settled_length_m
         here = self.experts[0].model.pressure_pa
-        rising = length_m < self.settled_length_m if path else branch == BRANCH_INCREASING
         start = here if path else (0.0 if rising else self.max_gauge_pressure_pa)
         end = self.max_gauge_pressure_pa if rising else 0.0
         maps = [(w, e.settled_map(rising, path))
@@ -252,25 +284,61 @@ class RuleMix:
         def mixed(p_pa: float) -> float:
             return sum(w * length_at(p_pa) for w, length_at in maps) + local(p_pa)
 
-        name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
-        where = (f'{name} path from the current state ({here:.6g} Pa)' if path
-                 else f'{name} major branch')
         at_start, at_end = mixed(start), mixed(end)
         low, high = min(at_start, at_end), max(at_start, at_end)
-        code = BRANCH_INCREASING if rising else BRANCH_DECREASING
-        if not low - 1e-12 <= length_m <= high + 1e-12:
+        if not low - REACH_ROUNDING_M <= length_m <= high + REACH_ROUNDING_M:
+            return self._result(length_m, rising, path, reached=False, pressure=math.nan,
+                                low=low, high=high)
+        if abs(at_start - length_m) <= REACH_ROUNDING_M:
+            pressure = start
+        elif abs(at_end - length_m) <= REACH_ROUNDING_M:
+            pressure = end
+        else:
+            pressure = brentq(lambda p: mixed(p) - length_m, min(start, end), max(start, end),
+                              xtol=PRESSURE_TOLERANCE_PA, rtol=BRENTQ_RTOL,
+                              maxiter=BRENTQ_MAXITER)
+        return self._result(length_m, rising, path, reached=True, pressure=float(pressure),
+                            low=low, high=high)
+
+    def _result(self, length_m: float, rising: bool, path: bool, *, reached: bool,
+                pressure: float, low: float, high: float) -> InverseResult:
+        name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
+        where = (f'{name} path from the current state '
+                 f'({self.experts[0].model.pressure_pa:.6g} Pa)' if path
+                 else f'{name} major branch')
+        if not reached:
             return InverseResult(
                 False, f'length {length_m:.6g} m is not reachable on the mixed {where}: '
                 f'reachable [{low:.6g}, {high:.6g}] m with 0..'
                 f'{self.max_gauge_pressure_pa:.6g} Pa', math.nan, 0, low, high)
-        if abs(at_start - length_m) <= 1e-12:
-            pressure = start
-        elif abs(at_end - length_m) <= 1e-12:
-            pressure = end
-        else:
-            pressure = brentq(lambda p: mixed(p) - length_m, min(start, end), max(start, end),
-                              xtol=PRESSURE_TOLERANCE_PA)
-        return InverseResult(True, f'on the mixed {where}', float(pressure), code, low, high)
+        code = BRANCH_INCREASING if rising else BRANCH_DECREASING
+        return InverseResult(True, f'on the mixed {where}', pressure, code, low, high)
+
+    def _path_arrays(self, weights: np.ndarray):
+        """(experts, stacks, branches, scalars): the state kernel.mixed_path_pressure reads
+        (its E_ and S_ layouts); the branch table is kept while the rules' branches are the
+        same objects (a commit makes new ones). Built as lists and converted once: numpy's
+        per-item cost was most of the call."""
+        rows, stacks, branches, settled = [], [], [], []
+        for i, (weight, expert) in enumerate(zip(weights.tolist(), self.experts, strict=True)):
+            state = expert.model.path_state()
+            drift = expert.drift
+            settled.append(float(drift.correct(state.length_m)))
+            rows.append(expert_row(state, weight, (drift.reference_length_m, drift.shift_m,
+                                                   drift.gain), 2 * i, len(stacks)))
+            stacks += state.turning_points
+            branches += (state.increasing, state.decreasing)
+        kept, table = self._branch_table
+        if len(kept) != len(branches) or \
+                any(a is not b for a, b in zip(kept, branches, strict=True)):
+            table = kernel.branch_table([b.kernel_row for b in branches])
+            self._branch_table = (branches, table)
+        offset = self.local.offset_m
+        scalars = np.array((rows[0][kernel.E_PRESSURE], self.max_gauge_pressure_pa,
+                            float(weights @ settled) + offset, offset, self.local.play_pa,
+                            *_KERNEL_CONSTANTS))
+        return (np.array(rows, dtype=float), np.array(stacks, dtype=float).reshape(-1, 2),
+                table, scalars)
 
     @property
     def local_offset_m(self) -> float:

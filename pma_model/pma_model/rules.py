@@ -13,7 +13,6 @@ its label for legends). The rules mixed by their recent error (the `mix` memory)
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
@@ -23,6 +22,7 @@ import numpy as np
 from pma_model.branches import Branch
 from pma_model.curves import MID_DEPTH, CurveEnds, ScanningCurve, play_share_at
 from pma_model.detector import BRANCH_INCREASING
+from pma_model.kernel import PATH_BAND, PATH_STACK
 
 if TYPE_CHECKING:
     from pma_model.memory import HysteresisModel
@@ -47,6 +47,10 @@ class MemoryRule(Protocol):
     follows_path: bool
     # True: its curves mix the play-like and Madelung shapes by a learned share.
     has_play_share: bool
+    # How the path pressure would follow goes on from a state (HysteresisModel.path_segments,
+    # built by kernel.path_segments): along the turning-point stack's curves (PATH_STACK) or
+    # the friction band's hold, then the major branch (PATH_BAND).
+    path_kind: int
     # True: a state taken over is rebuilt by replaying the other's turning points before
     # `resume`; False: `resume` needs only the other's pressure and length.
     replays_stack: bool
@@ -76,8 +80,6 @@ class MemoryRule(Protocol):
                         sensitivity: BranchSensitivity) -> np.ndarray:
         """d length / d parameters at the current state."""
 
-    def path_segments(self, model: HysteresisModel, rising: bool) -> list[Segment]:
-        """The pieces of the path pressure would follow moving one way from here."""
 
 
 @dataclass(frozen=True)
@@ -117,33 +119,12 @@ def monotone_runs(model: HysteresisModel, values: np.ndarray):
             for start, end in zip(run_starts, run_ends, strict=True)]
 
 
-def future_segments(model: HysteresisModel, rising: bool) -> list[Segment]:
-    """(curve, from_pa, to_pa) pieces pressure would follow moving one way from here along
-    the turning-point stack, through wiping-out to 0 Pa or the maximum."""
-    stack = list(model._stack)
-    if rising != model._rising:
-        stack.append((model._p, model._l))
-    segments = []
-    p_from = model._p
-    limit_pa = model.max_gauge_pressure_pa if rising else 0.0
-    while True:
-        curve = model._curve(rising, stack)
-        p_to = stack[-2][0] if len(stack) >= 2 else limit_pa
-        final = len(stack) < 2 or ((p_to >= limit_pa) if rising else (p_to <= limit_pa))
-        if final:
-            p_to = limit_pa
-        segments.append((curve, p_from, p_to))
-        if final:
-            return segments
-        del stack[-2:]
-        p_from = p_to
-
-
 class MadelungRule:
     """A stack of turning points with wiping-out; curves are the major branch rescaled."""
 
     follows_path = True
     has_play_share = False
+    path_kind = PATH_STACK
     replays_stack = True
 
     def update(self, model, p_pa, branch):
@@ -165,8 +146,6 @@ class MadelungRule:
     def expert_lengths(self, model):
         return model._current_curve().shapes_at(model._p)
 
-    def path_segments(self, model, rising):
-        return future_segments(model, rising)
 
     def advance(self, model, values, branches):
         """Madelung over finite pressures, one numpy evaluation per curve segment."""
@@ -268,7 +247,8 @@ class SwitchRule:
 
     follows_path = False
     has_play_share = False
-    replays_stack = True   # its path_segments walk the stack a resume_from replayed
+    path_kind = PATH_STACK
+    replays_stack = True   # its path walks the stack a resume_from replayed
 
     def update(self, model, p_pa, branch):
         model._p, model._l = p_pa, float(model.major(branch == BRANCH_INCREASING).length(p_pa))
@@ -297,8 +277,6 @@ class SwitchRule:
         rising = model._detector.branch == BRANCH_INCREASING
         return sensitivity(model.major(rising), rising, model._p)
 
-    def path_segments(self, model, rising):
-        return future_segments(model, rising)
 
 
 class PlayRule:
@@ -306,6 +284,7 @@ class PlayRule:
 
     follows_path = True
     has_play_share = False
+    path_kind = PATH_BAND
     replays_stack = False   # its state is the held length, which resume fits to the band
 
     def update(self, model, p_pa, branch):
@@ -360,15 +339,6 @@ class PlayRule:
         rising, p_pa = model._play_source
         return sensitivity(model.major(rising), rising, p_pa)
 
-    def path_segments(self, model, rising):
-        """The length holds until the major branch reaches it, then follows it."""
-        major = model.major(rising)
-        meets_pa = float(major.inverse_unchecked(model._l))
-        if math.isnan(meets_pa):
-            meets_pa = model._p
-        join_pa = max(model._p, meets_pa) if rising else min(model._p, meets_pa)
-        return [(ScanningCurve(major), join_pa,
-                 model.max_gauge_pressure_pa if rising else 0.0)]
 
 
 register_memory_rule('identify', IdentifyRule, 'learned scanning curves')
