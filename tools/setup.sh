@@ -120,13 +120,10 @@ else
 fi
 
 # --- 4. The model's compiled formulas ---------------------------------------------
-# numba compiles pma_model/kernel.py on first use (seconds) and caches it beside the source;
-# an edit of the file invalidates the cache. Compile here, once, so that no test or node
-# process waits for the compiler in its first inverse.
-kernel_py="${ROOT}/pma_model/pma_model/kernel.py"
-if [ -z "$(find "${ROOT}/pma_model/pma_model/__pycache__" -name 'kernel.*.nbi' \
-        -newer "${kernel_py}" -print -quit 2>/dev/null)" ]; then
-    say "compiling the model's kernel (numba, once after each change of kernel.py)"
-    python3 -c 'from pma_model import kernel; kernel.warm_up()' \
-        || die "could not compile pma_model/kernel.py (is numba installed? make setup installs it)"
-fi
+# numba compiles pma_model/kernel.py on first use (seconds) and caches it beside the module
+# the nodes import (ros2_ws/build/pma_model/..., through the workspace); an edit of the file
+# invalidates the cache. Compiled or loaded here, with the workspace sourced as every node
+# has it, so that no test or node process waits for the compiler in its first inverse.
+say "the model's kernel: compiling, or loading numba's cache"
+( set +u; . "${WS}/install/setup.bash"; python3 -c 'from pma_model import kernel; kernel.warm_up()' ) \
+    || die "could not compile pma_model/kernel.py (is numba installed? make setup installs it)"
