@@ -137,7 +137,8 @@ def test_pip_only_modules_are_pinned_installed_and_documented(module):
         pins.update(found)
     assert len(pins) == 1, f'the two requirements files pin {distribution} differently: {pins}'
     pin = pins.pop()
-    dockerfile = (ROOT / 'docker' / 'Dockerfile').read_text().splitlines()
+    # A RUN instruction continues over lines that end in a backslash: read it as one line.
+    dockerfile = (ROOT / 'docker' / 'Dockerfile').read_text().replace('\\\n', ' ').splitlines()
     assert any('pip3 install' in line and pin in line.split() for line in dockerfile), (
         f'docker/Dockerfile does not pip-install {pin}')
     for package in entry['packages']:
