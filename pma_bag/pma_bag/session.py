@@ -138,7 +138,9 @@ class RecordingSession:
         self.heard: set[str] = set()       # topics with a message since the bag started
         self.paused = False
         self._pause_ns = (0, 0)            # receive-time window of the latest pause
-        # Header stamps: of the last PmaState written, and of the last derived message heard.
+        # The last PmaState written, per topic (its stamp is read once, when the bag closes),
+        # and the header stamp of the latest derived message heard.
+        self._last_state_written: dict[str, bytes] = {}
         self.last_stamp_ns: dict[str, int] = {}
         self.closing = False               # end_at_last_sample was called
         self.end_stamp_ns: int | None = None
@@ -168,12 +170,13 @@ class RecordingSession:
         pma/state is counted while paused too: not recorded is not lost.
         """
         derived = topic in self.derived_topics
+        stamp_ns = header_stamp_ns(data) if derived else None
         if self.closing and not (derived and self.end_stamp_ns is not None
-                                 and header_stamp_ns(data) <= self.end_stamp_ns):
+                                 and stamp_ns <= self.end_stamp_ns):
             return
         self.heard.add(topic)
-        if derived:
-            self._note_stamp(topic, data)
+        if derived and stamp_ns > self.last_stamp_ns.get(topic, -1):
+            self.last_stamp_ns[topic] = stamp_ns
         tracker = self.state_trackers.get(topic)
         if tracker is not None:
             tracker.add(self._read_seq(data))
@@ -184,20 +187,15 @@ class RecordingSession:
         if not self.was_paused_at(received_ns) and self.write(topic, data, received_ns,
                                                                  source_ns):
             if tracker is not None:
-                self._note_stamp(topic, data)
-
-    def _note_stamp(self, topic: str, data: bytes) -> None:
-        stamp = header_stamp_ns(data)
-        if stamp > self.last_stamp_ns.get(topic, -1):
-            self.last_stamp_ns[topic] = stamp
+                self._last_state_written[topic] = data
 
     def end_at_last_sample(self) -> None:
         """Take nothing that arrives from now on, except derived messages of samples already
         in the bag: a model running behind (1-2 s on a loaded machine) has not yet published
         the predictions of the last samples when a sweep stops its bag."""
         self.closing = True
-        self.end_stamp_ns = max((self.last_stamp_ns[t] for t in self.state_trackers
-                                 if t in self.last_stamp_ns), default=None)
+        self.end_stamp_ns = max(map(header_stamp_ns, self._last_state_written.values()),
+                                default=None)
 
     def lagging_topics(self) -> list[str]:
         """Derived topics heard in this bag whose latest message is for a sample before the

@@ -370,16 +370,27 @@ class TruthLog:
 
 
 def advance(device: SimDevice, port: PtyPort, t_ms: int) -> bool:
-    """Run `device` toward `t_ms` by at most MAX_ADVANCE_MS, handing it first what the host
-    wrote; True while it is still behind. The loop emits the device's output between calls, so
-    a device that simulates slower than real time answers late but keeps talking, as a slow
-    board would: caught up in one go, it fell silent for seconds and the driver saw a stall."""
-    if device.t_ms + MAX_ADVANCE_MS < t_ms and port.wait_readable(0.0):
+    """Run `device` toward `t_ms` by at most MAX_ADVANCE_MS and hand it what the host wrote;
+    True while it is still behind. The loop emits the device's output between calls, so a
+    device that simulates slower than real time answers late but keeps talking, as a slow
+    board would: caught up in one go, it fell silent for seconds and the driver saw a stall.
+    A device in time gets the bytes at `t_ms`; one behind gets them before it runs on (they
+    are already waiting when its clock gets there)."""
+    behind = device.t_ms + MAX_ADVANCE_MS < t_ms
+    if behind:
+        _hand_over(device, port)
+    device.advance_to(min(t_ms, device.t_ms + MAX_ADVANCE_MS))
+    if not behind:
+        _hand_over(device, port)
+    return device.t_ms < t_ms
+
+
+def _hand_over(device: SimDevice, port: PtyPort) -> None:
+    """Give the device what the host has written, if anything."""
+    if port.wait_readable(0.0):
         data = port.read()
         if data:
             device.receive(data)
-    device.advance_to(min(t_ms, device.t_ms + MAX_ADVANCE_MS))
-    return device.t_ms < t_ms
 
 
 def run(args: argparse.Namespace, stop: StopRequest,
@@ -488,9 +499,6 @@ def run(args: argparse.Namespace, stop: StopRequest,
             wait = 0.0 if behind else min(min(deadlines) - time.monotonic(), MAX_WAIT_S)
             if port.wait_readable(wait):
                 behind = advance(device, port, int((time.monotonic() - boot) * 1000))
-                data = port.read()
-                if data:
-                    device.receive(data)
         log.info('%s: shutting down', stop.reason)
     finally:
         link.remove()
