@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pma_model import kernel
+
 
 @dataclass(frozen=True)
 class AdaptationSettings:
@@ -66,8 +68,10 @@ class Drift:
         inverse's searches call this per evaluation)."""
         if not isinstance(model_length_m, float):
             model_length_m = np.asarray(model_length_m, dtype=float)
-        return self.reference_length_m + self.shift_m + self.gain * (
-            model_length_m - self.reference_length_m)
+            if model_length_m.ndim == 0:
+                model_length_m = float(model_length_m)
+        return kernel.drifted_length(self.reference_length_m, self.shift_m, self.gain,
+                                     model_length_m)
 
     def uncorrect(self, drifted_length_m):
         """The model length(s) whose correction is drifted_length_m (for the inverse)."""

@@ -56,6 +56,17 @@ def _finite_positive(value) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
 
 
+def _elementwise(function, row, values):
+    """A compiled loop over a 1-D array (kernel.branch_lengths, branch_pressures) applied to
+    values of any shape; a float for a single value."""
+    array = np.asarray(values, dtype=float)
+    flat = array.ravel()
+    if not flat.flags.writeable:   # numba compiles read-only arrays apart: keep one kind
+        flat = flat.copy()
+    result = function(row, flat).reshape(array.shape)
+    return float(result) if result.ndim == 0 else result
+
+
 @dataclass(frozen=True)
 class Branch(abc.ABC):
     """One monotone length(pressure) branch with a closed-form inverse.
@@ -66,7 +77,7 @@ class Branch(abc.ABC):
 
     form: ClassVar[str]
     # The compiled formula of this form (kernel.SIGMOID, kernel.HILL): the one home of its
-    # length and inverse at one value, which `length` and `inverse_unchecked` call for a float.
+    # length and inverse, which `length` and `inverse_unchecked` call for floats and arrays.
     kernel_formula: ClassVar[float]
 
     @functools.cached_property
@@ -78,17 +89,21 @@ class Branch(abc.ABC):
         row[kernel.ROW_PARAMETERS:kernel.ROW_KNOTS] = self.vector()
         return row
 
-    @abc.abstractmethod
     def length(self, p_pa):
         """Length [m] at gauge pressure(s) [Pa]; vectorised, float in -> float out."""
+        if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
+            return kernel.branch_length(self.kernel_row, p_pa)
+        return _elementwise(kernel.branch_lengths, self.kernel_row, p_pa)
 
-    @abc.abstractmethod
     def inverse_unchecked(self, length_m):
         """The closed-form inverse with no range check: NaN where it has no real answer.
 
         For callers that have already checked the range (the memory model's scanning
         curves); everyone else should call `pressure`.
         """
+        if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
+            return kernel.branch_pressure(self.kernel_row, length_m)
+        return _elementwise(kernel.branch_pressures, self.kernel_row, length_m)
 
     @abc.abstractmethod
     def stroke_m(self) -> float:
@@ -208,26 +223,6 @@ class SigmoidBranch(Branch):
         _require(_finite_positive(self.b_per_pa), 'b_per_pa', self.b_per_pa, 'finite and > 0')
         _require(_finite_positive(self.c), 'c', self.c, 'finite and > 0')
 
-    def length(self, p_pa):
-        if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
-            return kernel.base_length(self.kernel_row, p_pa)
-        # The same formula on an array (kernel.sigmoid_length's comment).
-        p = np.maximum(np.asarray(p_pa, dtype=float), 0.0)
-        saturation = np.exp(-self.c * np.logaddexp(0.0, -self.b_per_pa * p))
-        result = self.l0_m - self.a * self.l0_m * saturation
-        return float(result) if result.ndim == 0 else result
-
-    def inverse_unchecked(self, length_m):
-        if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            return kernel.base_pressure(self.kernel_row, length_m)
-        length = np.asarray(length_m, dtype=float)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            # u = log(1 + exp(-bP)); expm1 keeps precision near saturation, where u -> 0.
-            u = np.log(self.a * self.l0_m / (self.l0_m - length)) / self.c
-            result = -np.log(np.expm1(u)) / self.b_per_pa
-        result = np.where(np.isfinite(result), result, np.nan)
-        return float(result) if result.ndim == 0 else result
-
     def stroke_m(self) -> float:
         return self.a * self.l0_m
 
@@ -262,26 +257,6 @@ class HillBranch(Branch):
                  'in (0, l0_m)')
         _require(_finite_positive(self.k_pa), 'k_pa', self.k_pa, 'finite and > 0')
         _require(_finite_positive(self.n), 'n', self.n, 'finite and > 0')
-
-    def length(self, p_pa):
-        if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
-            return kernel.base_length(self.kernel_row, p_pa)
-        ratio = np.maximum(np.asarray(p_pa, dtype=float), 0.0) / self.k_pa
-        with np.errstate(over='ignore'):
-            powered = np.power(ratio, self.n)
-        with np.errstate(invalid='ignore'):   # inf / inf: saturated, set below
-            fraction = np.where(np.isposinf(powered), 1.0, powered / (1.0 + powered))
-        result = self.l0_m - self.dl_m * fraction
-        return float(result) if result.ndim == 0 else result
-
-    def inverse_unchecked(self, length_m):
-        if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            return kernel.base_pressure(self.kernel_row, length_m)
-        fraction = (self.l0_m - np.asarray(length_m, dtype=float)) / self.dl_m
-        with np.errstate(divide='ignore', invalid='ignore'):
-            result = self.k_pa * np.power(fraction / (1.0 - fraction), 1.0 / self.n)
-        result = np.where(np.isfinite(result) & (fraction >= 0), result, np.nan)
-        return float(result) if result.ndim == 0 else result
 
     def stroke_m(self) -> float:
         return self.dl_m

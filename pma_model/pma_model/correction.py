@@ -120,11 +120,6 @@ class CorrectedBranch(Branch):
             raise ValueError(f'a branch correction needs {len(CORRECTION_KNOTS_PA)} values '
                              f'(one per knot), got {len(self.offsets_m)}')
 
-    def correction_at(self, p_pa: float, base_length_m: float) -> float:
-        """delta at one pressure, given the base length there."""
-        row = self.kernel_row
-        return kernel.interpolated(row, *kernel.knot_share(row, p_pa, base_length_m))
-
     def length(self, p_pa):
         if isinstance(p_pa, float):   # the online path: one sample, no numpy round trip
             known = self._known_lengths
@@ -135,19 +130,7 @@ class CorrectedBranch(Branch):
                     known.clear()
                 known[p_pa] = length
             return length
-        p = np.asarray(p_pa, dtype=float)
-        base = np.asarray(self.base.length(p))
-        result = base + np.vectorize(self.correction_at, otypes=[float])(p, base)
-        return float(result) if np.ndim(result) == 0 else result
-
-    def inverse_unchecked(self, length_m):
-        row = self.kernel_row
-        if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
-            return kernel.branch_pressure(row, length_m)
-        lengths = np.asarray(length_m, dtype=float)
-        result = np.vectorize(lambda one: kernel.branch_pressure(row, one),
-                              otypes=[float])(lengths)
-        return float(result) if result.ndim == 0 else result
+        return super().length(p_pa)
 
     def invertible_pressure_limit(self, p_max_pa: float = DEFAULT_MAX_GAUGE_PRESSURE_PA):
         """The base branch's: a learned flat stretch (a plateau) is answered with its least

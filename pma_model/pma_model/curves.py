@@ -75,13 +75,6 @@ class ScanningCurve:
     def _flat(self) -> bool:
         return self._is_flat
 
-    def _coordinate(self, shape):
-        b_origin, b_target = self._span
-        s = (shape - b_target) / (b_origin - b_target)
-        if isinstance(s, float):
-            return min(max(s, 0.0), 1.0)
-        return np.clip(s, 0.0, 1.0)
-
     def length(self, p_pa):
         shape = self.major.length(p_pa)
         if self.origin is None:
@@ -91,17 +84,10 @@ class ScanningCurve:
         if isinstance(shape, float):   # one sample: the compiled formula
             return kernel.curve_length(shape, l_origin, l_target, b_origin, b_target,
                                        self._is_flat, self.play_share, self._knee)
-        # The same formula on an array (kernel.curve_length).
-        if self._flat():
-            return l_origin + (shape - b_origin)
-        if self.play_share == 0.0:
-            return l_target + (l_origin - l_target) * (shape - b_target) / (b_origin - b_target)
-        s = self._coordinate(shape)
-        w = self.play_share
-        knee = self._knee
-        held = np.minimum(1.0, s / knee)
-        result = l_target + (l_origin - l_target) * (w * held + (1.0 - w) * s)
-        return float(result) if np.ndim(result) == 0 else result
+        # An array (Branch.length gives a float for one value): the same formula, compiled.
+        return kernel.curve_lengths(shape.ravel(), l_origin, l_target, b_origin, b_target,
+                                    self._is_flat, self.play_share, self._knee
+                                    ).reshape(shape.shape)
 
     def shapes_at(self, p_pa: float) -> tuple[float, float]:
         """(play-like, Madelung) lengths at p_pa: the two shapes the share mixes."""
@@ -109,12 +95,8 @@ class ScanningCurve:
         if self.origin is None:
             return shape, shape
         (_, l_origin), (_, l_target) = self.origin, self.target
-        if self._flat():
-            value = l_origin + (shape - self._span[0])
-            return value, value
-        s = float(self._coordinate(shape))
-        return (l_target + (l_origin - l_target) * min(1.0, s / self._knee),
-                l_target + (l_origin - l_target) * s)
+        return kernel.curve_shapes(shape, l_origin, l_target, *self._span, self._is_flat,
+                                   self._knee)
 
     def gradient(self, p_pa: float, shape_gradient: np.ndarray, ends: CurveEnds,
                  share_index: int | None) -> np.ndarray:
@@ -136,10 +118,10 @@ class ScanningCurve:
         b_origin, b_target = self._span
         span = b_origin - b_target
         difference = self.origin[1] - self.target[1]
-        raw = (float(self.major.length(p_pa)) - b_target) / span
-        s = min(max(raw, 0.0), 1.0)
+        shape = float(self.major.length(p_pa))
+        raw = (shape - b_target) / span
         w, knee = self.play_share, self._knee
-        held = min(1.0, s / knee)
+        s, held = kernel.curve_coordinate(shape, b_target, b_origin, knee)
         linear = raw if w == 0.0 else s   # as length(): Madelung extrapolates, a mix clips
         between = ends.origin - ends.target
         result = ends.target + between * (w * held + (1.0 - w) * linear)

@@ -194,6 +194,25 @@ def branch_pressure(row, length):
     return base_pressure(row, (length - row[off + k] - ratio * row[at + k]) / (1.0 - ratio))
 
 
+
+@compiled()
+def branch_lengths(row, pressures):
+    """branch_length at each of `pressures` (1-D): the array form of the same formula."""
+    result = np.empty(pressures.size)
+    for i in range(pressures.size):
+        result[i] = branch_length(row, pressures[i])
+    return result
+
+
+@compiled()
+def branch_pressures(row, lengths):
+    """branch_pressure at each of `lengths` (1-D): the array form of the same formula."""
+    result = np.empty(lengths.size)
+    for i in range(lengths.size):
+        result[i] = branch_pressure(row, lengths[i])
+    return result
+
+
 # --- scanning curves (curves.py) and the local offset (local_offset.py) -------------------
 
 @compiled()
@@ -206,6 +225,14 @@ def curve_knee(l_origin, l_target, b_origin, b_target, flat_span_m):
 
 
 @compiled()
+def curve_coordinate(shape, b_target, b_origin, knee):
+    """(s, min(1, s / q)): where the major branch's length `shape` lies between T and O,
+    clipped to 0..1, and the play-like shape's coordinate there."""
+    s = py_min(py_max((shape - b_target) / (b_origin - b_target), 0.0), 1.0)
+    return s, py_min(1.0, s / knee)
+
+
+@compiled()
 def curve_length(shape, l_origin, l_target, b_origin, b_target, flat, share, knee):
     """A scanning curve's length where its major branch is `shape` long: L_T + (L_O - L_T) *
     (w min(1, s / q) + (1 - w) s), s = (B - B_T) / (B_O - B_T) clipped to 0..1 (Madelung's,
@@ -214,9 +241,36 @@ def curve_length(shape, l_origin, l_target, b_origin, b_target, flat, share, kne
         return l_origin + (shape - b_origin)
     if share == 0.0:
         return l_target + (l_origin - l_target) * (shape - b_target) / (b_origin - b_target)
-    s = py_min(py_max((shape - b_target) / (b_origin - b_target), 0.0), 1.0)
-    held = py_min(1.0, s / knee)
+    s, held = curve_coordinate(shape, b_target, b_origin, knee)
     return l_target + (l_origin - l_target) * (share * held + (1.0 - share) * s)
+
+
+@compiled()
+def curve_shapes(shape, l_origin, l_target, b_origin, b_target, flat, knee):
+    """(play-like, Madelung) lengths of a curve where its major branch is `shape` long: the
+    two shapes a play share mixes (both clipped between T and O; a flat curve has one)."""
+    if flat:
+        value = l_origin + (shape - b_origin)
+        return value, value
+    s, held = curve_coordinate(shape, b_target, b_origin, knee)
+    return l_target + (l_origin - l_target) * held, l_target + (l_origin - l_target) * s
+
+
+@compiled()
+def curve_lengths(shapes, l_origin, l_target, b_origin, b_target, flat, share, knee):
+    """curve_length at each of `shapes` (1-D): the array form of the same formula."""
+    result = np.empty(shapes.size)
+    for i in range(shapes.size):
+        result[i] = curve_length(shapes[i], l_origin, l_target, b_origin, b_target, flat,
+                                 share, knee)
+    return result
+
+
+@compiled()
+def drifted_length(reference_m, shift_m, gain, model_length_m):
+    """A model length as drift moves it (adaptation.Drift): shifted, and scaled about the
+    reference length; for a float or an array alike."""
+    return reference_m + shift_m + gain * (model_length_m - reference_m)
 
 
 @compiled()
@@ -393,8 +447,8 @@ def mixed_length(p, rising, experts, paths, segments, branches, scalars):
             j += 1
         else:   # beyond the last segment's end: its curve goes on
             length = segment_length(segments[first + count - 1], branches, p)
-        reference = expert[E_REFERENCE]   # adaptation.Drift.correct
-        total += weight * (reference + expert[E_SHIFT] + expert[E_GAIN] * (length - reference))
+        total += weight * drifted_length(expert[E_REFERENCE], expert[E_SHIFT], expert[E_GAIN],
+                                         length)
     return total + faded_offset(scalars[S_OFFSET], scalars[S_PLAY_AT], p,
                                 scalars[S_HALF_PLAY], scalars[S_FADE])
 
@@ -523,3 +577,7 @@ def warm_up() -> None:
             for p_pa in (3e5, 1e5, 2e5):
                 model.update(p_pa)
             model.pressure_for_length(0.27)
+            # The array forms (a recorded run's prediction, the fits, the figures).
+            model.predict(np.linspace(0.0, 4e5, 5))
+        online.drift.correct(np.linspace(0.25, 0.29, 3))
+        corrected.inverse_unchecked(np.linspace(0.25, 0.29, 3))
