@@ -912,11 +912,9 @@ def _virgin_knot_share(travel_pa: float) -> tuple[int, float]:
 def virgin_knot_weights(travel_pa: float) -> np.ndarray:
     """Hat-function weights of the virgin term's knots at a travel (all 0 from
     VIRGIN_END_PA on, where the term has ended)."""
-    knots = (*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA)
-    weights = np.zeros(len(knots))
-    k = int(np.searchsorted(knots, travel_pa, side='right')) - 1
-    if 0 <= k < len(knots) - 1:
-        share = (travel_pa - knots[k]) / (knots[k + 1] - knots[k])
+    weights = np.zeros(len(_VIRGIN_KNOTS))
+    if _VIRGIN_KNOTS[0] <= travel_pa < _VIRGIN_KNOTS[-1]:
+        k, share = _virgin_knot_share(travel_pa)
         weights[k], weights[k + 1] = 1.0 - share, share
     return weights[:-1]
 
