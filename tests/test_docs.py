@@ -67,7 +67,9 @@ def shell_blocks() -> list[Block]:
 
 
 def script(selected: list[Block]) -> str:
-    parts = ['set -e -o pipefail']
+    # A command that fails ends the script; its background nodes end with it, so the failure
+    # is reported at once (they held the output pipe open until the test's timeout).
+    parts = ['set -e -o pipefail', "trap 'kill $(jobs -p) 2>/dev/null || true; wait' EXIT"]
     for block in selected:
         parts.append(f'echo "### {block.document}:{block.line} at ${{SECONDS}} s" >&2')
         parts.append(block.text)
@@ -82,9 +84,18 @@ def run_script(text: str, cwd: Path, timeout_s: float) -> tuple[int, str]:
     try:
         out, _ = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGTERM)
-        out, _ = proc.communicate(timeout=10)
-        out += f'\n### timed out after {timeout_s} s'
+        stuck = subprocess.run(['ps', '-o', 'pid,stat,wchan:20,etime,args', '-g', str(proc.pid)],
+                               capture_output=True, text=True, check=False).stdout
+        out = ''
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            os.killpg(proc.pid, sig)
+            try:
+                out, _ = proc.communicate(timeout=10)
+                break
+            except subprocess.TimeoutExpired as held:   # keep what it wrote up to here
+                out = held.output.decode(errors='replace') if isinstance(held.output, bytes) \
+                    else (held.output or '')
+        out += f'\n### timed out after {timeout_s} s; its processes then:\n{stuck}'
     finally:
         for sig in (signal.SIGTERM, signal.SIGKILL):
             try:
