@@ -48,7 +48,6 @@ function of the pressure history and the learned numbers.
 
 from __future__ import annotations
 
-import bisect
 import math
 import operator
 from collections.abc import Callable
@@ -858,10 +857,9 @@ class OnlineModel:
         `state`, the filter)."""
         if state.blocks.virgin is None:
             return None
-        half_width = 0.5 * self.deadband_pa
         if math.isnan(self._play_pa):
             self._play_pa = pressure_pa
-        moved = min(max(self._play_pa, pressure_pa - half_width), pressure_pa + half_width)
+        moved = kernel.through_play(self._play_pa, pressure_pa, 0.5 * self.deadband_pa)
         self._travel_pa += abs(moved - self._play_pa)
         self._play_pa = moved
         if self._travel_pa >= VIRGIN_END_PA:
@@ -878,12 +876,7 @@ class OnlineModel:
         else:
             dt = elapsed_s(self._time, t_s)
         if dt > 0.0:
-            # Exact for a static length that moves linearly over the step. Two floats: math,
-            # not numpy, whose per-call cost was most of this.
-            slope = (static - self._static) / dt
-            before = self._static
-            self._lag_values = [static - slope * tau + (lag - before + slope * tau)
-                                * math.exp(-dt / tau)
+            self._lag_values = [kernel.creep_lag(lag, static, self._static, dt, tau)
                                 for tau, lag in zip(CREEP_TIME_CONSTANTS_S, self._lag_values,
                                                     strict=True)]
         if t_s is not None:
@@ -988,38 +981,19 @@ class OnlineModel:
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
         """RLS on the current direction's play share and its slope across the loop (the
-        prediction is linear in both, through the curve's share)."""
+        prediction is linear in both, through the curve's share; kernel.share_update)."""
         if difference == 0.0:
             return
         index = 0 if self.model.rising else 1
-        h_share = difference
-        h_slope = difference * (self.model.current_origin_depth() - MID_DEPTH)
         var_share, cov, var_slope = self._share_covariance[index]
-        var_share += _WALK_PER_S['share'] ** 2 * dt
-        var_slope += _WALK_PER_S['share_slope'] ** 2 * dt
-        spread_share = var_share * h_share + cov * h_slope
-        spread_slope = cov * h_share + var_slope * h_slope
-        innovation = noise + h_share * spread_share + h_slope * spread_slope
-        gain_share, gain_slope = spread_share / innovation, spread_slope / innovation
-        share = float(self._shares[index, 0]) + gain_share * residual
-        slope = float(self._shares[index, 1]) + gain_slope * residual
-        # Bounded where it matters: the shares at both ends of the loop (depth 0 and 1), so
-        # every curve's share is within 0..1. Clamping share and slope each on its own bent
-        # the learning (a constant truth of 0.1 came out as 0.9 where its reversals were).
-        near, far = share - 0.5 * slope, share + 0.5 * slope
-        if not (0.0 <= near <= 1.0 and 0.0 <= far <= 1.0):
-            near, far = min(1.0, max(0.0, near)), min(1.0, max(0.0, far))
-            share, slope = 0.5 * (near + far), far - near
+        share, slope, *covariance = kernel.share_update(
+            float(self._shares[index, 0]), float(self._shares[index, 1]),
+            var_share + _WALK_PER_S['share'] ** 2 * dt, cov,
+            var_slope + _WALK_PER_S['share_slope'] ** 2 * dt, residual, difference,
+            difference * (self.model.current_origin_depth() - MID_DEPTH), noise,
+            _PRIOR['share'] ** 2, _PRIOR['share_slope'] ** 2)
         self._shares[index] = share, slope
-        var_share -= gain_share * spread_share
-        cov -= gain_share * spread_slope
-        var_slope -= gain_slope * spread_slope
-        # Never less sure than the prior (a long stretch without this direction's curves).
-        scale_share = math.sqrt(min(1.0, _PRIOR['share'] ** 2 / max(var_share, 1e-300)))
-        scale_slope = math.sqrt(min(1.0, _PRIOR['share_slope'] ** 2 / max(var_slope, 1e-300)))
-        self._share_covariance[index] = [var_share * scale_share ** 2,
-                                         cov * scale_share * scale_slope,
-                                         var_slope * scale_slope ** 2]
+        self._share_covariance[index] = covariance
 
     def _mid_shares_and_slopes(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """((rising, falling) share mid-loop, (rising, falling) slope)."""
@@ -1149,18 +1123,16 @@ def _virgin_knot_share(travel_pa: float) -> tuple[int, float]:
     """(k, share): virgin_knot_weights' two nonzero weights are 1 - share at knot k and
     share at k + 1 (k + 1 may be VIRGIN_END_PA's, which is not in the state). travel_pa is
     within 0..VIRGIN_END_PA."""
-    k = bisect.bisect_right(_VIRGIN_KNOTS, travel_pa) - 1
-    return k, (travel_pa - _VIRGIN_KNOTS[k]) / (_VIRGIN_KNOTS[k + 1] - _VIRGIN_KNOTS[k])
+    return kernel.virgin_knot_share(np.array(_VIRGIN_KNOTS), float(travel_pa))
 
 
 def virgin_knot_weights(travel_pa: float) -> np.ndarray:
     """Hat-function weights of the virgin term's knots at a travel (all 0 from
     VIRGIN_END_PA on, where the term has ended)."""
-    knots = (*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA)
-    weights = np.zeros(len(knots))
-    k = int(np.searchsorted(knots, travel_pa, side='right')) - 1
-    if 0 <= k < len(knots) - 1:
-        share = (travel_pa - knots[k]) / (knots[k + 1] - knots[k])
+    knots = np.array((*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA))
+    weights = np.zeros(knots.size)
+    if knots[0] <= travel_pa < knots[-1]:
+        k, share = kernel.virgin_knot_share(knots, float(travel_pa))
         weights[k], weights[k + 1] = 1.0 - share, share
     return weights[:-1]
 
@@ -1170,7 +1142,7 @@ def elapsed_s(previous_s: float | None, t_s: float | None) -> float:
     at most MAX_STEP_S (a pause is not a long sample)."""
     if previous_s is None or t_s is None:
         return 0.0
-    return min(max(float(t_s) - previous_s, 0.0), MAX_STEP_S)
+    return kernel.elapsed(float(previous_s), float(t_s), MAX_STEP_S)
 
 
 def run_online(online: OnlineModel, pressure_pa, measured_length_m, time_s) -> np.ndarray:

@@ -514,6 +514,65 @@ CONFIG_HEAD = 35
 
 
 @compiled()
+def through_play(play, p, half_play):
+    """Where a play of +/-half_play around p leaves its position `play` (the travel counted
+    through it: the virgin term's, the local offset's)."""
+    return py_min(py_max(play, p - half_play), p + half_play)
+
+
+@compiled()
+def elapsed(previous, t, max_step):
+    """identification.elapsed_s between two known times: 0 if time went back, at most
+    max_step (a pause is not a long sample)."""
+    return py_min(py_max(t - previous, 0.0), max_step)
+
+
+@compiled()
+def creep_lag(lag, static, before, dt, tau):
+    """A first-order lag of time constant tau moved over dt while the static length went
+    from `before` to `static`, exact for a static length that moves linearly over the step."""
+    slope = (static - before) / dt
+    return static - slope * tau + (lag - before + slope * tau) * math.exp(-dt / tau)
+
+
+@compiled()
+def virgin_knot_share(knots, travel):
+    """(k, share): the virgin term's hat weights at a travel within knots[0]..knots[-1] are
+    1 - share at knot k and share at k + 1 (knots: the term's, then where it ends)."""
+    k = 0
+    while k + 2 < knots.size and knots[k + 1] <= travel:   # bisect_right - 1
+        k += 1
+    return k, (travel - knots[k]) / (knots[k + 1] - knots[k])
+
+
+@compiled()
+def share_update(share, slope, var_share, cov, var_slope, residual, h_share, h_slope, noise,
+                 prior_share, prior_slope):
+    """OnlineModel._learn_share's recursive least squares for one direction: (share, slope,
+    var share, covariance, var slope) after a residual whose regressors are h_share and
+    h_slope (the variances already walked). Bounded where it matters, the shares at both ends
+    of the loop (depth 0 and 1) within 0..1 (clamping share and slope each on its own bent the
+    learning), and never less sure than the prior (prior_*: its variances)."""
+    spread_share = var_share * h_share + cov * h_slope
+    spread_slope = cov * h_share + var_slope * h_slope
+    innovation = noise + h_share * spread_share + h_slope * spread_slope
+    gain_share, gain_slope = spread_share / innovation, spread_slope / innovation
+    share = share + gain_share * residual
+    slope = slope + gain_slope * residual
+    near, far = share - 0.5 * slope, share + 0.5 * slope
+    if not (0.0 <= near <= 1.0 and 0.0 <= far <= 1.0):
+        near, far = py_min(1.0, py_max(0.0, near)), py_min(1.0, py_max(0.0, far))
+        share, slope = 0.5 * (near + far), far - near
+    var_share -= gain_share * spread_share
+    cov -= gain_share * spread_slope
+    var_slope -= gain_slope * spread_slope
+    scale_share = math.sqrt(py_min(1.0, prior_share / py_max(var_share, 1e-300)))
+    scale_slope = math.sqrt(py_min(1.0, prior_slope / py_max(var_slope, 1e-300)))
+    return (share, slope, var_share * scale_share ** 2, cov * scale_share * scale_slope,
+            var_slope * scale_slope ** 2)
+
+
+@compiled()
 def detector_step(branch, extreme, p, deadband, increasing, decreasing):
     """BranchDetector.update's rule: (branch, extreme) after pressure p. A reversal counts
     once pressure has moved deadband against the direction, from the extreme since the last."""
@@ -777,30 +836,11 @@ def learn_share(numbers, config, rising, depth, residual, difference, noise, dt)
         return
     at = N_SHARES + (0 if rising else 2)
     cov_at = N_SHARE_COVARIANCE + (0 if rising else 3)
-    h_share = difference
-    h_slope = difference * (depth - config[C_MID_DEPTH])
-    var_share = numbers[cov_at] + config[C_WALK_SHARE] * dt
-    cov = numbers[cov_at + 1]
-    var_slope = numbers[cov_at + 2] + config[C_WALK_SLOPE] * dt
-    spread_share = var_share * h_share + cov * h_slope
-    spread_slope = cov * h_share + var_slope * h_slope
-    innovation = noise + h_share * spread_share + h_slope * spread_slope
-    gain_share, gain_slope = spread_share / innovation, spread_slope / innovation
-    share = numbers[at] + gain_share * residual
-    slope = numbers[at + 1] + gain_slope * residual
-    near, far = share - 0.5 * slope, share + 0.5 * slope
-    if not (0.0 <= near <= 1.0 and 0.0 <= far <= 1.0):
-        near, far = py_min(1.0, py_max(0.0, near)), py_min(1.0, py_max(0.0, far))
-        share, slope = 0.5 * (near + far), far - near
-    numbers[at], numbers[at + 1] = share, slope
-    var_share -= gain_share * spread_share
-    cov -= gain_share * spread_slope
-    var_slope -= gain_slope * spread_slope
-    scale_share = math.sqrt(py_min(1.0, config[C_PRIOR_SHARE] / py_max(var_share, 1e-300)))
-    scale_slope = math.sqrt(py_min(1.0, config[C_PRIOR_SLOPE] / py_max(var_slope, 1e-300)))
-    numbers[cov_at] = var_share * scale_share ** 2
-    numbers[cov_at + 1] = cov * scale_share * scale_slope
-    numbers[cov_at + 2] = var_slope * scale_slope ** 2
+    numbers[at], numbers[at + 1], numbers[cov_at], numbers[cov_at + 1], numbers[cov_at + 2] = \
+        share_update(numbers[at], numbers[at + 1], numbers[cov_at] + config[C_WALK_SHARE] * dt,
+                     numbers[cov_at + 1], numbers[cov_at + 2] + config[C_WALK_SLOPE] * dt,
+                     residual, difference, difference * (depth - config[C_MID_DEPTH]), noise,
+                     config[C_PRIOR_SHARE], config[C_PRIOR_SLOPE])
 
 
 @compiled()
@@ -853,14 +893,11 @@ def advance_lags(numbers, config, static, t, has_t):
                 numbers[N_LAGS + j] = static
             numbers[N_LAGS_SET] = 1.0
     else:
-        dt = py_min(py_max(t - numbers[N_TIME], 0.0), config[C_MAX_STEP])
+        dt = elapsed(numbers[N_TIME], t, config[C_MAX_STEP])
     if dt > 0.0:
-        before = numbers[N_STATIC]
-        slope = (static - before) / dt
         for j in range(creeps):
-            tau = config[taus + j]
-            numbers[N_LAGS + j] = static - slope * tau + (
-                numbers[N_LAGS + j] - before + slope * tau) * math.exp(-dt / tau)
+            numbers[N_LAGS + j] = creep_lag(numbers[N_LAGS + j], static, numbers[N_STATIC], dt,
+                                            config[taus + j])
     if has_t:
         numbers[N_HAS_TIME], numbers[N_TIME] = 1.0, t
     numbers[N_STATIC] = static
@@ -955,17 +992,14 @@ def advance_travel(numbers, config, p):
     if math.isnan(numbers[N_TRAVEL_PLAY]):
         numbers[N_TRAVEL_PLAY] = p
     play = numbers[N_TRAVEL_PLAY]
-    moved = py_min(py_max(play, p - half), p + half)
+    moved = through_play(play, p, half)
     numbers[N_TRAVEL] += abs(moved - play)
     numbers[N_TRAVEL_PLAY] = moved
     travel = numbers[N_TRAVEL]
     if travel >= config[C_VIRGIN_END]:
         return -2, 0.0
     at = int(config[C_VIRGIN_KNOTS_AT])   # the knots, then the end
-    k = 0
-    while k + 1 < virgins + 1 and config[at + k + 1] <= travel:
-        k += 1
-    return k, (travel - config[at + k]) / (config[at + k + 1] - config[at + k])
+    return virgin_knot_share(config[at:at + virgins + 1], travel)
 
 
 @compiled()
@@ -1037,7 +1071,7 @@ def local_advance(offset, variance, play, p, half_play, fade_pa, walk):
     offset fading and loosening by the travel through the play."""
     if math.isnan(play):
         play = p
-    moved = py_min(py_max(play, p - half_play), p + half_play)
+    moved = through_play(play, p, half_play)
     travel = abs(moved - play)
     if travel > 0.0:
         fade = math.exp(-travel / fade_pa)
@@ -1098,7 +1132,7 @@ def mix_step(p, measured, t, has_t, mix, losses, outputs, numbers, configs, mean
             ended |= 1 << i
     dt = 0.0
     if had_time and has_t:   # identification.elapsed_s
-        dt = py_min(py_max(t - previous, 0.0), mix[X_MAX_STEP])
+        dt = elapsed(previous, t, mix[X_MAX_STEP])
     learning = mix[X_LEARNING] != 0.0
     if learning and math.isfinite(measured) and dt > 0.0:
         cap = mix[X_CAP]   # an outlier counts as the limit the rules reject it at
