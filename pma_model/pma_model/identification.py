@@ -44,6 +44,10 @@ trusted less, by how far the two memory shapes disagree: nothing else could take
 The learned numbers are applied to the memory model when they have moved enough to matter
 (COMMIT_M, COMMIT_SHARE), by replaying the remembered turning points: the state stays a
 function of the pressure history and the learned numbers.
+
+`OnlineModel.step` is one compiled call (kernel.online_step) on the state packed into arrays
+(`_pack`) for the rules in KERNEL_RULES; `reference_step` is the same in Python, what the
+compiled step is tested against and the step of the other rules.
 """
 
 from __future__ import annotations

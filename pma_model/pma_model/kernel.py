@@ -1,12 +1,19 @@
-"""The model's scalar formulas, compiled (numba), and the mix's inverse along the path in one call.
+"""The model's scalar formulas, compiled (numba), and the online step and the mix's inverse in
+one call each.
 
 Each formula has its one home here: a branch form's length and closed-form inverse, the knot
-interpolation of the learned correction, a scanning curve's length, where a reversal lies
-across the loop and its play share, the local offset's fade, the path pressure would follow
-from a state (the turning-point stack's curves, or the friction band's hold), the mixed length
-along it and a root find (scipy's brentq.c, step for step). The classes (branches.py,
-correction.py, curves.py, local_offset.py) call them for one value; mix.RuleMix's inverse
-calls `mixed_path_pressure` once, with the state packed as arrays.
+interpolation of the learned correction and its weights, a scanning curve's length, shapes and
+gradient, where a reversal lies across the loop and its play share, the detector's rule, the
+monotone bound, the creep lag, the share's least squares, the virgin term's knots, the local
+offset's fade and update, the path pressure would follow from a state (the turning-point
+stack's curves, or the friction band's hold), the mixed length along it and a root find
+(scipy's brentq.c, step for step). The classes (branches.py, correction.py, curves.py,
+detector.py, local_offset.py, identification.py) call them for one value; mix.RuleMix's
+inverse calls `mixed_path_pressure` once, with the state packed as arrays, and the online step
+is `online_step` (one rule) or `mix_step_of_two` (the default mix) on each rule's state packed
+as arrays (identification.OnlineModel._pack: the N_ and C_ layouts below), their Python twins
+(OnlineModel.reference_step, RuleMix.reference_step) kept as the reference they are tested
+against.
 
 This module imports nothing of pma_model: numba freezes a global's value into a cached
 kernel and only notices a change of this file, so every number that belongs to another
@@ -1192,7 +1199,7 @@ def warm_up() -> None:
         params = replace(default_params(), branch_form=form)
         samples = [(p_pa, float(params.build_model().increasing.length(p_pa)) + 1e-3, 0.02 * k)
                    for k, p_pa in enumerate((0.0, 2e5, 4e5, 1e5, 3e5, 2e5, 6e5, 1e5))]
-        for memory in ('mix', 'identify', 'play'):
+        for memory in ('identify', 'play', 'mix'):   # the mix last: its inverses below
             online = replace(params, memory=memory).build_online()
             reference = replace(params, memory=memory).build_online()
             for sample in samples:

@@ -24,6 +24,9 @@ the path is monotone, so it is bracketed and solved (scipy's brentq) on the leng
 gives along the path pressure would follow from the current state. Along the path (AUTO) the
 whole of it, the path included, is one compiled call (kernel.mixed_path_pressure, brentq's
 steps as scipy takes them), as in Python the path's evaluations were most of its cost.
+
+The step of the default mix, its two rules' steps included, is one compiled call as well
+(kernel.mix_step_of_two on the rules' packed state); `reference_step` is the same in Python.
 """
 
 from __future__ import annotations

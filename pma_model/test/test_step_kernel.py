@@ -103,7 +103,7 @@ def run_both(rule, form, *, learning, drift, pressures, lengths, times, peeks=()
     return compiled
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(rule=st.sampled_from(RULES), form=st.sampled_from(('sigmoid', 'hill')),
        learning=st.booleans(), drift=st.booleans(),
        turns_kpa=st.lists(st.floats(min_value=-5.0, max_value=520.0), min_size=2, max_size=7),
