@@ -10,7 +10,7 @@ stack's curves, or the friction band's hold), the mixed length along it and a ro
 (scipy's brentq.c, step for step). The classes (branches.py, correction.py, curves.py,
 detector.py, local_offset.py, identification.py) call them for one value; mix.RuleMix's
 inverse calls `mixed_path_pressure` once, with the state packed as arrays, and the online step
-is `online_step` (one rule) or `mix_step_of_two` (the default mix) on each rule's state packed
+is `online_step` (one rule) or `mix_step` (a mix of rules) on each rule's state packed
 as arrays (identification.OnlineModel._pack: the N_ and C_ layouts below), their Python twins
 (OnlineModel.reference_step, RuleMix.reference_step) kept as the reference they are tested
 against.
@@ -1063,11 +1063,9 @@ def online_step(p, measured, t, has_t, numbers, config, mean, covariance, rows, 
 
 # --- the mix's step (mix.RuleMix.step) --------------------------------------------------------
 
-# The mix's numbers (RuleMix._mix_numbers): the local offset's state and the settings, which
-# the caller writes before every step (the first MIX_STATE), then the constants.
-(X_OFFSET, X_VARIANCE, X_PLAY, X_LEARNING, X_LOCAL, X_NOISE, X_OUTLIER, X_TEMPERATURE,
- X_TIME_CONSTANT, X_CAP, X_HALF_PLAY, X_FADE, X_WALK, X_MAX_STEP) = range(14)
-MIX_STATE, MIX_NUMBERS = 7, 14
+# The mix's constants (RuleMix._mix_constants): its settings and the other modules' numbers.
+(X_TEMPERATURE, X_TIME_CONSTANT, X_CAP, X_HALF_PLAY, X_FADE, X_WALK, X_MAX_STEP) = range(7)
+MIX_CONSTANTS = 7
 # A rule's prediction in the mix's outputs (RuleMix.last_predictions).
 (P_LENGTH, P_BRANCH, P_STATIC, P_OFFSET, P_GAIN) = range(5)
 
@@ -1098,24 +1096,15 @@ def local_learn(offset, variance, residual, noise_m2, outlier):
 
 
 @compiled()
-def mix_step_of_two(p, measured, t, has_t, mix, losses, outputs, numbers_0, config_0, mean_0,
-                    covariance_0, rows_0, stack_0, gradients_0, numbers_1, config_1, mean_1,
-                    covariance_1, rows_1, stack_1, gradients_1):
-    """mix_step for the default mix's two rules, their packed arrays one by one: numba
-    types a tuple argument in Python, which cost more than the step; here they are free."""
-    return mix_step(p, measured, t, has_t, mix, losses, outputs, (numbers_0, numbers_1),
-                    (config_0, config_1), (mean_0, mean_1), (covariance_0, covariance_1),
-                    (rows_0, rows_1), (stack_0, stack_1), (gradients_0, gradients_1))
-
-
-@compiled()
-def mix_step(p, measured, t, has_t, mix, losses, outputs, numbers, configs, means,
-             covariances, rows, stacks, gradients):
+def mix_step(p, measured, t, has_t, learning, local_on, local_offset, local_variance,
+             local_play, local_noise_m2, local_outlier, mix, losses, outputs, numbers, configs,
+             means, covariances, rows, stacks, gradients):
     """RuleMix.step for a finite pressure: every rule's online_step (its packed arrays, one
     per tuple), their mixture by the weights before it (from `losses`, which learn in
-    place), the local offset moving and learning (in `mix`). (length, branch, static, offset,
-    gain, local offset, a bit per rule whose virgin term ended); each rule's prediction into
-    outputs (P_ layout)."""
+    place, when `learning`), the local offset (local_*, LocalOffset's) moving and learning
+    (when local_on too); `mix`: the constants (X_ layout). (length, branch, static, offset,
+    gain, local offset, a bit per rule whose virgin term ended, the local offset's offset,
+    variance and play after the step); each rule's prediction into outputs (P_ layout)."""
     rules = len(numbers)
     least = losses[0]
     for i in range(1, rules):
@@ -1140,7 +1129,6 @@ def mix_step(p, measured, t, has_t, mix, losses, outputs, numbers, configs, mean
     dt = 0.0
     if had_time and has_t:   # identification.elapsed_s
         dt = elapsed(previous, t, mix[X_MAX_STEP])
-    learning = mix[X_LEARNING] != 0.0
     if learning and math.isfinite(measured) and dt > 0.0:
         cap = mix[X_CAP]   # an outlier counts as the limit the rules reject it at
         useful = False
@@ -1152,10 +1140,9 @@ def mix_step(p, measured, t, has_t, mix, losses, outputs, numbers, configs, mean
             for i in range(rules):
                 error = py_min(abs(outputs[i, P_LENGTH] - measured), cap)
                 losses[i] = losses[i] * forget + error ** 2 * dt
-    mix[X_OFFSET], mix[X_VARIANCE], mix[X_PLAY] = local_advance(
-        mix[X_OFFSET], mix[X_VARIANCE], mix[X_PLAY], p, mix[X_HALF_PLAY], mix[X_FADE],
-        mix[X_WALK])
-    local = mix[X_OFFSET]
+    offset_m, variance, play = local_advance(local_offset, local_variance, local_play, p,
+                                             mix[X_HALF_PLAY], mix[X_FADE], mix[X_WALK])
+    local = offset_m
     mixed, static, offset, gain = 0.0, 0.0, 0.0, 0.0
     for i in range(rules):
         mixed += weights[i] * outputs[i, P_LENGTH]
@@ -1165,11 +1152,11 @@ def mix_step(p, measured, t, has_t, mix, losses, outputs, numbers, configs, mean
         offset += weights[i] * outputs[i, P_OFFSET]
     for i in range(rules):
         gain += weights[i] * outputs[i, P_GAIN]
-    if learning and mix[X_LOCAL] != 0.0 and math.isfinite(measured):
-        mix[X_OFFSET], mix[X_VARIANCE] = local_learn(mix[X_OFFSET], mix[X_VARIANCE],
-                                                     measured - mixed, mix[X_NOISE],
-                                                     mix[X_OUTLIER])
-    return mixed + local, outputs[0, P_BRANCH], static, offset, gain, local, ended
+    if learning and local_on and math.isfinite(measured):
+        offset_m, variance = local_learn(offset_m, variance, measured - mixed, local_noise_m2,
+                                         local_outlier)
+    return (mixed + local, outputs[0, P_BRANCH], static, offset, gain, local, ended, offset_m,
+            variance, play)
 
 
 def branch_table(rows) -> np.ndarray:

@@ -25,8 +25,9 @@ gives along the path pressure would follow from the current state. Along the pat
 whole of it, the path included, is one compiled call (kernel.mixed_path_pressure, brentq's
 steps as scipy takes them), as in Python the path's evaluations were most of its cost.
 
-The step of the default mix, its two rules' steps included, is one compiled call as well
-(kernel.mix_step_of_two on the rules' packed state); `reference_step` is the same in Python.
+The step, its rules' steps included, is one compiled call as well (kernel.mix_step on the
+rules' packed state) when every rule has a compiled step; `reference_step` is the same in
+Python.
 """
 
 from __future__ import annotations
@@ -113,13 +114,13 @@ class RuleMix:
         # Each rule's prediction at the last step (None: the compiled step's, in _outputs).
         self._last_predictions: list[Prediction] | None = []
         self._outputs = np.zeros((len(self.experts), kernel.P_GAIN + 1))
-        # kernel.mix_step's: the local offset, settings and constants (X_ layout), and the
+        # kernel.mix_step's constants (X_ layout), the losses array it was last given and the
         # rules' packed arrays (_kernel_arrays).
-        self._mix_numbers = np.zeros(kernel.MIX_NUMBERS)
-        self._mix_numbers[kernel.X_TEMPERATURE:] = (
+        self._mix_constants = np.array((
             self.temperature_m2s, self.time_constant_s,
             min(e.adaptation.outlier_m for e in self.experts), 0.5 * PLAY_PA, FADE_PA,
-            WALK_M2_PER_PA, MAX_STEP_S)
+            WALK_M2_PER_PA, MAX_STEP_S))
+        self._kernel_losses: np.ndarray | None = None
         self._kernel_cache: tuple | None = None
         first = self.experts[0]
         self.local = LocalOffset(first.identification.length_noise_m,
@@ -216,17 +217,16 @@ class RuleMix:
         arrays = self._kernel_arrays()
         if arrays is None or not math.isfinite(pressure_pa):
             return self._python_step(pressure_pa, measured_length_m, t_s, reference=False)
-        local, numbers = self.local, self._mix_numbers
-        numbers[:kernel.MIX_STATE] = (local.offset_m, local.variance_m2, local.play_pa,
-                                      self.learning, self.local_offset, local.noise_m ** 2,
-                                      local.outlier_m)
-        losses = self.losses_m2s
-        if losses.dtype != np.float64 or not losses.flags.c_contiguous:
+        local, losses = self.local, self.losses_m2s
+        if losses is not self._kernel_losses:   # set anew: as the kernel takes it, in place
             self.losses_m2s = losses = np.ascontiguousarray(losses, dtype=float)
-        length, branch, static, offset, gain, local_m, ended = kernel.mix_step_of_two(
+            self._kernel_losses = losses
+        (length, branch, static, offset, gain, local_m, ended, local.offset_m, local.variance_m2,
+         local._play_pa) = kernel.mix_step(
             pressure_pa, float(measured_length_m), 0.0 if t_s is None else float(t_s),
-            t_s is not None, numbers, losses, self._outputs, *arrays)
-        local.offset_m, local.variance_m2, local._play_pa = numbers[:3].tolist()
+            t_s is not None, self.learning, self.local_offset, local.offset_m, local.variance_m2,
+            local.play_pa, local.noise_m ** 2, local.outlier_m, self._mix_constants, losses,
+            self._outputs, *arrays)
         self._last_predictions = None
         if ended:   # a rule's virgin term ended: out of its filter
             for i, expert in enumerate(self.experts):
@@ -242,12 +242,10 @@ class RuleMix:
         return self._python_step(pressure_pa, measured_length_m, t_s, reference=True)
 
     def _kernel_arrays(self) -> tuple | None:
-        """The rules' packed arrays as kernel.mix_step_of_two takes them (each rule's numbers,
-        constants, filter mean and covariance, branch rows, stack, gradients), or None unless
-        the mix is of two rules whose steps are compiled. Kept while the rules keep the same
-        packed state."""
-        if len(self.experts) != 2:
-            return None
+        """The rules' packed arrays as kernel.mix_step takes them (a tuple each of their
+        numbers, constants, filter means and covariances, branch rows, stacks, gradients), or
+        None unless every rule's step is compiled. Kept while the rules keep the same packed
+        state."""
         cached = self._kernel_cache
         fresh = cached is None
         for i, expert in enumerate(self.experts):
@@ -257,16 +255,17 @@ class RuleMix:
             if not expert._python_stale:
                 expert._drop_python_state()
             if not fresh:
-                at = 7 * i
-                fresh = (packed is not cached[0][i] or packed.config is not cached[1][at + 1]
-                         or packed.filter.mean is not cached[1][at + 2]
-                         or packed.filter.covariance is not cached[1][at + 3])
+                arrays = cached[1]
+                fresh = (packed is not cached[0][i] or packed.config is not arrays[1][i]
+                         or packed.filter.mean is not arrays[2][i]
+                         or packed.filter.covariance is not arrays[3][i])
         if not fresh:
             return cached[1]
         packs = tuple(expert._kernel for expert in self.experts)
-        arrays = tuple(array for p in packs for array in (
-            p.numbers, p.config, p.filter.mean, p.filter.covariance, p.rows, p.stack,
-            p.gradients))
+        arrays = (tuple(p.numbers for p in packs), tuple(p.config for p in packs),
+                  tuple(p.filter.mean for p in packs), tuple(p.filter.covariance for p in packs),
+                  tuple(p.rows for p in packs), tuple(p.stack for p in packs),
+                  tuple(p.gradients for p in packs))
         self._kernel_cache = (packs, arrays)
         return arrays
 
