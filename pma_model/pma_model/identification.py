@@ -494,15 +494,18 @@ class OnlineModel:
         without unpacking the rest)."""
         if not self._python_stale:
             return self._memory_model.path_state()
-        packed, memory = self._kernel, self._memory_model
-        values = packed.numbers[:kernel.N_SLOPE_DOWN + 1].tolist()
-        rule = memory._rule
-        return PathState(values[kernel.N_P], values[kernel.N_L], values[kernel.N_RISING] != 0.0,
-                         tuple(map(tuple, packed.stack[:int(values[kernel.N_COUNT])].tolist())),
-                         *self._packed_branches(packed), rule.path_kind, rule.has_play_share,
-                         (values[kernel.N_SHARE_UP], values[kernel.N_SHARE_DOWN]),
-                         (values[kernel.N_SLOPE_UP], values[kernel.N_SLOPE_DOWN]),
-                         self.max_gauge_pressure_pa)
+        packed = self._kernel
+        if packed.path is None:   # kept until the next step
+            values = packed.numbers[:kernel.N_SLOPE_DOWN + 1].tolist()
+            rule = self._memory_model._rule
+            packed.path = PathState(
+                values[kernel.N_P], values[kernel.N_L], values[kernel.N_RISING] != 0.0,
+                tuple(map(tuple, packed.stack[:int(values[kernel.N_COUNT])].tolist())),
+                *self._packed_branches(packed), rule.path_kind, rule.has_play_share,
+                (values[kernel.N_SHARE_UP], values[kernel.N_SHARE_DOWN]),
+                (values[kernel.N_SLOPE_UP], values[kernel.N_SLOPE_DOWN]),
+                self.max_gauge_pressure_pa)
+        return packed.path
 
     def _packed_branches(self, packed: _Packed) -> tuple[Branch, Branch]:
         """The branches the compiled step's rows hold: the memory model's while no commit has
@@ -797,6 +800,7 @@ class OnlineModel:
             self._drop_python_state()
         pressure_pa = float(pressure_pa)
         state = packed.filter
+        packed.path = None
         if not math.isfinite(pressure_pa):
             drift = _drift_of(state, self.reference_length_m)
             return Prediction(math.nan, int(packed.numbers[kernel.N_BRANCH]), math.nan,
@@ -1101,7 +1105,8 @@ class _Packed:
     """An OnlineModel's state as kernel.online_step moves it: its numbers (kernel.N_
     layout), constants (C_), the filter (its mean and covariance in place), the branch rows,
     the turning-point stack and their gradients; the branches the rows hold and the commits
-    they were built for, and the filter size the constants are for."""
+    they were built for, the filter size the constants are for, and the memory's PathState
+    until the next step moves it."""
 
     numbers: np.ndarray
     config: np.ndarray
@@ -1112,6 +1117,7 @@ class _Packed:
     branches: tuple[Branch, Branch]
     shown_commits: float
     size: int
+    path: PathState | None = None
 
 
 def _drift_of(state: _Filter, reference_length_m: float) -> Drift:

@@ -228,6 +228,8 @@ class RuleMix:
             local.play_pa, local.noise_m ** 2, local.outlier_m, self._mix_constants, losses,
             self._outputs, *arrays)
         self._last_predictions = None
+        for packed in self._kernel_cache[0]:   # their states moved
+            packed.path = None
         if ended:   # a rule's virgin term ended: out of its filter
             for i, expert in enumerate(self.experts):
                 if ended >> i & 1:

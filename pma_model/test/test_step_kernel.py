@@ -170,3 +170,25 @@ def test_only_the_rules_with_a_compiled_step_take_it():
     assert mix._kernel_arrays() is not None
     assert len(mix.last_predictions) == 2
     assert kernel.RULE_IDENTIFY == identification.KERNEL_RULES['identify']
+
+
+@pytest.mark.parametrize('rule', ['mix', 'identify'])
+def test_the_inverse_between_steps_reads_the_state_each_step_left(rule):
+    """The inverse and the aim read the compiled step's packed state (its path kept until the
+    next step moves it): after every step they answer as the Python model's."""
+    pressures, lengths, times = sequence((300.0, 120.0, 260.0), 2.0, 1e-3, 11, 'sigmoid')
+    compiled = build(rule, 'sigmoid', learning=True, drift=True)
+    reference = build(rule, 'sigmoid', learning=True, drift=True)
+    for i, (p_pa, length_m, t_s) in enumerate(zip(pressures.tolist(), lengths.tolist(),
+                                                  times.tolist(), strict=True)):
+        compiled.step(p_pa, length_m, t_s)
+        reference.reference_step(p_pa, length_m, t_s)
+        target_m = 0.26 + 0.02 * (i % 3) / 2
+        for _ in range(2):   # the second from what the first kept
+            a = compiled.pressure_for_length(target_m, BRANCH_AUTO)
+            b = reference.pressure_for_length(target_m, BRANCH_AUTO)
+            assert a.success == b.success, i
+            assert a.gauge_pressure_pa == pytest.approx(b.gauge_pressure_pa, abs=1e-3,
+                                                        nan_ok=True), i
+        assert compiled.settled_aim_m(0.27, 0.5) == pytest.approx(
+            reference.settled_aim_m(0.27, 0.5), abs=TOLERANCE_M)
