@@ -61,7 +61,7 @@ class Drift:
     @property
     def offset_m(self) -> float:
         """The offset of L_hat = offset + gain * model (the PmaPrediction field)."""
-        return self.reference_length_m * (1.0 - self.gain) + self.shift_m
+        return kernel.drift_offset(self.reference_length_m, self.shift_m, self.gain)
 
     def correct(self, model_length_m):
         """Drifted length(s) for the model's length(s) [m]; a float stays a float (the

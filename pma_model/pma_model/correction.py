@@ -42,32 +42,18 @@ def _lengths_at_knots(branch: Branch) -> tuple[float, ...]:
     return tuple(float(v) for v in branch.length(np.array(CORRECTION_KNOTS_PA)))
 
 
-_MAX_BASE_POINTS = 4096      # single-pressure entries a base branch keeps (_base_point)
+_MAX_BASE_POINTS = 4096      # single-pressure gradients a base branch keeps (_base_memo)
 
 
-def _base_point(branch: Branch, p_pa: float) -> tuple[float, int, float]:
-    """(base length, knot interval k, share) at one pressure (kernel.knot_share's k and
-    share): what a corrected branch's knot sensitivity is made of, independent of the learned
-    offsets. Kept on the base branch, so shared by every corrected branch over it: a commit
-    makes new corrected branches and its replay asks for the same turning pressures again,
-    and a sample's pressure is asked for by the length, the two shapes and the regressor."""
-    points, row, _ = _base_memo(branch)
-    point = points.get(p_pa)
-    if point is None:
-        base = float(branch.length(p_pa))
-        point = (base, *kernel.knot_share(row, p_pa, base))
-        if len(points) >= _MAX_BASE_POINTS:   # a long noisy run: start again
-            points.clear()
-        points[p_pa] = point
-    return point
-
-
-def _base_memo(branch: Branch) -> tuple[dict, np.ndarray, dict]:
-    """A base branch's memo: {pressure: _base_point}, its kernel row with the knots and its
-    lengths there (`_knot_row`) and {(rising, pressure): knot_sensitivity}."""
+def _base_memo(branch: Branch) -> tuple[np.ndarray, dict]:
+    """A base branch's memo: its kernel row with the knots and its lengths there
+    (`_knot_row`) and {(rising, pressure): knot_sensitivity}, which does not depend on the
+    learned offsets: kept on the base branch, so shared by every corrected branch over it (a
+    commit makes new corrected branches and its replay asks for the same turning pressures
+    again)."""
     memo = branch.__dict__.get('_points')
     if memo is None:   # a memo, not a field (frozen); with the knots' lengths (no hashing)
-        memo = ({}, _knot_row(branch), {})
+        memo = (_knot_row(branch), {})
         object.__setattr__(branch, '_points', memo)
     return memo
 
@@ -106,7 +92,7 @@ class CorrectedBranch(Branch):
         """The base branch's row with the knots, its lengths there and the offsets."""
         if isinstance(self.base, CorrectedBranch):
             raise TypeError('a corrected branch corrects a branch form, not another correction')
-        row = _base_memo(self.base)[1].copy()   # a commit makes new ones: the base's is kept
+        row = _base_memo(self.base)[0].copy()   # a commit makes new ones: the base's is kept
         row[kernel.ROW_HEAD + 2 * len(CORRECTION_KNOTS_PA):] = self.offsets_m
         return row
 
@@ -148,6 +134,14 @@ class CorrectedBranch(Branch):
         raise TypeError('a corrected branch is learned online, not fitted')
 
 
+def knot_row(branch: Branch) -> np.ndarray:
+    """A branch's kernel row with the knots, as a corrected branch's (no correction: offsets
+    0), a copy to change in place (kernel.online_step's commits write the offsets)."""
+    if isinstance(branch, CorrectedBranch):
+        return branch.kernel_row.copy()
+    return _base_memo(branch)[0].copy()
+
+
 def correction_caps(branch: Branch) -> np.ndarray:
     """Per knot interval: how much the correction may rise and keep the branch monotone."""
     return np.maximum(-np.diff(_lengths_at_knots(branch)), 0.0)
@@ -157,25 +151,10 @@ def monotone_correction(offsets, caps) -> tuple[float, ...]:
     """The offsets, bounded, each knot lowered only as needed (from 0 Pa upward) so that
     the corrected branch stays non-increasing. `caps`: correction_caps, as an array or a
     tuple of floats."""
-    # Plain floats: it runs on every sample, where numpy's per-call cost dominates.
-    if isinstance(offsets, list):
-        values = offsets
-    elif isinstance(offsets, np.ndarray) and offsets.dtype == float:
-        values = offsets.tolist()
-    else:
-        values = np.asarray(offsets, dtype=float).tolist()
-    rises = caps if isinstance(caps, tuple) else np.asarray(caps, dtype=float).tolist()
-    low, high = -MAX_CORRECTION_M, MAX_CORRECTION_M
-    previous = min(max(values[0], low), high)
-    result = [previous]
-    # min(max(value, low), high, previous + rise) as comparisons (they select, so exact; a
-    # builtin call each cost more than the rest of the loop).
-    for value, rise in zip(values[1:], rises, strict=False):   # rises: one per interval
-        cap = previous + rise
-        bounded = low if value < low else (high if value > high else value)
-        previous = cap if bounded > cap else bounded
-        result.append(previous)
-    return tuple(result)
+    values = np.array(offsets, dtype=float)
+    result = np.empty(values.size)
+    kernel.monotone_offsets(values, np.asarray(caps, dtype=float), MAX_CORRECTION_M, result)
+    return tuple(result.tolist())
 
 
 def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
@@ -185,16 +164,12 @@ def knot_sensitivity(branch: Branch, rising: bool, p_pa: float) -> np.ndarray:
     branch (it does not depend on the learned offsets, and after a commit every turning
     point's is asked for again)."""
     base = branch.base if isinstance(branch, CorrectedBranch) else branch
-    known = _base_memo(base)[2]
+    row, known = _base_memo(base)
     gradient = known.get((rising, p_pa))
     if gradient is None:
         knots = len(CORRECTION_KNOTS_PA)
         gradient = np.zeros(2 * knots + 2)
-        start = 0 if rising else knots
-        _, k, share = _base_point(base, p_pa)
-        gradient[start + k] = 1.0 - share
-        if share != 0.0:
-            gradient[start + k + 1] = share
+        kernel.add_knot_weights(gradient, row, 0 if rising else knots, float(p_pa))
         gradient.flags.writeable = False
         if len(known) >= _MAX_BASE_POINTS:   # a long noisy run: start again
             known.clear()

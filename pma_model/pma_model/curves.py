@@ -115,26 +115,12 @@ class ScanningCurve:
             return shape_gradient
         if self._flat():
             return ends.origin + shape_gradient - ends.shape_at_origin
-        b_origin, b_target = self._span
-        span = b_origin - b_target
-        difference = self.origin[1] - self.target[1]
-        shape = float(self.major.length(p_pa))
-        raw = (shape - b_target) / span
-        w, knee = self.play_share, self._knee
-        s, held = kernel.curve_coordinate(shape, b_target, b_origin, knee)
-        linear = raw if w == 0.0 else s   # as length(): Madelung extrapolates, a mix clips
-        between = ends.origin - ends.target
-        result = ends.target + between * (w * held + (1.0 - w) * linear)
-        span_gradient = ends.shape_at_origin - ends.shape_at_target
-        if w == 0.0 or 0.0 < raw < 1.0:
-            slope = (w / knee if s < knee else 0.0) + (1.0 - w)
-            result += (difference * slope / span) * (
-                shape_gradient - ends.shape_at_target - s * span_gradient)
-        if w > 0.0 and s < knee and self._knee_moves:
-            result -= (difference * w * s / (knee * knee * span)) * (
-                between - knee * span_gradient)
-        if share_index is not None:
-            result[share_index] += difference * (held - s)
+        result = np.empty(shape_gradient.size)
+        kernel.curve_gradient(result, shape_gradient, ends.origin, ends.target,
+                              ends.shape_at_origin, ends.shape_at_target,
+                              float(self.major.length(p_pa)), self.origin[1], self.target[1],
+                              *self._span, self.play_share, self._knee, self._knee_moves,
+                              -1 if share_index is None else share_index % result.size)
         return result
 
     def pressure(self, length_m: float) -> float:

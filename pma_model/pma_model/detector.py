@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from pma_model import kernel
+
 # The PmaPrediction / PressureForLength branch codes; the one home of these numbers here.
 BRANCH_AUTO = 0
 BRANCH_INCREASING = 1
@@ -57,11 +59,6 @@ class BranchDetector:
         self.branch = other.branch
         self._extreme_pa = other._extreme_pa
 
-    def _reverses(self, p_pa: float) -> bool:
-        moved = (self._extreme_pa - p_pa) if self.branch == BRANCH_INCREASING \
-            else (p_pa - self._extreme_pa)
-        return moved > 0 and moved >= self.deadband_pa
-
     def update(self, p_pa: float) -> int:
         """Feed one gauge pressure [Pa]; returns the branch code for it.
 
@@ -70,16 +67,9 @@ class BranchDetector:
         p_pa = float(p_pa)
         if not math.isfinite(p_pa):
             raise ValueError(f'gauge pressure must be finite, got {p_pa!r}')
-        if math.isnan(self._extreme_pa):
-            self._extreme_pa = p_pa
-        elif self._reverses(p_pa):
-            self.branch = BRANCH_DECREASING if self.branch == BRANCH_INCREASING \
-                else BRANCH_INCREASING
-            self._extreme_pa = p_pa
-        elif self.branch == BRANCH_INCREASING:
-            self._extreme_pa = max(self._extreme_pa, p_pa)
-        else:
-            self._extreme_pa = min(self._extreme_pa, p_pa)
+        self.branch, self._extreme_pa = kernel.detector_step(
+            self.branch, self._extreme_pa, p_pa, self.deadband_pa, BRANCH_INCREASING,
+            BRANCH_DECREASING)
         return self.branch
 
     def detect(self, p_pa) -> np.ndarray:

@@ -44,11 +44,14 @@ trusted less, by how far the two memory shapes disagree: nothing else could take
 The learned numbers are applied to the memory model when they have moved enough to matter
 (COMMIT_M, COMMIT_SHARE), by replaying the remembered turning points: the state stays a
 function of the pressure history and the learned numbers.
+
+`OnlineModel.step` is one compiled call (kernel.online_step) on the state packed into arrays
+(`_pack`) for the rules in KERNEL_RULES; `reference_step` is the same in Python, what the
+compiled step is tested against and the step of the other rules.
 """
 
 from __future__ import annotations
 
-import bisect
 import math
 import operator
 from collections.abc import Callable
@@ -57,6 +60,7 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
+from pma_model import kernel
 from pma_model.adaptation import AdaptationSettings, Drift
 from pma_model.branches import DEFAULT_MAX_GAUGE_PRESSURE_PA, Branch
 from pma_model.correction import (
@@ -67,12 +71,24 @@ from pma_model.correction import (
     MAX_DIFFERENCE_M,
     CorrectedBranch,
     correction_caps,
+    knot_row,
     knot_sensitivity,
     monotone_correction,
 )
-from pma_model.curves import MID_DEPTH, play_share_at
-from pma_model.detector import BRANCH_AUTO, DEFAULT_DEADBAND_PA
-from pma_model.memory import HysteresisModel, InverseResult
+from pma_model.curves import FLAT_SPAN_M, MID_DEPTH, play_share_at
+from pma_model.detector import (
+    BRANCH_AUTO,
+    BRANCH_DECREASING,
+    BRANCH_INCREASING,
+    DEFAULT_DEADBAND_PA,
+)
+from pma_model.memory import (
+    MAX_TURNING_POINTS,
+    NARROW_LOOP_M,
+    HysteresisModel,
+    InverseResult,
+    PathState,
+)
 
 CREEP_TIME_CONSTANTS_S = (0.5, 2.0)
 MAX_CREEP_GAIN = 1.0
@@ -116,6 +132,15 @@ _PRIOR = {'correction': CORRECTION_PRIOR_M, 'difference': DIFFERENCE_PRIOR_M, 'c
 _PRIOR_RESUMED = {'correction': 0.001, 'difference': 0.0005, 'creep': 0.1, 'share': 0.2,
                   'share_slope': 0.1}
 _WALK_PER_S = {'correction': 1e-5, 'creep': 1e-3, 'share': 0.003, 'share_slope': 0.003}
+# The rules whose online step is compiled (kernel.online_step); the others run the Python
+# reference (OnlineModel.reference_step), as does a model whose doubt is a second memory.
+KERNEL_RULES = {'madelung': kernel.RULE_MADELUNG, 'identify': kernel.RULE_IDENTIFY,
+                'play': kernel.RULE_PLAY}
+# What the compiled step keeps in its packed state instead (OnlineModel._unpack restores them
+# when they are read).
+_PACKED_NAMES = frozenset(('_filter', '_shares', '_share_covariance', '_committed_raw',
+                           '_committed_shares', '_lag_values', '_time', '_static', 'commits',
+                           '_travel_pa', '_play_pa'))
 
 
 @dataclass(frozen=True)
@@ -391,6 +416,10 @@ class OnlineModel:
     adaptation: AdaptationSettings = field(default_factory=AdaptationSettings)
 
     def __post_init__(self):
+        # The compiled step's packed state (_pack), and whether it is ahead of the attributes
+        # it keeps (_PACKED_NAMES, the memory model's state).
+        self._kernel: _Packed | None = None
+        self._python_stale = False
         # Per knot interval, how far each branch's correction may rise (plain floats: they
         # bound the correction on every sample), and both bounds for the shared mean.
         self._caps = tuple(tuple(correction_caps(branch).tolist())
@@ -418,7 +447,7 @@ class OnlineModel:
         self._committed_raw = self._filter.mean[self._filter.blocks.shape].tolist()
         self._committed_shares = self._shares.ravel().tolist()
         branches = self._corrected(self._branch_offsets())
-        self.model = HysteresisModel(*branches, memory=self.memory,
+        self._memory_model = HysteresisModel(*branches, memory=self.memory,
                                      deadband_pa=self.deadband_pa,
                                      max_gauge_pressure_pa=self.max_gauge_pressure_pa,
                                      play_shares=shares, share_slopes=slopes)
@@ -440,6 +469,161 @@ class OnlineModel:
         self._travel_pa = 0.0
         self._play_pa = math.nan
         self.commits = 0
+        # The compiled step (the Python one, reference_step, is what it is checked against).
+        self.compiled = self.memory in KERNEL_RULES and self._doubt is None
+
+    # --- the compiled step's packed state --------------------------------------------
+
+    @property
+    def model(self) -> HysteresisModel:
+        """The memory model, up to date; the compiled step packs its state afresh after this
+        (the caller may change the model)."""
+        if self._python_stale:
+            self._unpack()
+        self._kernel = None
+        return self._memory_model
+
+    def _read_memory(self) -> HysteresisModel:
+        """The memory model, up to date, for reading only (the packed state stays)."""
+        if self._python_stale:
+            self._unpack()
+        return self._memory_model
+
+    def path_state(self) -> PathState:
+        """The memory's HysteresisModel.path_state (read from the compiled step's state
+        without unpacking the rest)."""
+        if not self._python_stale:
+            return self._memory_model.path_state()
+        packed = self._kernel
+        if packed.path is None:   # kept until the next step
+            values = packed.numbers[:kernel.N_SLOPE_DOWN + 1].tolist()
+            rule = self._memory_model._rule
+            packed.path = PathState(
+                values[kernel.N_P], values[kernel.N_L], values[kernel.N_RISING] != 0.0,
+                tuple(map(tuple, packed.stack[:int(values[kernel.N_COUNT])].tolist())),
+                *self._packed_branches(packed), rule.path_kind, rule.has_play_share,
+                (values[kernel.N_SHARE_UP], values[kernel.N_SHARE_DOWN]),
+                (values[kernel.N_SLOPE_UP], values[kernel.N_SLOPE_DOWN]),
+                self.max_gauge_pressure_pa)
+        return packed.path
+
+    def _packed_branches(self, packed: _Packed) -> tuple[Branch, Branch]:
+        """The branches the compiled step's rows hold: the memory model's while no commit has
+        made new ones, else built once per commit (their kernel rows those rows)."""
+        if packed.numbers[kernel.N_COMMITS] == packed.shown_commits:
+            return packed.branches
+        knots = len(CORRECTION_KNOTS_PA)
+        at = kernel.ROW_HEAD + 2 * knots
+        branches = self._corrected(tuple(tuple(row[at:at + knots].tolist())
+                                         for row in packed.rows))
+        for branch, row in zip(branches, packed.rows, strict=True):
+            if isinstance(branch, CorrectedBranch):   # the same numbers, not recomputed
+                branch.__dict__['kernel_row'] = row.copy()
+        packed.branches, packed.shown_commits = branches, packed.numbers[kernel.N_COMMITS]
+        return branches
+
+    @property
+    def pressure_pa(self) -> float:
+        """The memory's pressure (the last finite one stepped)."""
+        if self._python_stale:
+            return float(self._kernel.numbers[kernel.N_P])
+        return self._memory_model.pressure_pa
+
+    @property
+    def clock_s(self) -> float | None:
+        """The last sample's time (None before any with one)."""
+        if self._python_stale:
+            numbers = self._kernel.numbers
+            return float(numbers[kernel.N_TIME]) if numbers[kernel.N_HAS_TIME] else None
+        return self._time
+
+    def __getattr__(self, name: str):
+        # Only for a name not found: one the compiled step keeps packed (_PACKED_NAMES).
+        if name in _PACKED_NAMES and self.__dict__.get('_python_stale', False):
+            self._unpack()
+            return self.__dict__[name]
+        raise AttributeError(f'{type(self).__name__!r} object has no attribute {name!r}')
+
+    def _pack(self) -> _Packed:
+        """The state as kernel.online_step reads it, from the attributes (which are current)."""
+        memory, state = self._memory_model, self._filter
+        knots, creeps = len(CORRECTION_KNOTS_PA), len(CREEP_TIME_CONSTANTS_S)
+        numbers = np.zeros(kernel.N_LAGS + creeps + 2 * knots + 4)
+        stack = np.empty((MAX_TURNING_POINTS + 1, 2))
+        memory.kernel_numbers(numbers, stack)
+        numbers[kernel.N_HAS_TIME] = self._time is not None
+        numbers[kernel.N_TIME] = 0.0 if self._time is None else self._time
+        numbers[kernel.N_STATIC] = self._static
+        numbers[kernel.N_TRAVEL], numbers[kernel.N_TRAVEL_PLAY] = self._travel_pa, self._play_pa
+        if self._lag_values is not None:
+            numbers[kernel.N_LAGS_SET] = 1.0
+            numbers[kernel.N_LAGS:kernel.N_LAGS + creeps] = self._lag_values
+        numbers[kernel.N_SAMPLES], numbers[kernel.N_REJECTED] = state.samples, state.rejected
+        numbers[kernel.N_COMMITS] = self.commits
+        numbers[kernel.N_SHARES:kernel.N_SHARES + 4] = self._shares.ravel()
+        numbers[kernel.N_SHARE_COVARIANCE:kernel.N_SHARE_COVARIANCE + 6] = [
+            value for row in self._share_covariance for value in row]
+        numbers[kernel.N_LAGS + creeps:] = [*self._committed_raw, *self._committed_shares]
+        rows = np.stack([knot_row(memory.increasing), knot_row(memory.decreasing)])
+        gradients = np.empty((MAX_TURNING_POINTS + 1, 2 * knots + 2))
+        self._kernel = _Packed(numbers, self._kernel_config(state), state, rows, stack,
+                               gradients, (memory.increasing, memory.decreasing), self.commits,
+                               state.mean.size)
+        return self._kernel
+
+    def _kernel_config(self, state: _Filter) -> np.ndarray:
+        """kernel.online_step's constants (C_ layout) for a filter of this size."""
+        size, has_virgin = state.mean.size, state.blocks.virgin is not None
+        low, high = self._state_bounds(size, has_virgin)
+        head = [KERNEL_RULES[self.memory], self.max_gauge_pressure_pa,
+                self._memory_model.deadband_pa, BRANCH_INCREASING, BRANCH_DECREASING,
+                self._learning, self._drifting, self._learns_share, self.reference_length_m,
+                self.identification.length_noise_m ** 2, self.adaptation.outlier_m,
+                self.adaptation.time_constant_s, MAX_STEP_S, MID_DEPTH, NARROW_LOOP_M,
+                FLAT_SPAN_M, COMMIT_M, COMMIT_SHARE, SPREAD_FLOOR, GAIN_WALK_LENGTH_M ** 2,
+                _WALK_PER_S['share'] ** 2, _WALK_PER_S['share_slope'] ** 2,
+                _PRIOR['share'] ** 2, _PRIOR['share_slope'] ** 2, MAX_TURNING_POINTS,
+                MAX_CORRECTION_M, len(CREEP_TIME_CONSTANTS_S),
+                len(VIRGIN_TRAVEL_KNOTS_PA) if has_virgin else 0, VIRGIN_END_PA]
+        blocks = [CREEP_TIME_CONSTANTS_S, (*self._caps[0], *self._caps[1], *self._mean_caps),
+                  state.walk_per_s.tolist(), low.tolist(), high.tolist(), _VIRGIN_KNOTS]
+        at = kernel.CONFIG_HEAD
+        # C_TAUS_AT, C_CAPS_AT, C_WALK_AT, C_LOW_AT, C_HIGH_AT, C_VIRGIN_KNOTS_AT
+        for block in blocks:
+            head.append(at)
+            at += len(block)
+        return np.array([*head, *(value for block in blocks for value in block)], dtype=float)
+
+    def _drop_python_state(self) -> None:
+        """The compiled step moves the packed state: the attributes it keeps go until read."""
+        for name in _PACKED_NAMES:
+            self.__dict__.pop(name, None)
+        self._python_stale = True
+
+    def _unpack(self) -> None:
+        """The attributes and the memory model from the packed state (which stays valid)."""
+        packed = self._kernel
+        numbers = packed.numbers
+        knots, creeps = len(CORRECTION_KNOTS_PA), len(CREEP_TIME_CONSTANTS_S)
+        self._memory_model.load_kernel_numbers(numbers, packed.stack,
+                                               *self._packed_branches(packed))
+        values = numbers.tolist()
+        state = packed.filter
+        state.samples = int(values[kernel.N_SAMPLES])
+        state.rejected = int(values[kernel.N_REJECTED])
+        lags = values[kernel.N_LAGS:kernel.N_LAGS + creeps]
+        committed = values[kernel.N_LAGS + creeps:]
+        covariance = values[kernel.N_SHARE_COVARIANCE:kernel.N_SHARE_COVARIANCE + 6]
+        self.__dict__.update(
+            _filter=state, commits=int(values[kernel.N_COMMITS]),
+            _shares=np.array(values[kernel.N_SHARES:kernel.N_SHARES + 4]).reshape(2, 2),
+            _share_covariance=[covariance[:3], covariance[3:]],
+            _committed_raw=committed[:2 * knots], _committed_shares=committed[2 * knots:],
+            _lag_values=lags if values[kernel.N_LAGS_SET] else None,
+            _time=values[kernel.N_TIME] if values[kernel.N_HAS_TIME] else None,
+            _static=values[kernel.N_STATIC], _travel_pa=values[kernel.N_TRAVEL],
+            _play_pa=values[kernel.N_TRAVEL_PLAY])
+        self._python_stale = False
 
     # --- construction ---------------------------------------------------------------
 
@@ -469,10 +653,9 @@ class OnlineModel:
                                np.zeros(virgins), [0.0, 0.0]])
         return _Filter(mean, np.diag(prior), walk, StateBlocks.laid_out(knots, creeps, virgins))
 
-    def _end_virgin_term(self) -> None:
-        """Drop the virgin term from the filter: marginalising a Gaussian is deleting its
-        rows and columns, so what it taught the rest through their covariance is kept."""
-        state = self._filter
+    def _end_virgin_term(self, state: _Filter) -> None:
+        """Drop the virgin term from the filter `state`: marginalising a Gaussian is deleting
+        its rows and columns, so what it taught the rest through their covariance is kept."""
         rows = np.arange(state.mean.size)[state.blocks.virgin]
         state.mean = np.delete(state.mean, rows)
         state.covariance = np.delete(np.delete(state.covariance, rows, axis=0), rows, axis=1)
@@ -513,17 +696,24 @@ class OnlineModel:
     @property
     def _lags(self) -> np.ndarray | None:
         """The creep lags' lengths (None before the first sample)."""
+        if self._python_stale:   # read where the compiled step keeps them
+            numbers = self._kernel.numbers
+            return numbers[kernel.N_LAGS:kernel.N_LAGS + len(CREEP_TIME_CONSTANTS_S)].copy() \
+                if numbers[kernel.N_LAGS_SET] else None
         return None if self._lag_values is None else np.array(self._lag_values)
 
     @property
+    def _filter_now(self) -> _Filter:
+        """The filter, for reading, without unpacking the compiled step's state."""
+        return self._kernel.filter if self._python_stale else self._filter
+
+    @property
     def drift(self) -> Drift:
-        mean, blocks = self._filter.mean, self._filter.blocks
-        shift, gain_excess = mean[blocks.shift], mean[blocks.gain]
-        return Drift(self.reference_length_m, float(shift), 1.0 + float(gain_excess))
+        return _drift_of(self._filter_now, self.reference_length_m)
 
     @property
     def branch(self) -> int:
-        return self.model.branch
+        return self._read_memory().branch
 
     @property
     def first_loading_ended(self) -> bool:
@@ -599,14 +789,48 @@ class OnlineModel:
              t_s: float | None = None) -> Prediction:
         """Predict this sample, then learn from its measured length (NaN: nothing to learn).
 
-        A non-finite pressure gives a NaN prediction and changes nothing.
+        A non-finite pressure gives a NaN prediction and changes nothing. One compiled call
+        (kernel.online_step) on the packed state where the rule has one (`compiled`), else
+        `reference_step`, which it is checked against.
         """
+        if not self.compiled:
+            return self.reference_step(pressure_pa, measured_length_m, t_s)
+        packed = self._kernel or self._pack()
+        if not self._python_stale:
+            self._drop_python_state()
+        pressure_pa = float(pressure_pa)
+        state = packed.filter
+        packed.path = None
+        if not math.isfinite(pressure_pa):
+            drift = _drift_of(state, self.reference_length_m)
+            return Prediction(math.nan, int(packed.numbers[kernel.N_BRANCH]), math.nan,
+                              drift.offset_m, drift.gain)
+        predicted, branch, static, offset, gain, virgin_ended = kernel.online_step(
+            pressure_pa, float(measured_length_m), 0.0 if t_s is None else float(t_s),
+            t_s is not None, packed.numbers, packed.config, state.mean, state.covariance,
+            packed.rows, packed.stack, packed.gradients)
+        if virgin_ended:
+            self._end_kernel_virgin_term(packed)
+        return Prediction(predicted, int(branch), static, offset, gain)
+
+    def _end_kernel_virgin_term(self, packed: _Packed) -> None:
+        """The virgin term out of the packed filter, as the compiled step said it ended."""
+        self._end_virgin_term(packed.filter)
+        packed.config, packed.size = self._kernel_config(packed.filter), packed.filter.mean.size
+
+    def reference_step(self, pressure_pa: float, measured_length_m: float = math.nan,
+                       t_s: float | None = None) -> Prediction:
+        """`step` in Python, the reference the compiled one is checked against (and the
+        step of the rules it does not run)."""
+        if self._python_stale:
+            self._unpack()
+        self._kernel = None
         pressure_pa = float(pressure_pa)
         drift = self.drift
         if not math.isfinite(pressure_pa):
             return Prediction(math.nan, self.model.branch, math.nan, drift.offset_m, drift.gain)
         static, branch = self.model.update(pressure_pa)
-        virgin_weights = self._advance_travel(pressure_pa)
+        virgin_weights = self._advance_travel(pressure_pa, self._filter)
         confidence = 1.0
         if self._doubt is not None:
             if self._doubt is not self.model:
@@ -635,19 +859,19 @@ class OnlineModel:
                         gain=drift.gain, dt=dt, virgin_weights=virgin_weights)
         return Prediction(predicted, branch, static, drift.offset_m, drift.gain)
 
-    def _advance_travel(self, pressure_pa: float) -> tuple[int, float] | None:
+    def _advance_travel(self, pressure_pa: float, state: _Filter) -> tuple[int, float] | None:
         """Advance the pressure travelled since start; the virgin term's knot interval and
-        share there (virgin_knot_weights' two weights), or None once it has ended."""
-        if self._filter.blocks.virgin is None:
+        share there (virgin_knot_weights' two weights), or None once it has ended (and left
+        `state`, the filter)."""
+        if state.blocks.virgin is None:
             return None
-        half_width = 0.5 * self.deadband_pa
         if math.isnan(self._play_pa):
             self._play_pa = pressure_pa
-        moved = min(max(self._play_pa, pressure_pa - half_width), pressure_pa + half_width)
+        moved = kernel.through_play(self._play_pa, pressure_pa, 0.5 * self.deadband_pa)
         self._travel_pa += abs(moved - self._play_pa)
         self._play_pa = moved
         if self._travel_pa >= VIRGIN_END_PA:
-            self._end_virgin_term()
+            self._end_virgin_term(state)
             return None
         return _virgin_knot_share(self._travel_pa)
 
@@ -660,12 +884,7 @@ class OnlineModel:
         else:
             dt = elapsed_s(self._time, t_s)
         if dt > 0.0:
-            # Exact for a static length that moves linearly over the step. Two floats: math,
-            # not numpy, whose per-call cost was most of this.
-            slope = (static - self._static) / dt
-            before = self._static
-            self._lag_values = [static - slope * tau + (lag - before + slope * tau)
-                                * math.exp(-dt / tau)
+            self._lag_values = [kernel.creep_lag(lag, static, self._static, dt, tau)
                                 for tau, lag in zip(CREEP_TIME_CONSTANTS_S, self._lag_values,
                                                     strict=True)]
         if t_s is not None:
@@ -729,13 +948,13 @@ class OnlineModel:
         self._project_shape(state)
         mean = state.mean
         # Every bound at once (min/max select: the same as bounding each part).
-        low, high = self._state_bounds(size)
+        low, high = self._state_bounds(size, blocks.virgin is not None)
         bounded = mean[blocks.bounded]
         np.minimum(np.maximum(bounded, low, out=bounded), high, out=bounded)
         state.samples += 1
         self._commit_if_moved()
 
-    def _state_bounds(self, size: int) -> tuple[np.ndarray, np.ndarray]:
+    def _state_bounds(self, size: int, has_virgin: bool) -> tuple[np.ndarray, np.ndarray]:
         """(low, high) for the filter's state after the mean correction (difference, creep,
         the virgin term while it lasts, shift, gain - 1), for a state of `size` values."""
         cached = self.__dict__.get('_bounds')
@@ -745,7 +964,7 @@ class OnlineModel:
         limits = self.adaptation
         low = [-MAX_DIFFERENCE_M] * knots + [-MAX_CREEP_GAIN] * len(CREEP_TIME_CONSTANTS_S)
         high = [MAX_DIFFERENCE_M] * knots + [MAX_CREEP_GAIN] * len(CREEP_TIME_CONSTANTS_S)
-        if self._filter.blocks.virgin is not None:   # as large as a knot's correction may be
+        if has_virgin:   # as large as a knot's correction may be
             virgins = len(VIRGIN_TRAVEL_KNOTS_PA)
             low += [-MAX_CORRECTION_M] * virgins
             high += [MAX_CORRECTION_M] * virgins
@@ -770,38 +989,19 @@ class OnlineModel:
 
     def _learn_share(self, residual: float, difference: float, noise: float, dt: float) -> None:
         """RLS on the current direction's play share and its slope across the loop (the
-        prediction is linear in both, through the curve's share)."""
+        prediction is linear in both, through the curve's share; kernel.share_update)."""
         if difference == 0.0:
             return
         index = 0 if self.model.rising else 1
-        h_share = difference
-        h_slope = difference * (self.model.current_origin_depth() - MID_DEPTH)
         var_share, cov, var_slope = self._share_covariance[index]
-        var_share += _WALK_PER_S['share'] ** 2 * dt
-        var_slope += _WALK_PER_S['share_slope'] ** 2 * dt
-        spread_share = var_share * h_share + cov * h_slope
-        spread_slope = cov * h_share + var_slope * h_slope
-        innovation = noise + h_share * spread_share + h_slope * spread_slope
-        gain_share, gain_slope = spread_share / innovation, spread_slope / innovation
-        share = float(self._shares[index, 0]) + gain_share * residual
-        slope = float(self._shares[index, 1]) + gain_slope * residual
-        # Bounded where it matters: the shares at both ends of the loop (depth 0 and 1), so
-        # every curve's share is within 0..1. Clamping share and slope each on its own bent
-        # the learning (a constant truth of 0.1 came out as 0.9 where its reversals were).
-        near, far = share - 0.5 * slope, share + 0.5 * slope
-        if not (0.0 <= near <= 1.0 and 0.0 <= far <= 1.0):
-            near, far = min(1.0, max(0.0, near)), min(1.0, max(0.0, far))
-            share, slope = 0.5 * (near + far), far - near
+        share, slope, *covariance = kernel.share_update(
+            float(self._shares[index, 0]), float(self._shares[index, 1]),
+            var_share + _WALK_PER_S['share'] ** 2 * dt, cov,
+            var_slope + _WALK_PER_S['share_slope'] ** 2 * dt, residual, difference,
+            difference * (self.model.current_origin_depth() - MID_DEPTH), noise,
+            _PRIOR['share'] ** 2, _PRIOR['share_slope'] ** 2)
         self._shares[index] = share, slope
-        var_share -= gain_share * spread_share
-        cov -= gain_share * spread_slope
-        var_slope -= gain_slope * spread_slope
-        # Never less sure than the prior (a long stretch without this direction's curves).
-        scale_share = math.sqrt(min(1.0, _PRIOR['share'] ** 2 / max(var_share, 1e-300)))
-        scale_slope = math.sqrt(min(1.0, _PRIOR['share_slope'] ** 2 / max(var_slope, 1e-300)))
-        self._share_covariance[index] = [var_share * scale_share ** 2,
-                                         cov * scale_share * scale_slope,
-                                         var_slope * scale_slope ** 2]
+        self._share_covariance[index] = covariance
 
     def _mid_shares_and_slopes(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """((rising, falling) share mid-loop, (rising, falling) slope)."""
@@ -839,7 +1039,7 @@ class OnlineModel:
         """
         drift = self.drift
         target = float(drift.uncorrect(length_m)) if math.isfinite(length_m) else length_m
-        result = self.model.pressure_for_length(target, branch)
+        result = self._read_memory().pressure_for_length(target, branch)
         if self._drifting and math.isfinite(result.min_length_m):
             low, high = drift.correct([result.min_length_m, result.max_length_m])
             low, high = float(min(low, high)), float(max(low, high))
@@ -860,14 +1060,15 @@ class OnlineModel:
         the remaining change; a learned share near 1 is more likely a mistake than a muscle)
         and a negative G as none. Drift applied as in the inverse.
         """
-        gains = self._filter.mean[self._filter.blocks.creep]
+        state, lags = self._filter_now, self._lags
+        gains = state.mean[state.blocks.creep]
         share = float(gains.sum())
-        if self._lags is None or not share > 0.0 or not math.isfinite(length_m):
+        if lags is None or not share > 0.0 or not math.isfinite(length_m):
             return length_m
         if share > max_creep_share:
             gains, share = gains * (max_creep_share / share), max_creep_share
         drift = self.drift
-        static = (float(drift.uncorrect(length_m)) - float(gains @ self._lags)) / (1.0 - share)
+        static = (float(drift.uncorrect(length_m)) - float(gains @ lags)) / (1.0 - share)
         return float(drift.correct(static))
 
     def settled_map(self, rising: bool, path: bool = True) -> Callable[[float], float]:
@@ -876,7 +1077,8 @@ class OnlineModel:
 
         The forward map of `pressure_for_length`, for a caller that must search.
         """
-        static = self.model.path_map(rising) if path else self.model.major(rising).length
+        memory = self._read_memory()
+        static = memory.path_map(rising) if path else memory.major(rising).length
         drift = self.drift
         return lambda p_pa: drift.correct(float(static(float(p_pa))))
 
@@ -886,7 +1088,7 @@ class OnlineModel:
         """Continue `other`'s pressure history (and its creep lags) with these settings;
         from a mix.RuleMix, its first rule's."""
         other = other.experts[0]
-        self.model.resume_from(other.model)
+        self.model.resume_from(other._read_memory())
         if self._doubt is not None and self._doubt is not self.model:
             self._doubt.resume_from(other._doubt if other._doubt is not None else other.model)
         self._lag_values = None if other._lag_values is None else list(other._lag_values)
@@ -895,7 +1097,33 @@ class OnlineModel:
         # a virgin term is not carried over: it lasts one loading).
         self._travel_pa, self._play_pa = other._travel_pa, other._play_pa
         if self._filter.blocks.virgin is not None and self._travel_pa >= VIRGIN_END_PA:
-            self._end_virgin_term()
+            self._end_virgin_term(self._filter)
+
+
+@dataclass
+class _Packed:
+    """An OnlineModel's state as kernel.online_step moves it: its numbers (kernel.N_
+    layout), constants (C_), the filter (its mean and covariance in place), the branch rows,
+    the turning-point stack and their gradients; the branches the rows hold and the commits
+    they were built for, the filter size the constants are for, and the memory's PathState
+    until the next step moves it."""
+
+    numbers: np.ndarray
+    config: np.ndarray
+    filter: _Filter
+    rows: np.ndarray
+    stack: np.ndarray
+    gradients: np.ndarray
+    branches: tuple[Branch, Branch]
+    shown_commits: float
+    size: int
+    path: PathState | None = None
+
+
+def _drift_of(state: _Filter, reference_length_m: float) -> Drift:
+    """The drift a filter's state holds."""
+    mean, blocks = state.mean, state.blocks
+    return Drift(reference_length_m, float(mean[blocks.shift]), 1.0 + float(mean[blocks.gain]))
 
 
 _VIRGIN_KNOTS = (*VIRGIN_TRAVEL_KNOTS_PA, VIRGIN_END_PA)
@@ -905,8 +1133,7 @@ def _virgin_knot_share(travel_pa: float) -> tuple[int, float]:
     """(k, share): virgin_knot_weights' two nonzero weights are 1 - share at knot k and
     share at k + 1 (k + 1 may be VIRGIN_END_PA's, which is not in the state). travel_pa is
     within 0..VIRGIN_END_PA."""
-    k = bisect.bisect_right(_VIRGIN_KNOTS, travel_pa) - 1
-    return k, (travel_pa - _VIRGIN_KNOTS[k]) / (_VIRGIN_KNOTS[k + 1] - _VIRGIN_KNOTS[k])
+    return kernel.virgin_knot_share(np.array(_VIRGIN_KNOTS), float(travel_pa))
 
 
 def virgin_knot_weights(travel_pa: float) -> np.ndarray:
@@ -924,7 +1151,7 @@ def elapsed_s(previous_s: float | None, t_s: float | None) -> float:
     at most MAX_STEP_S (a pause is not a long sample)."""
     if previous_s is None or t_s is None:
         return 0.0
-    return min(max(float(t_s) - previous_s, 0.0), MAX_STEP_S)
+    return kernel.elapsed(float(previous_s), float(t_s), MAX_STEP_S)
 
 
 def run_online(online: OnlineModel, pressure_pa, measured_length_m, time_s) -> np.ndarray:

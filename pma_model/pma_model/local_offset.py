@@ -43,26 +43,16 @@ class LocalOffset:
 
     def advance(self, pressure_pa: float) -> float:
         """Move to this pressure (fading and loosening by the travel); the offset here."""
-        if math.isnan(self._play_pa):
-            self._play_pa = pressure_pa
-        half = 0.5 * PLAY_PA
-        moved = min(max(self._play_pa, pressure_pa - half), pressure_pa + half)
-        travel = abs(moved - self._play_pa)
-        self._play_pa = moved
-        if travel > 0.0:
-            fade = math.exp(-travel / FADE_PA)
-            self.offset_m *= fade
-            self.variance_m2 = fade * fade * self.variance_m2 + WALK_M2_PER_PA * travel
+        self.offset_m, self.variance_m2, self._play_pa = kernel.local_advance(
+            self.offset_m, self.variance_m2, self._play_pa, float(pressure_pa), 0.5 * PLAY_PA,
+            FADE_PA, WALK_M2_PER_PA)
         return self.offset_m
 
     def learn(self, measured_m: float, predicted_without_m: float) -> None:
         """Update from a measured length and the mix's prediction before this offset."""
-        residual = measured_m - predicted_without_m
-        if not abs(residual) <= self.outlier_m or self.variance_m2 <= 0.0:
-            return
-        gain = self.variance_m2 / (self.variance_m2 + self.noise_m ** 2)
-        self.offset_m += gain * (residual - self.offset_m)
-        self.variance_m2 *= 1.0 - gain
+        self.offset_m, self.variance_m2 = kernel.local_learn(
+            self.offset_m, self.variance_m2, measured_m - predicted_without_m,
+            self.noise_m ** 2, self.outlier_m)
 
     def at(self, pressure_pa: float) -> float:
         """The offset expected once pressure has gone straight from here to `pressure_pa`

@@ -297,6 +297,37 @@ class HysteresisModel:
                          self.decreasing, rule.path_kind, rule.has_play_share,
                          self.play_shares, self.share_slopes, self.max_gauge_pressure_pa)
 
+    def kernel_numbers(self, numbers: np.ndarray, stack: np.ndarray) -> None:
+        """This state into a compiled step's numbers (kernel.N_P to N_SLOPE_DOWN) and stack
+        (its turning points, oldest first)."""
+        numbers[kernel.N_P], numbers[kernel.N_L], numbers[kernel.N_RISING] = (
+            self._p, self._l, self._rising)
+        numbers[kernel.N_PLAY_RISING], numbers[kernel.N_PLAY_P] = self._play_source
+        numbers[kernel.N_BRANCH] = self._detector.branch
+        numbers[kernel.N_EXTREME] = self._detector._extreme_pa
+        numbers[kernel.N_COUNT], numbers[kernel.N_VALID] = len(self._stack), 0.0
+        numbers[kernel.N_SHARE_UP], numbers[kernel.N_SHARE_DOWN] = self.play_shares
+        numbers[kernel.N_SLOPE_UP], numbers[kernel.N_SLOPE_DOWN] = self.share_slopes
+        if self._stack:
+            stack[:len(self._stack)] = self._stack
+
+    def load_kernel_numbers(self, numbers: np.ndarray, stack: np.ndarray, increasing: Branch,
+                            decreasing: Branch) -> None:
+        """The state a compiled step left in its numbers and stack (kernel_numbers' layout),
+        on these branches."""
+        values = numbers[:kernel.N_SLOPE_DOWN + 1].tolist()
+        self.increasing, self.decreasing = increasing, decreasing
+        self._p, self._l = values[kernel.N_P], values[kernel.N_L]
+        self._rising = values[kernel.N_RISING] != 0.0
+        self._play_source = (values[kernel.N_PLAY_RISING] != 0.0, values[kernel.N_PLAY_P])
+        self._detector.branch = int(values[kernel.N_BRANCH])
+        self._detector._extreme_pa = values[kernel.N_EXTREME]
+        self._stack = [tuple(point) for point in stack[:int(values[kernel.N_COUNT])].tolist()]
+        self.play_shares = (values[kernel.N_SHARE_UP], values[kernel.N_SHARE_DOWN])
+        self.share_slopes = (values[kernel.N_SLOPE_UP], values[kernel.N_SLOPE_DOWN])
+        self._cached_key, self._cached_curve = None, None
+        self._gradient_cache, self._gradient_ends = ([], []), (None, None)
+
     def major(self, rising: bool) -> Branch:
         """The major branch pressure follows when moving up (True) or down."""
         return self.increasing if rising else self.decreasing

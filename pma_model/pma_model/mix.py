@@ -24,6 +24,10 @@ the path is monotone, so it is bracketed and solved (scipy's brentq) on the leng
 gives along the path pressure would follow from the current state. Along the path (AUTO) the
 whole of it, the path included, is one compiled call (kernel.mixed_path_pressure, brentq's
 steps as scipy takes them), as in Python the path's evaluations were most of its cost.
+
+The step, its rules' steps included, is one compiled call as well (kernel.mix_step on the
+rules' packed state) when every rule has a compiled step; `reference_step` is the same in
+Python.
 """
 
 from __future__ import annotations
@@ -40,13 +44,14 @@ from pma_model.adaptation import Drift
 from pma_model.curves import FLAT_SPAN_M, MID_DEPTH
 from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING, BRANCH_NAMES
 from pma_model.identification import (
+    MAX_STEP_S,
     IdentificationSettings,
     OnlineModel,
     OnlineRule,
     Prediction,
     elapsed_s,
 )
-from pma_model.local_offset import FADE_PA, PLAY_PA, LocalOffset
+from pma_model.local_offset import FADE_PA, PLAY_PA, WALK_M2_PER_PA, LocalOffset
 from pma_model.memory import NARROW_LOOP_M, InverseResult, expert_row
 
 MIX_MEMORY = 'mix'            # the model's memory setting that runs MIX_RULES mixed
@@ -106,7 +111,17 @@ class RuleMix:
                 not np.all(np.isfinite(self.losses_m2s)):
             raise ValueError(f'losses_m2s must be {len(self.experts)} finite numbers, '
                              f'got {self.losses_m2s!r}')
-        self.last_predictions: list[Prediction] = []   # each rule's, at the last step
+        # Each rule's prediction at the last step (None: the compiled step's, in _outputs).
+        self._last_predictions: list[Prediction] | None = []
+        self._outputs = np.zeros((len(self.experts), kernel.P_GAIN + 1))
+        # kernel.mix_step's constants (X_ layout), the losses array it was last given and the
+        # rules' packed arrays (_kernel_arrays).
+        self._mix_constants = np.array((
+            self.temperature_m2s, self.time_constant_s,
+            min(e.adaptation.outlier_m for e in self.experts), 0.5 * PLAY_PA, FADE_PA,
+            WALK_M2_PER_PA, MAX_STEP_S))
+        self._kernel_losses: np.ndarray | None = None
+        self._kernel_cache: tuple | None = None
         first = self.experts[0]
         self.local = LocalOffset(first.identification.length_noise_m,
                                  first.adaptation.outlier_m)
@@ -182,15 +197,90 @@ class RuleMix:
         total = sum(weights)
         return [weight / total for weight in weights]
 
+    @property
+    def last_predictions(self) -> list[Prediction]:
+        """Each rule's prediction at the last step."""
+        if self._last_predictions is None:   # the compiled step's, built when asked for
+            self._last_predictions = [
+                Prediction(length, int(branch), static, offset, gain)
+                for length, branch, static, offset, gain in self._outputs.tolist()]
+        return self._last_predictions
+
     def step(self, pressure_pa: float, measured_length_m: float = math.nan,
              t_s: float | None = None) -> Prediction:
-        """Every rule predicts and learns; the weights learn from the predictions."""
+        """Every rule predicts and learns; the weights learn from the predictions.
+
+        One compiled call (kernel.mix_step) when every rule's step is compiled;
+        `reference_step` is the same in Python.
+        """
+        pressure_pa = float(pressure_pa)
+        arrays = self._kernel_arrays()
+        if arrays is None or not math.isfinite(pressure_pa):
+            return self._python_step(pressure_pa, measured_length_m, t_s, reference=False)
+        local, losses = self.local, self.losses_m2s
+        if losses is not self._kernel_losses:   # set anew: as the kernel takes it, in place
+            self.losses_m2s = losses = np.ascontiguousarray(losses, dtype=float)
+            self._kernel_losses = losses
+        (length, branch, static, offset, gain, local_m, ended, local.offset_m, local.variance_m2,
+         local._play_pa) = kernel.mix_step(
+            pressure_pa, float(measured_length_m), 0.0 if t_s is None else float(t_s),
+            t_s is not None, self.learning, self.local_offset, local.offset_m, local.variance_m2,
+            local.play_pa, local.noise_m ** 2, local.outlier_m, self._mix_constants, losses,
+            self._outputs, *arrays)
+        self._last_predictions = None
+        for packed in self._kernel_cache[0]:   # their states moved
+            packed.path = None
+        if ended:   # a rule's virgin term ended: out of its filter
+            for i, expert in enumerate(self.experts):
+                if ended >> i & 1:
+                    expert._end_kernel_virgin_term(expert._kernel)
+            self._kernel_cache = None
+        return Prediction(length, int(branch), static, offset, gain, local_m)
+
+    def reference_step(self, pressure_pa: float, measured_length_m: float = math.nan,
+                       t_s: float | None = None) -> Prediction:
+        """`step` in Python, every rule's too: the reference the compiled one is checked
+        against."""
+        return self._python_step(pressure_pa, measured_length_m, t_s, reference=True)
+
+    def _kernel_arrays(self) -> tuple | None:
+        """The rules' packed arrays as kernel.mix_step takes them (a tuple each of their
+        numbers, constants, filter means and covariances, branch rows, stacks, gradients), or
+        None unless every rule's step is compiled. Kept while the rules keep the same packed
+        state."""
+        cached = self._kernel_cache
+        fresh = cached is None
+        for i, expert in enumerate(self.experts):
+            if not expert.compiled:
+                return None
+            packed = expert._kernel or expert._pack()
+            if not expert._python_stale:
+                expert._drop_python_state()
+            if not fresh:
+                arrays = cached[1]
+                fresh = (packed is not cached[0][i] or packed.config is not arrays[1][i]
+                         or packed.filter.mean is not arrays[2][i]
+                         or packed.filter.covariance is not arrays[3][i])
+        if not fresh:
+            return cached[1]
+        packs = tuple(expert._kernel for expert in self.experts)
+        arrays = (tuple(p.numbers for p in packs), tuple(p.config for p in packs),
+                  tuple(p.filter.mean for p in packs), tuple(p.filter.covariance for p in packs),
+                  tuple(p.rows for p in packs), tuple(p.stack for p in packs),
+                  tuple(p.gradients for p in packs))
+        self._kernel_cache = (packs, arrays)
+        return arrays
+
+    def _python_step(self, pressure_pa: float, measured_length_m: float, t_s: float | None, *,
+                     reference: bool) -> Prediction:
+        """The step in Python, its rules' `reference_step` (reference) or `step`."""
         weights = self._weights_floats()
-        previous_s = self.experts[0]._time     # the rules' clock, before they advance it
-        predictions = [e.step(pressure_pa, measured_length_m, t_s) for e in self.experts]
+        previous_s = self.experts[0].clock_s   # the rules' clock, before they advance it
+        predictions = [(e.reference_step if reference else e.step)(
+            pressure_pa, measured_length_m, t_s) for e in self.experts]
         lengths = [p.length_m for p in predictions]
         first = predictions[0]
-        self.last_predictions = predictions
+        self._last_predictions = predictions
         if not math.isfinite(float(pressure_pa)):
             return first
         dt = elapsed_s(previous_s, t_s)
@@ -225,7 +315,7 @@ class RuleMix:
     def settled_length_m(self) -> float:
         """The mixture's length here once creep has settled (where every path starts), with
         the local offset."""
-        return float(self.weights @ [float(e.drift.correct(e.model.length_m))
+        return float(self.weights @ [float(e.drift.correct(e.path_state().length_m))
                                      for e in self.experts]) + self.local.offset_m
 
     def settled_aim_m(self, length_m: float, max_creep_share: float) -> float:
@@ -275,7 +365,7 @@ class RuleMix:
         local = self.local.at if path and self.local.offset_m != 0.0 else (lambda _p_pa: 0.0)
         if path:
             rising = length_m < self.settled_length_m
-        here = self.experts[0].model.pressure_pa
+        here = self.experts[0].pressure_pa
         start = here if path else (0.0 if rising else self.max_gauge_pressure_pa)
         end = self.max_gauge_pressure_pa if rising else 0.0
         maps = [(w, e.settled_map(rising, path))
@@ -304,7 +394,7 @@ class RuleMix:
                 pressure: float, low: float, high: float) -> InverseResult:
         name = BRANCH_NAMES[BRANCH_INCREASING if rising else BRANCH_DECREASING]
         where = (f'{name} path from the current state '
-                 f'({self.experts[0].model.pressure_pa:.6g} Pa)' if path
+                 f'({self.experts[0].pressure_pa:.6g} Pa)' if path
                  else f'{name} major branch')
         if not reached:
             return InverseResult(
@@ -321,7 +411,7 @@ class RuleMix:
         per-item cost was most of the call."""
         rows, stacks, branches, settled = [], [], [], []
         for i, (weight, expert) in enumerate(zip(weights.tolist(), self.experts, strict=True)):
-            state = expert.model.path_state()
+            state = expert.path_state()
             drift = expert.drift
             settled.append(float(drift.correct(state.length_m)))
             rows.append(expert_row(state, weight, (drift.reference_length_m, drift.shift_m,
