@@ -300,6 +300,7 @@ def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv
         phase = 2 * math.pi * 0.1 * (now - start)
         setpoints.publish(LengthSetpoint(length_m=0.2725 - 0.0225 * math.cos(phase)))
         time.sleep(0.02)
+    streamed_until = now
     time.sleep(0.5)
     say(f'   {record_bag(services, None)}')
     truth = TruthLog.true_lengths(truth_csv)
@@ -313,7 +314,9 @@ def run_control(spin, client, services: ServiceClients, run_dir: Path, truth_csv
         raise RuntimeError('no pma/control_state matched to the simulated truth')
     t, setpoint, measured, true, command, pressure = (np.array(c) for c in zip(*rows,
                                                                             strict=True))
-    sine = t >= start + 10.0                       # the sine's second period on
+    # The sine's second period on, while it was streamed: after the stream the controller
+    # goes idle, with no setpoint (NaN), before the bag ends.
+    sine = (t >= start + 10.0) & (t <= streamed_until)
     error = true[sine] - setpoint[sine]
     rmse = float(np.sqrt(np.mean(error ** 2)))
     say(f'   sine tracking against the simulated truth: RMSE {rmse * 1000:.2f} mm '
