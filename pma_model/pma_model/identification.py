@@ -658,7 +658,10 @@ class OnlineModel:
         its rows and columns, so what it taught the rest through their covariance is kept."""
         rows = np.arange(state.mean.size)[state.blocks.virgin]
         state.mean = np.delete(state.mean, rows)
-        state.covariance = np.delete(np.delete(state.covariance, rows, axis=0), rows, axis=1)
+        # C order, as the filter was built: np.delete along the columns returns a Fortran-
+        # ordered array, and the compiled step would compile (and cache) a second signature.
+        state.covariance = np.ascontiguousarray(
+            np.delete(np.delete(state.covariance, rows, axis=0), rows, axis=1))
         state.walk_per_s = np.delete(state.walk_per_s, rows)
         state.blocks = state.blocks.without_virgin()
 
@@ -931,9 +934,8 @@ class OnlineModel:
         regressor[blocks.gain] = undrifted - self.reference_length_m
         walk = state.walk_per_s * dt
         if self._drifting:
-            # A random walk whose steady Kalman gain remembers about time_constant_s.
-            samples = self.adaptation.time_constant_s / max(dt, 1e-3)
-            walk[blocks.shift] = noise / samples ** 2
+            walk[blocks.shift] = kernel.drift_walk_variance(
+                noise, self.adaptation.time_constant_s, dt)
             walk[blocks.gain] = walk[blocks.shift] / GAIN_WALK_LENGTH_M ** 2
         covariance = state.covariance
         covariance.flat[::size + 1] += walk   # the diagonal, in place

@@ -287,6 +287,15 @@ def drift_offset(reference_m, shift_m, gain):
 
 
 @compiled()
+def drift_walk_variance(noise_m2, time_constant_s, dt_s):
+    """The drift shift's random-walk variance for a step of dt_s: the walk whose steady Kalman
+    gain remembers about time_constant_s (steps under a millisecond count as one, so a
+    repeated time stamp does not make the walk infinite)."""
+    samples = time_constant_s / py_max(dt_s, 1e-3)
+    return noise_m2 / samples ** 2
+
+
+@compiled()
 def origin_depth(toward_m, other_m, l_origin, narrow_loop_m):
     """Where a reversal at length l_origin lies across the loop: 0 on the branch its curve
     heads for (`toward_m` there), 1 on the other; 1 where the branches are narrower than
@@ -999,9 +1008,7 @@ def _learn(numbers, config, mean, covariance, rows, stack, gradients, residual, 
     walk_at = int(config[C_WALK_AT])
     drift_walk = 0.0
     if config[C_DRIFTING] != 0.0:
-        # A random walk whose steady Kalman gain remembers about the time constant.
-        samples = config[C_TIME_CONSTANT] / py_max(dt, 1e-3)
-        drift_walk = noise / samples ** 2
+        drift_walk = drift_walk_variance(noise, config[C_TIME_CONSTANT], dt)
     for i in range(size):
         walk = config[walk_at + i] * dt
         if config[C_DRIFTING] != 0.0 and i >= size - 2:
