@@ -56,17 +56,6 @@ def _finite_positive(value) -> bool:
     return isinstance(value, (int, float)) and math.isfinite(value) and value > 0
 
 
-def _elementwise(function, row, values):
-    """A compiled loop over a 1-D array (kernel.branch_lengths, branch_pressures) applied to
-    values of any shape; a float for a single value."""
-    array = np.asarray(values, dtype=float)
-    flat = array.ravel()
-    if not flat.flags.writeable:   # numba compiles read-only arrays apart: keep one kind
-        flat = flat.copy()
-    result = function(row, flat).reshape(array.shape)
-    return float(result) if result.ndim == 0 else result
-
-
 @dataclass(frozen=True)
 class Branch(abc.ABC):
     """One monotone length(pressure) branch with a closed-form inverse.
@@ -93,7 +82,7 @@ class Branch(abc.ABC):
         """Length [m] at gauge pressure(s) [Pa]; vectorised, float in -> float out."""
         if isinstance(p_pa, float):   # one sample (online, the inverse's searches): no numpy
             return kernel.branch_length(self.kernel_row, p_pa)
-        return _elementwise(kernel.branch_lengths, self.kernel_row, p_pa)
+        return kernel.elementwise(kernel.branch_lengths, p_pa, self.kernel_row)
 
     def inverse_unchecked(self, length_m):
         """The closed-form inverse with no range check: NaN where it has no real answer.
@@ -103,7 +92,7 @@ class Branch(abc.ABC):
         """
         if isinstance(length_m, float):   # one length (the controller's inverse): no numpy
             return kernel.branch_pressure(self.kernel_row, length_m)
-        return _elementwise(kernel.branch_pressures, self.kernel_row, length_m)
+        return kernel.elementwise(kernel.branch_pressures, length_m, self.kernel_row)
 
     @abc.abstractmethod
     def stroke_m(self) -> float:

@@ -85,9 +85,8 @@ class ScanningCurve:
             return kernel.curve_length(shape, l_origin, l_target, b_origin, b_target,
                                        self._is_flat, self.play_share, self._knee)
         # An array (Branch.length gives a float for one value): the same formula, compiled.
-        return kernel.curve_lengths(shape.ravel(), l_origin, l_target, b_origin, b_target,
-                                    self._is_flat, self.play_share, self._knee
-                                    ).reshape(shape.shape)
+        return kernel.elementwise(kernel.curve_lengths, shape, l_origin, l_target, b_origin,
+                                  b_target, self._is_flat, self.play_share, self._knee)
 
     def shapes_at(self, p_pa: float) -> tuple[float, float]:
         """(play-like, Madelung) lengths at p_pa: the two shapes the share mixes."""

@@ -202,8 +202,20 @@ def branch_pressure(row, length):
 
 
 
+def elementwise(loop, values, *constants):
+    """`loop` (one of the compiled loops over a 1-D array below: branch_lengths,
+    branch_pressures, curve_lengths) applied to values of any shape; a float for a single
+    value. Plain Python: it only lays the values out for the loop."""
+    array = np.asarray(values, dtype=float)
+    flat = array.ravel()
+    if not flat.flags.writeable:   # numba compiles read-only arrays apart: keep one kind
+        flat = flat.copy()
+    result = loop(flat, *constants).reshape(array.shape)
+    return float(result) if result.ndim == 0 else result
+
+
 @compiled()
-def branch_lengths(row, pressures):
+def branch_lengths(pressures, row):
     """branch_length at each of `pressures` (1-D): the array form of the same formula."""
     result = np.empty(pressures.size)
     for i in range(pressures.size):
@@ -212,7 +224,7 @@ def branch_lengths(row, pressures):
 
 
 @compiled()
-def branch_pressures(row, lengths):
+def branch_pressures(lengths, row):
     """branch_pressure at each of `lengths` (1-D): the array form of the same formula."""
     result = np.empty(lengths.size)
     for i in range(lengths.size):
