@@ -344,6 +344,7 @@ class Bench:
         tracker = SequenceTracker()
         for seq in states.values():
             tracker.add(seq)
+        first_predicted = min(predictions, default=0)
         return Soak(rate_hz=rate_hz, seconds=elapsed,
                     published=int(driver_values['samples published']),
                     device_lost=int(driver_values['lost samples']),
@@ -353,6 +354,7 @@ class Bench:
                     bag_states=len(states), bag_states_lost=tracker.stats().lost,
                     bag_predictions=len(predictions),
                     bag_states_without_prediction=len(set(states) - predictions),
+                    bag_states_before_model=sum(1 for stamp in states if stamp < first_predicted),
                     cpu_percent=cpu, load=load)
 
     def deactivate(self, lifecycle_node: str) -> None:
@@ -502,6 +504,10 @@ class Soak:
     bag_states_lost: int        # by seq, inside the recorded span (device losses included)
     bag_predictions: int
     bag_states_without_prediction: int
+    # Of those, the states recorded before the first one model_node received (it predicts
+    # every state it gets): the recorder matched the new driver's publisher first, in DDS
+    # discovery at start-up, 2.2-2.5 s at 1 kHz on this machine whatever the model costs.
+    bag_states_before_model: int
     cpu_percent: dict[str, float]
     load: float
 
@@ -632,7 +638,10 @@ def soak_rows(soak: Soak) -> list[tuple[str, str, str]]:
     before_match = soak.published - soak.model_samples - model_lost
     recorder_lost = max(soak.bag_states_lost - soak.device_lost, 0)
     not_recorded = soak.model_samples - soak.bag_predictions
-    percent = 100.0 * soak.bag_states_without_prediction / max(soak.bag_states, 1)
+    # The target is the chain's capacity, so it counts from model_node's first state on;
+    # what the recorder had before that is reported beside it.
+    unpredicted = soak.bag_states_without_prediction - soak.bag_states_before_model
+    percent = 100.0 * unpredicted / max(soak.bag_states - soak.bag_states_before_model, 1)
     cpu = ', '.join(f'{name} {value:.0f}' for name, value in soak.cpu_percent.items())
     return [
         (f'soak {soak.rate_hz:g} Hz, {soak.seconds:.0f} s: PmaState published by driver_node',
@@ -646,9 +655,12 @@ def soak_rows(soak: Soak) -> list[tuple[str, str, str]]:
          f'{soak.model_samples} in the bag)'),
         ('  states the recorder never received (by seq)', f'{recorder_lost}',
          f'({soak.bag_states} in the bag)'),
-        ('  states in the bag without their prediction', f'{soak.bag_states_without_prediction}',
+        ('  states in the bag without their prediction', f'{unpredicted}',
          check(percent < MAX_WITHOUT_PREDICTION_PERCENT,
-               f'< {MAX_WITHOUT_PREDICTION_PERCENT:g} %') + f' ({percent:.3f} %)'),
+               f'< {MAX_WITHOUT_PREDICTION_PERCENT:g} %') + f' ({percent:.3f} %, from '
+         'model_node\'s first state on)'),
+        ('  states recorded before model_node had one', f'{soak.bag_states_before_model}',
+         '(start-up: the recorder matched the driver first)'),
         ('  CPU [% core]', f'{sum(soak.cpu_percent.values()):.0f}',
          f'({cpu}; load average {soak.load:.1f})'),
     ]
