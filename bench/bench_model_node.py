@@ -345,6 +345,9 @@ class Bench:
         for seq in states.values():
             tracker.add(seq)
         first_predicted = min(predictions, default=0)
+        first_stamp = min(states, default=0)
+        missed = sorted((states[stamp], (stamp - first_stamp) / 1e9) for stamp in states
+                        if stamp >= first_predicted and stamp not in predictions)
         return Soak(rate_hz=rate_hz, seconds=elapsed,
                     published=int(driver_values['samples published']),
                     device_lost=int(driver_values['lost samples']),
@@ -355,6 +358,7 @@ class Bench:
                     bag_predictions=len(predictions),
                     bag_states_without_prediction=len(set(states) - predictions),
                     bag_states_before_model=sum(1 for stamp in states if stamp < first_predicted),
+                    unpredicted_runs=runs_of(missed),
                     cpu_percent=cpu, load=load)
 
     def deactivate(self, lifecycle_node: str) -> None:
@@ -508,8 +512,22 @@ class Soak:
     # every state it gets): the recorder matched the new driver's publisher first, in DDS
     # discovery at start-up, 2.2-2.5 s at 1 kHz on this machine whatever the model costs.
     bag_states_before_model: int
+    # Where the rest were: (first seq, count, seconds into the bag) of each run of
+    # consecutive states without a prediction, for the next look at a loss.
+    unpredicted_runs: list[tuple[int, int, float]]
     cpu_percent: dict[str, float]
     load: float
+
+
+def runs_of(missed: list[tuple[int, float]]) -> list[tuple[int, int, float]]:
+    """(first seq, count, time) of each run of consecutive seqs in sorted (seq, time)."""
+    runs: list[list] = []
+    for seq, at_s in missed:
+        if runs and seq == runs[-1][0] + runs[-1][1]:
+            runs[-1][1] += 1
+        else:
+            runs.append([seq, 1, at_s])
+    return [tuple(run) for run in runs]
 
 
 def longest_run(mask: np.ndarray) -> int:
@@ -661,6 +679,10 @@ def soak_rows(soak: Soak) -> list[tuple[str, str, str]]:
          'model_node\'s first state on)'),
         ('  states recorded before model_node had one', f'{soak.bag_states_before_model}',
          '(start-up: the recorder matched the driver first)'),
+        ('  runs without a prediction (seq x count at s)', f'{len(soak.unpredicted_runs)}',
+         ', '.join(f'{seq} x {count} at {at_s:.1f}'
+                   for seq, count, at_s in soak.unpredicted_runs[:5])
+         + (' ...' if len(soak.unpredicted_runs) > 5 else '')),
         ('  CPU [% core]', f'{sum(soak.cpu_percent.values()):.0f}',
          f'({cpu}; load average {soak.load:.1f})'),
     ]
