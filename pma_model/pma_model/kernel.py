@@ -201,7 +201,6 @@ def branch_pressure(row, length):
     return base_pressure(row, (length - row[off + k] - ratio * row[at + k]) / (1.0 - ratio))
 
 
-
 def elementwise(loop, values, *constants):
     """`loop` (one of the compiled loops over a 1-D array below: branch_lengths,
     branch_pressures, curve_lengths) applied to values of any shape; a float for a single
