@@ -14,14 +14,10 @@ import threading
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import (
-    DurabilityPolicy,
-    QoSProfile,
-    ReliabilityPolicy,
-    qos_profile_sensor_data,
-)
+from rclpy.qos import DurabilityPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
 
 from pma_common import names
 from pma_common.diagnostics import publish_status
@@ -147,15 +143,14 @@ class ModelNode(Node):
         self._prediction_pub = self.create_publisher(PmaPrediction, names.PREDICTION,
                                                      PREDICTION_QUEUE_DEPTH)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 1)
-        # Sensor-data QoS (best effort, REP-2003), but a deeper queue than its 5: at 1 kHz a
-        # Python pause of 5 ms would otherwise overwrite samples before they are predicted.
-        # Reliable would not help: a keep-last reader overwrites what it has not taken either.
-        state_qos = QoSProfile(depth=STATE_QUEUE_DEPTH,
-                               reliability=qos_profile_sensor_data.reliability,
-                               durability=qos_profile_sensor_data.durability,
-                               history=qos_profile_sensor_data.history)
-        self._state_subscription = self.create_subscription(PmaState, names.STATE,
-                                                            self._on_states, state_qos)
+        # Every sample is predicted, so pma/state is taken as a recorder takes it: reliable,
+        # and queued for 2 s. Best effort (REP-2003's sensor data, for consumers that want
+        # the latest) lost every sample beyond Fast DDS's 512-sample shared-memory port once
+        # the process stalled over half a second; reliable has them resent from the driver's
+        # history, and the driver's keep-last writer is never held up by a slow reader. A
+        # driver that publishes best effort is followed in best effort (said in the log).
+        self._state_reliability = ReliabilityPolicy.RELIABLE
+        self._state_subscription = self._subscribe_states()
         # Queues a burst (pma_common.service.SERVICE_QOS): with the default 10, of 200
         # requests in flight from 4 clients only 11-41 were answered.
         self.create_service(PressureForLength, names.PRESSURE_FOR_LENGTH,
@@ -312,6 +307,35 @@ class ModelNode(Node):
 
     # --- stream ---------------------------------------------------------------------
 
+    def _subscribe_states(self):
+        return self.create_subscription(
+            PmaState, names.STATE, self._on_states,
+            QoSProfile(depth=STATE_QUEUE_DEPTH, reliability=self._state_reliability),
+            event_callbacks=SubscriptionEventCallbacks(
+                incompatible_qos=self._on_incompatible_state_qos))
+
+    def _on_incompatible_state_qos(self, event) -> None:
+        policy = QoSPolicyKind(event.last_policy_kind)
+        if policy != QoSPolicyKind.RELIABILITY \
+                or self._state_reliability != ReliabilityPolicy.RELIABLE:
+            self.get_logger().error(f'{self._state_subscription.topic_name}: a publisher\'s '
+                                    f'QoS does not match ({policy.name.lower()})')
+            return
+        self._state_reliability = ReliabilityPolicy.BEST_EFFORT
+        # Not from inside the subscription's own event callback: from a timer, at once.
+        self._resubscribe_timer = self.create_timer(0.0, self._resubscribe_states)
+
+    def _resubscribe_states(self) -> None:
+        self.destroy_timer(self._resubscribe_timer)
+        old = self._state_subscription
+        topic = old.topic_name
+        self._state_subscription = self._subscribe_states()
+        self.destroy_subscription(old)
+        self.get_logger().warning(
+            f'{topic} is published best effort (the driver\'s qos_reliability): '
+            'subscribed best effort to match; a stall of this node over about half a second '
+            'at 1 kHz now loses samples')
+
     def _on_states(self, state: PmaState) -> None:
         """The executor's state, then those queued behind it (pma_common.node.take_queued)."""
         self._on_state(state)
@@ -430,6 +454,7 @@ class ModelNode(Node):
             'samples': stats['samples'], 'samples_nan_pressure': stats['nan_pressure'],
             'samples_nan_length': stats['nan_length'], 'rms_residual_m': f'{rms:.6f}',
             'states_lost': sequence.lost, 'state_gaps': sequence.gaps,
+            'state_reliability': self._state_reliability.name.lower(),
             'branch_form': self._params.branch_form, 'memory': self._params.memory,
             'params_file': self.get_parameter('params_file').value or '(none)',
             'params_file_loaded': 'no' if problem is not None else 'yes',

@@ -1,6 +1,7 @@
 """Test helper: publish numbered PmaState messages at a fixed rate, then exit.
 
     bag_state_publisher.py --topic /pma/state --rate 200 --count 400 [--wait-subscribers 1]
+                           [--best-effort]
 
 `seq` runs 0..count-1 so a recording can be checked for gaps.
 """
@@ -22,13 +23,16 @@ def main() -> int:
     parser.add_argument('--count', type=int, default=400)
     parser.add_argument('--wait-subscribers', type=int, default=0)
     parser.add_argument('--transient-local', action='store_true')
+    parser.add_argument('--best-effort', action='store_true',
+                        help="as a driver with qos_reliability best_effort publishes")
     parser.add_argument('--latched-params', metavar='TOPIC',
                         help='also publish one latched ModelParams on TOPIC before the states')
     parser.add_argument('--linger', type=float, default=1.0, help='seconds to stay up at the end')
     args = parser.parse_args()
     rclpy.init()
     node = rclpy.create_node('bag_state_publisher')
-    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+    qos = QoSProfile(depth=1000, reliability=(ReliabilityPolicy.BEST_EFFORT if args.best_effort
+                                              else ReliabilityPolicy.RELIABLE),
                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if args.transient_local
                                  else DurabilityPolicy.VOLATILE))
     publisher = node.create_publisher(PmaState, args.topic, qos)
