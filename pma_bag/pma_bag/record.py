@@ -174,6 +174,9 @@ class Recorder(Node):
         self.failed_bags: list[str] = []      # bags that could not be finished (recover them)
         self.error = ''                        # the last error, for /diagnostics
         self.target: Path | None = None        # the bag asked for last (in /diagnostics)
+        # The request_id of the ~/start that opened self.bag ('' = none given): a resend of
+        # that start answers for the bag instead of opening another.
+        self.bag_request_id = ''
         self.rig_info: dict[str, str] = {}     # firmware/protocol seen on /diagnostics
         self.announced = -1
         self.last_message = 0.0                # monotonic time of the last message received
@@ -272,6 +275,7 @@ class Recorder(Node):
             if self.bag is not None:
                 self.finish_bag()
             self.bag, self.error, self.target = bag, '', path
+            self.bag_request_id = ''          # on_start names its own bag after this
             self.set_paused(paused)
             now = time.time_ns()
             for entry in self.subscribed.values():
@@ -524,16 +528,21 @@ class Recorder(Node):
         that must not miss a sample of its own also waits until its publishers count the
         recorder's readers, as the driver's Sweep does.)
         """
-        try:
-            bag = self.start_bag(Path(request.bag_path) if request.bag_path else None,
-                                 list(request.topics),
-                                 {kv.key: kv.value for kv in request.custom_data})
-        except BagError as exc:
-            # The caller's error, answered here; the recorder is fine (not an ERROR status).
-            still = f'still recording {self.bag.path}' if self.bag is not None else 'idle'
-            response.success, response.message = False, str(exc)
-            self.get_logger().warning(f'~/start refused ({still}): {exc}')
-            return response
+        if request.request_id and request.request_id == self.bag_request_id \
+                and self.bag is not None:
+            bag = self.bag                  # the caller's resend: its answer was lost
+        else:
+            try:
+                bag = self.start_bag(Path(request.bag_path) if request.bag_path else None,
+                                     list(request.topics),
+                                     {kv.key: kv.value for kv in request.custom_data})
+            except BagError as exc:
+                # The caller's error, answered here; the recorder is fine (not an ERROR status).
+                still = f'still recording {self.bag.path}' if self.bag is not None else 'idle'
+                response.success, response.message = False, str(exc)
+                self.get_logger().warning(f'~/start refused ({still}): {exc}')
+                return response
+            self.bag_request_id = request.request_id
         deadline = time.monotonic() + START_MATCH_TIMEOUT_S
         ready, late = self.start_status(bag)
         while late and time.monotonic() < deadline and self.bag is bag:

@@ -31,9 +31,10 @@ def recorder(context):
     node.destroy_node()
 
 
-def start(recorder: Recorder, path='', topics=()) -> StartRecording.Response:
+def start(recorder: Recorder, path='', topics=(), request_id='') -> StartRecording.Response:
     """~/start as the service calls it (it answers without awaiting: no publishers here)."""
-    request = StartRecording.Request(bag_path=str(path), topics=list(topics))
+    request = StartRecording.Request(bag_path=str(path), topics=list(topics),
+                                     request_id=request_id)
     coroutine = recorder.on_start(request, StartRecording.Response())
     with pytest.raises(StopIteration) as answered:
         coroutine.send(None)
@@ -66,6 +67,29 @@ def test_a_topics_set_at_run_time_applies_to_the_next_bag(recorder, tmp_path):
     assert '/extra/topic' in recorder.wanted_topics()    # looked up in the graph from now
     assert set_topics(recorder, ['pma/state', 'pma/pressure']).successful
     assert '/pma/pressure' in recorder.subscribed, 'a PMA topic is presubscribed at once'
+
+
+def test_a_start_sent_again_under_its_request_id_answers_for_the_bag_it_opened(recorder,
+                                                                              tmp_path):
+    """A client resends a start whose answer it did not get (lost to a new client in
+    discovery): the resend must not finish the bag the first one opened and open another."""
+    first = start(recorder, tmp_path / 'a', request_id='a1')
+    assert first.success, first.message
+    opened = recorder.bag
+    again = start(recorder, tmp_path / 'a', request_id='a1')     # the same request again
+    assert again.success, again.message
+    assert recorder.bag is opened and again.bag_path == first.bag_path
+    other = start(recorder, tmp_path / 'b', request_id='b2')
+    assert other.success and recorder.bag is not opened
+    assert other.bag_path == str(tmp_path / 'b')
+    unnamed = [start(recorder, tmp_path / name) for name in ('c', 'd')]
+    assert [answer.bag_path for answer in unnamed] == [str(tmp_path / 'c'),
+                                                       str(tmp_path / 'd')]
+    assert start(recorder, tmp_path / 'e', request_id='').success
+    assert recorder.bag.path == tmp_path / 'e', 'an empty request_id is always a new bag'
+    recorder.finish_bag()
+    assert start(recorder, tmp_path / 'f', request_id='b2').bag_path == str(tmp_path / 'f'), \
+        'a finished bag is not answered for'
 
 
 def test_bad_topic_names_are_refused_with_the_reason(context, recorder, tmp_path):

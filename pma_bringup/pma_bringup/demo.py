@@ -220,22 +220,32 @@ def set_parameter(client, name: str, value: str) -> str:
 def record_bag(clients: ServiceClients, path: Path | None,
                custom_data: dict[str, str] | None = None) -> str:
     """Start (path, with its custom_data) or stop (None) a bag on the idle recorder; its
-    answer's message."""
+    answer's message. A start is sent again while unanswered, under one request_id."""
+    import uuid
+
     from diagnostic_msgs.msg import KeyValue
 
+    from pma_common.service import ask, poll
     from pma_interfaces.srv import StartRecording, StopRecording
 
     client, request = ((clients.start_recording, StartRecording.Request(
         bag_path=str(path),
-        custom_data=[KeyValue(key=k, value=v) for k, v in (custom_data or {}).items()]))
+        custom_data=[KeyValue(key=k, value=v) for k, v in (custom_data or {}).items()],
+        request_id=uuid.uuid4().hex))
         if path is not None else (clients.stop_recording, StopRecording.Request()))
     if not client.wait_for_service(timeout_sec=10):
         raise RuntimeError('the recorder does not answer (see logs/recorder.log)')
-    future = client.call_async(request)
-    _wait(future, 20, 'the recorder')
-    if not future.result().success:
-        raise RuntimeError(f'recorder: {future.result().message}')
-    return future.result().message
+    if path is not None:
+        response = ask(client, request, 20, poll)
+    else:
+        future = client.call_async(request)
+        _wait(future, 20, 'the recorder')
+        response = future.result()
+    if response is None:
+        raise RuntimeError('timed out after 20 s waiting for the recorder')
+    if not response.success:
+        raise RuntimeError(f'recorder: {response.message}')
+    return response.message
 
 
 MOVE_TIMEOUT_S = 20.0   # each demo move's own timeout_s

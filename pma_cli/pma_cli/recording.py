@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
+import uuid
 
 from diagnostic_msgs.msg import KeyValue
 
@@ -35,13 +36,15 @@ class Recording:
         self._stop = node.create_client(StopRecording, f'{RECORDER}/stop',
                                         qos_profile=SERVICE_QOS)
         # The recorder resolves a relative path against its own working directory: send the
-        # one the user meant, relative to where they typed it.
+        # one the user meant, relative to where they typed it. The request_id makes a resend
+        # the same start, so the start is sent again while unanswered, as a query is.
         request = StartRecording.Request(
             bag_path=os.path.abspath(bag_path) if bag_path else '',
-            custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()])
+            custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()],
+            request_id=uuid.uuid4().hex)
         response = session.call(self._start, request, timeout_s,
                                 session.start_hint(RECORDER) or 'is a recorder running?',
-                                node=RECORDER)
+                                query=True, node=RECORDER)
         if not response.success:
             raise CliError(f'the recorder refused to start a bag: {response.message}')
         self.bag_path = response.bag_path

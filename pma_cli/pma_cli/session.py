@@ -187,7 +187,8 @@ class Session:
 
     def answer(self, client, request, timeout_s: float, query: bool = False):
         """The response to `request` on a service already seen as ready; a query is resent
-        while unanswered (pma_common.service), a command is sent once."""
+        while unanswered (pma_common.service), and so is a command that a resend cannot
+        repeat (one named by a request ID); any other command is sent once."""
         if query:
             response = ask(client, request, timeout_s, self.spin_until)
             if response is None:

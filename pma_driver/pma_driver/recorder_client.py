@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+import uuid
 from collections.abc import Callable, Mapping, Sequence
 
 from diagnostic_msgs.msg import KeyValue
@@ -21,6 +22,7 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 
 from pma_common.commands import has_ros2_cli, run_command
+from pma_common.service import ask, poll
 from pma_driver.sweep_runner import RecorderError, RecordingSummary
 from pma_interfaces.srv import StartRecording, StopRecording
 
@@ -68,10 +70,12 @@ class RecorderClient:
         self._node.destroy_client(self._stop)
 
     def start(self, bag_path: str, custom_data: Mapping[str, str]) -> str:
+        # Sent again while unanswered: the request_id makes a resend the same start.
         request = StartRecording.Request(
             bag_path=bag_path,
-            custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()])
-        response = self._call(self._start, request)
+            custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()],
+            request_id=uuid.uuid4().hex)
+        response = self._call(self._start, request, resend=True)
         if response is None:
             # It may have started after all: leave it idle rather than recording forever.
             self._call(self._stop, StopRecording.Request(), quiet=True)
@@ -122,13 +126,16 @@ class RecorderClient:
         return RecordingSummary(response.bag_path, response.message_count,
                                 response.lost_message_count)
 
-    def _call(self, client: Client, request, quiet: bool = False):
-        """The answer, or None when none came within the timeout; RecorderError: no recorder."""
+    def _call(self, client: Client, request, quiet: bool = False, resend: bool = False):
+        """The answer, or None when none came within the timeout; RecorderError: no recorder.
+        With `resend`, the request is sent again while unanswered (pma_common.service.ask)."""
         deadline = time.monotonic() + self.timeout_s
         if not client.wait_for_service(timeout_sec=self.timeout_s):
             if quiet:
                 return None
             raise self._missing(client)
+        if resend:
+            return ask(client, request, max(0.0, deadline - time.monotonic()), poll)
         done = threading.Event()
         future = client.call_async(request)
         future.add_done_callback(lambda _: done.set())

@@ -32,6 +32,7 @@ class RecorderStandIn(Node):
         self.refuse = refuse
         self.lock = threading.Lock()
         self.bag = ''
+        self.request_id = ''
         self.setpoints: list[float] = []
         self.auto_count = 0
         self.create_subscription(PmaState, names.STATE, self.on_state, qos_profile_sensor_data)
@@ -48,6 +49,13 @@ class RecorderStandIn(Node):
                 self.setpoints.append(msg.gauge_setpoint_pa)
 
     def on_start(self, request, response):
+        with self.lock:
+            if request.request_id and request.request_id == self.request_id and self.bag:
+                # A resend whose first answer was lost: the same start, as the recorder does.
+                response.success, response.message = True, f'recording to {self.bag}'
+                response.bag_path = self.bag
+                response.topics = [self.resolve_topic_name(names.STATE)]
+                return response
         self.write({'call': 'start', 'node': self.get_fully_qualified_name(),
                     'bag_path': request.bag_path, 'topics': list(request.topics),
                     'custom_data': {kv.key: kv.value for kv in request.custom_data}})
@@ -58,7 +66,7 @@ class RecorderStandIn(Node):
             self.auto_count += 1
         bag = Path(request.bag_path or f'stand_in_bag_{self.auto_count}').absolute()
         with self.lock:
-            self.bag, self.setpoints = str(bag), []
+            self.bag, self.setpoints, self.request_id = str(bag), [], request.request_id
         response.success, response.message = True, f'recording to {bag}'
         response.bag_path = str(bag)
         response.topics = [self.resolve_topic_name(names.STATE)]
