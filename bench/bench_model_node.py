@@ -416,15 +416,16 @@ class Bench:
     def start_listener(self) -> None:
         node = rclpy.create_node('bench_model_node_listener')
 
-        def on_prediction(msg: PmaPrediction) -> None:
+        def arrival(msg: PmaPrediction) -> tuple[int, int]:
             now = time.monotonic_ns()
             stamp = msg.header.stamp
-            self.predictions.append((stamp.sec * 1_000_000_000 + stamp.nanosec, now))
+            return stamp.sec * 1_000_000_000 + stamp.nanosec, now
+
+        def on_prediction(msg: PmaPrediction) -> None:
+            self.predictions.append(arrival(msg))
 
         def on_relayed(msg: PmaPrediction) -> None:
-            now = time.monotonic_ns()
-            stamp = msg.header.stamp
-            self.relayed.append((stamp.sec * 1_000_000_000 + stamp.nanosec, now))
+            self.relayed.append(arrival(msg))
 
         def on_diagnostics(msg: DiagnosticArray) -> None:
             now = time.monotonic_ns()

@@ -256,7 +256,7 @@ class Recorder(Node):
 
     def start_bag(self, path: Path | None, topics: list[str] | None = None,
                   custom_data: dict[str, str] | None = None,
-                  paused: bool = False) -> RecordingSession:
+                  paused: bool = False, request_id: str = '') -> RecordingSession:
         """Open a new bag, then finish the open one, if any.
 
         BagError if the new bag cannot be made (bad topics, a path that holds a bag, ...):
@@ -275,7 +275,7 @@ class Recorder(Node):
             if self.bag is not None:
                 self.finish_bag()
             self.bag, self.error, self.target = bag, '', path
-            self.bag_request_id = ''          # on_start names its own bag after this
+            self.bag_request_id = request_id
             self.set_paused(paused)
             now = time.time_ns()
             for entry in self.subscribed.values():
@@ -535,14 +535,14 @@ class Recorder(Node):
             try:
                 bag = self.start_bag(Path(request.bag_path) if request.bag_path else None,
                                      list(request.topics),
-                                     {kv.key: kv.value for kv in request.custom_data})
+                                     {kv.key: kv.value for kv in request.custom_data},
+                                     request_id=request.request_id)
             except BagError as exc:
                 # The caller's error, answered here; the recorder is fine (not an ERROR status).
                 still = f'still recording {self.bag.path}' if self.bag is not None else 'idle'
                 response.success, response.message = False, str(exc)
                 self.get_logger().warning(f'~/start refused ({still}): {exc}')
                 return response
-            self.bag_request_id = request.request_id
         deadline = time.monotonic() + START_MATCH_TIMEOUT_S
         ready, late = self.start_status(bag)
         while late and time.monotonic() < deadline and self.bag is bag:

@@ -221,18 +221,12 @@ def record_bag(clients: ServiceClients, path: Path | None,
                custom_data: dict[str, str] | None = None) -> str:
     """Start (path, with its custom_data) or stop (None) a bag on the idle recorder; its
     answer's message. A start is sent again while unanswered, under one request_id."""
-    import uuid
+    from pma_common.service import ask, poll, start_recording_request
+    from pma_interfaces.srv import StopRecording
 
-    from diagnostic_msgs.msg import KeyValue
-
-    from pma_common.service import ask, poll
-    from pma_interfaces.srv import StartRecording, StopRecording
-
-    client, request = ((clients.start_recording, StartRecording.Request(
-        bag_path=str(path),
-        custom_data=[KeyValue(key=k, value=v) for k, v in (custom_data or {}).items()],
-        request_id=uuid.uuid4().hex))
-        if path is not None else (clients.stop_recording, StopRecording.Request()))
+    client, request = ((clients.start_recording,
+                        start_recording_request(str(path), custom_data or {}))
+                       if path is not None else (clients.stop_recording, StopRecording.Request()))
     if not client.wait_for_service(timeout_sec=10):
         raise RuntimeError('the recorder does not answer (see logs/recorder.log)')
     if path is not None:

@@ -11,12 +11,9 @@ from __future__ import annotations
 
 import os
 import sys
-import uuid
-
-from diagnostic_msgs.msg import KeyValue
 
 from pma_cli.session import CliError, Session
-from pma_common.service import SERVICE_QOS
+from pma_common.service import SERVICE_QOS, start_recording_request
 from pma_interfaces.srv import StartRecording, StopRecording
 
 RECORDER = 'recorder'     # the recorder's node name in the command's namespace
@@ -38,10 +35,8 @@ class Recording:
         # The recorder resolves a relative path against its own working directory: send the
         # one the user meant, relative to where they typed it. The request_id makes a resend
         # the same start, so the start is sent again while unanswered, as a query is.
-        request = StartRecording.Request(
-            bag_path=os.path.abspath(bag_path) if bag_path else '',
-            custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()],
-            request_id=uuid.uuid4().hex)
+        request = start_recording_request(os.path.abspath(bag_path) if bag_path else '',
+                                          custom_data)
         response = session.call(self._start, request, timeout_s,
                                 session.start_hint(RECORDER) or 'is a recorder running?',
                                 query=True, node=RECORDER)

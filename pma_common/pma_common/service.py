@@ -14,7 +14,8 @@ goal, cancel and result services).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+import uuid
+from collections.abc import Callable, Mapping
 
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -51,6 +52,19 @@ def ask(client, request, timeout_s: float,
         client.remove_pending_request(future)
         if time.monotonic() >= deadline:
             return None
+
+
+def start_recording_request(bag_path: str, custom_data: Mapping[str, str]):
+    """A recorder's StartRecording request under a fresh request_id, so that it may be sent
+    again while unanswered (`ask`): the recorder answers a resend for the bag the first
+    one opened instead of opening another."""
+    from diagnostic_msgs.msg import KeyValue
+
+    from pma_interfaces.srv import StartRecording
+
+    return StartRecording.Request(
+        bag_path=bag_path, request_id=uuid.uuid4().hex,
+        custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()])
 
 
 def poll(done: Callable[[], bool], seconds: float, period_s: float = 0.02) -> bool:

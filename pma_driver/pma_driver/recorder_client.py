@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import threading
 import time
-import uuid
 from collections.abc import Callable, Mapping, Sequence
 
-from diagnostic_msgs.msg import KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.client import Client
 from rclpy.duration import Duration
@@ -22,7 +20,7 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 
 from pma_common.commands import has_ros2_cli, run_command
-from pma_common.service import ask, poll
+from pma_common.service import ask, poll, start_recording_request
 from pma_driver.sweep_runner import RecorderError, RecordingSummary
 from pma_interfaces.srv import StartRecording, StopRecording
 
@@ -70,12 +68,8 @@ class RecorderClient:
         self._node.destroy_client(self._stop)
 
     def start(self, bag_path: str, custom_data: Mapping[str, str]) -> str:
-        # Sent again while unanswered: the request_id makes a resend the same start.
-        request = StartRecording.Request(
-            bag_path=bag_path,
-            custom_data=[KeyValue(key=k, value=v) for k, v in custom_data.items()],
-            request_id=uuid.uuid4().hex)
-        response = self._call(self._start, request, resend=True)
+        response = self._call(self._start, start_recording_request(bag_path, custom_data),
+                              resend=True)
         if response is None:
             # It may have started after all: leave it idle rather than recording forever.
             self._call(self._stop, StopRecording.Request(), quiet=True)

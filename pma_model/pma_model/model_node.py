@@ -316,11 +316,12 @@ class ModelNode(Node):
 
     def _on_incompatible_state_qos(self, event) -> None:
         policy = QoSPolicyKind(event.last_policy_kind)
-        if policy != QoSPolicyKind.RELIABILITY \
-                or self._state_reliability != ReliabilityPolicy.RELIABLE:
+        if policy != QoSPolicyKind.RELIABILITY:
             self.get_logger().error(f'{self._state_subscription.topic_name}: a publisher\'s '
                                     f'QoS does not match ({policy.name.lower()})')
             return
+        if self._state_reliability == ReliabilityPolicy.BEST_EFFORT:
+            return        # another best-effort publisher: the switch is made or on its way
         self._state_reliability = ReliabilityPolicy.BEST_EFFORT
         # Not from inside the subscription's own event callback: from a timer, at once.
         self._resubscribe_timer = self.create_timer(0.0, self._resubscribe_states)
