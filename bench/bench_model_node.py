@@ -1,12 +1,13 @@
 """model_node service round trip and burst, stream latency, drops at 1 kHz, CPU, and soaks.
 
-    . tools/env.sh && python bench/bench_model_node.py [--seconds 10] [--calls 500]
+    . tools/env.sh && python bench/bench_model_node.py [--seconds 10] [--calls 2000]
         [--burst-rounds 5] [--soak-s 300] [--soak-rates-hz 1000 100]
 
 * service: sequential calls from this process to model_node's `pressure_for_length`
   (length_m=0.27, branch=1), interleaved with calls to a trivial std_srvs/Trigger server
   (a minimal rclpy node process started here, with the same service QoS: the baseline);
-  p50/p99 of both and the ratios model / trigger (target <= 1.5).
+  p50/p99 of both and the ratios model / trigger (target <= 1.5). 2000 calls each, so that
+  a p99 stands on 20 calls, not 5 (how far 500 let it wander: docs/model-history.md).
 * burst: 4 client processes (tests/helpers/service_burst.py) each send 50 requests at once,
   200 in flight; every request must be answered (target: all). Rounds alternate between
   model_node and the Trigger server; p50/p99 from send to answer, and the ratio.
@@ -17,13 +18,12 @@
   same states at the same time; p99 ratio model / relay (target <= 1.5; the 5 ms budget
   the p99 is judged against is shown beside it).
 * drops at 1 kHz: PmaState published vs PmaPrediction received (target 0), split with
-  model_node's own /diagnostics 'samples' count into the best-effort state subscription and
-  the reliable prediction topic.
+  model_node's own /diagnostics 'samples' count into the state subscription and the
+  prediction topic (both reliable).
 * model_node CPU (utime + stime from /proc) at 100 Hz and 1 kHz, % of one core.
 * soaks (--soak-s, 0 skips them): the real chain for that long at each of --soak-rates-hz:
-  1 kHz, the stress (twenty times the firmware's 50 Hz; on two cores the chain needs more
-  CPU than there is, and misses), and 100 Hz, twice what the rig can send; the target at
-  both is nothing lost:
+  1 kHz, the stress (twenty times the firmware's 50 Hz: a laser or draw-wire sensor's
+  rate), and 100 Hz, twice what the rig can send; the target at both is nothing lost:
   fake_arduino --rate R -> driver_node (sample_rate_hz R) -> a fresh model_node, with
   `ros2 run pma_bag record` on its default topics. Losses per component: device -> driver
   (driver's 'lost samples'), states published by driver_node that model_node never received
@@ -738,7 +738,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--seconds', type=float, default=10.0,
                         help='measuring window of each stream rate [s]')
-    parser.add_argument('--calls', type=int, default=500, help='service calls per server')
+    parser.add_argument('--calls', type=int, default=2000, help='service calls per server')
     parser.add_argument('--burst-rounds', type=int, default=5,
                         help=f'bursts of {BURST_CLIENTS} x {BURST_PER_CLIENT} requests per '
                              'server (0 skips)')

@@ -9,7 +9,8 @@ offset's fade and update, the path pressure would follow from a state (the turni
 stack's curves, or the friction band's hold), the mixed length along it and a root find
 (scipy's brentq.c, step for step). The classes (branches.py, correction.py, curves.py,
 detector.py, local_offset.py, identification.py) call them for one value; mix.RuleMix's
-inverse calls `mixed_path_pressure` once, with the state packed as arrays, and the online step
+inverse calls `mixed_path_pressure` (along the path) or `mixed_major_pressure` (on the major
+branches) once, with the state packed as arrays, and the online step
 is `online_step` (one rule) or `mix_step` (a mix of rules) on each rule's state packed
 as arrays (identification.OnlineModel._pack: the N_ and C_ layouts below), their Python twins
 (OnlineModel.reference_step, RuleMix.reference_step) kept as the reference they are tested
@@ -555,21 +556,48 @@ def mixed_path_pressure(length_m, experts, stacks, branches, scalars):
             count = path_segments(experts[i], stacks, branches, rising, scalars, segments,
                                   count)
             paths[i, 1] = count - paths[i, 0]
-    start = scalars[S_HERE]
-    end = scalars[S_MAX] if rising else 0.0
+    status, pressure, low, high = _mixed_root(
+        length_m, scalars[S_HERE], scalars[S_MAX] if rising else 0.0, rising, experts, paths,
+        segments, branches, scalars)
+    return status, pressure, low, high, rising
+
+
+@compiled()
+def mixed_major_pressure(length_m, rising, experts, branches, scalars):
+    """RuleMix.pressure_for_length on one direction's major branches (INCREASING,
+    DECREASING), after its delegations: (status, pressure, low, high) as mixed_path_pressure's,
+    each expert's path its major branch from 0 Pa to the maximum or back. Without the local
+    offset (it belongs to the current state), whatever scalars hold."""
+    n = experts.shape[0]
+    segments = empty_segments(n)
+    paths = np.empty((n, 2), dtype=np.int64)
+    start, end = (0.0, scalars[S_MAX]) if rising else (scalars[S_MAX], 0.0)
+    for i in range(n):
+        segments[i, G_MAJOR] = experts[i, E_INCREASING] if rising else experts[i, E_DECREASING]
+        segments[i, G_FROM], segments[i, G_TO] = start, end
+        paths[i, 0], paths[i, 1] = i, 1
+    plain = scalars.copy()
+    plain[S_OFFSET] = 0.0
+    return _mixed_root(length_m, start, end, rising, experts, paths, segments, branches, plain)
+
+
+@compiled()
+def _mixed_root(length_m, start, end, rising, experts, paths, segments, branches, scalars):
+    """The pressure between start and end where the mixed length is length_m: (status,
+    pressure, low, high) as mixed_path_pressure's, [low, high] the lengths at the ends."""
     at_start = mixed_length(start, rising, experts, paths, segments, branches, scalars)
     at_end = mixed_length(end, rising, experts, paths, segments, branches, scalars)
     low, high = py_min(at_start, at_end), py_max(at_start, at_end)
     rounding = scalars[S_ROUNDING]
     if not low - rounding <= length_m <= high + rounding:
-        return 0, math.nan, low, high, rising
+        return 0, math.nan, low, high
     if abs(at_start - length_m) <= rounding:
-        return 1, start, low, high, rising
+        return 1, start, low, high
     if abs(at_end - length_m) <= rounding:
-        return 1, end, low, high, rising
+        return 1, end, low, high
     root, converged = brentq(length_m, min(start, end), max(start, end), rising, experts, paths,
                              segments, branches, scalars)
-    return (1 if converged else -1), root, low, high, rising
+    return (1 if converged else -1), root, low, high
 
 
 # --- the online step (identification.OnlineModel.step) ---------------------------------------

@@ -21,9 +21,10 @@ large errors on the asymmetric muscle into the mix).
 
 The inverse (`pressure_for_length`) has no closed form: the mixture of monotone lengths along
 the path is monotone, so it is bracketed and solved (scipy's brentq) on the lengths each rule
-gives along the path pressure would follow from the current state. Along the path (AUTO) the
-whole of it, the path included, is one compiled call (kernel.mixed_path_pressure, brentq's
-steps as scipy takes them), as in Python the path's evaluations were most of its cost.
+gives along the path pressure would follow from the current state, or on one direction's
+major branches. Either is one compiled call (kernel.mixed_path_pressure,
+kernel.mixed_major_pressure; brentq's steps as scipy takes them), as in Python the lengths'
+evaluations were most of its cost.
 
 The step, its rules' steps included, is one compiled call as well (kernel.mix_step on the
 rules' packed state) when every rule has a compiled step; `reference_step` is the same in
@@ -333,7 +334,7 @@ class RuleMix:
         direction the target needs (shorter than now: rising), the local offset fading along
         it as pressure travels (one compiled call, kernel.mixed_path_pressure);
         INCREASING / DECREASING: on that direction's major branches, mixed (no local offset:
-        it belongs to the current state).
+        it belongs to the current state; kernel.mixed_major_pressure).
         """
         if branch not in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING) or \
                 not math.isfinite(float(length_m)):
@@ -345,22 +346,24 @@ class RuleMix:
         if np.count_nonzero(weights > NEGLIGIBLE_WEIGHT) == 1 and not carried:
             # One rule carries the mix (the others move it by < 1e-10 m): its exact inverse.
             return self.experts[int(np.argmax(weights))].pressure_for_length(length_m, branch)
-        if not path:
-            return self.searched_pressure_for_length(length_m, branch == BRANCH_INCREASING,
-                                                     path=False)
         experts, stacks, branches, scalars = self._path_arrays(weights)
-        status, pressure, low, high, rising = kernel.mixed_path_pressure(
-            length_m, experts, stacks, branches, scalars)
+        if path:
+            status, pressure, low, high, rising = kernel.mixed_path_pressure(
+                length_m, experts, stacks, branches, scalars)
+        else:
+            rising = branch == BRANCH_INCREASING
+            status, pressure, low, high = kernel.mixed_major_pressure(
+                length_m, rising, experts, branches, scalars)
         if status < 0:   # as scipy's brentq would have raised
-            raise RuntimeError(f'the mixed path\'s root find did not converge for {length_m!r} m')
-        return self._result(length_m, rising, True, reached=status > 0, pressure=pressure,
-                            low=low, high=high)
+            raise RuntimeError(f'the mixed root find did not converge for {length_m!r} m')
+        return self._result(length_m, bool(rising), path, reached=status > 0,
+                            pressure=pressure, low=low, high=high)
 
     def searched_pressure_for_length(self, length_m: float, rising: bool,
                                      path: bool = True) -> InverseResult:
         """The inverse found in Python (scipy's brentq on the rules' `settled_map`s): on the
-        major branches of one direction, or along the path (`path`; what the compiled AUTO
-        inverse is checked against)."""
+        major branches of one direction, or along the path (`path`): what the compiled inverses
+        are checked against."""
         weights = self.weights
         local = self.local.at if path and self.local.offset_m != 0.0 else (lambda _p_pa: 0.0)
         if path:

@@ -1,6 +1,6 @@
 """The compiled formulas (kernel.py): the path it builds is the one the classes built, the mix's
-inverse along it gives what the search in Python gives, to the bit, and the kernel runs where
-numba has nowhere to keep its cache.
+inverse along it and on the major branches gives what the search in Python gives, to the bit,
+and the kernel runs where numba has nowhere to keep its cache.
 """
 
 import math
@@ -25,7 +25,7 @@ from pma_model.correction import (
     monotone_correction,
 )
 from pma_model.curves import ScanningCurve
-from pma_model.detector import BRANCH_AUTO
+from pma_model.detector import BRANCH_AUTO, BRANCH_DECREASING, BRANCH_INCREASING
 from pma_model.memory import HysteresisModel
 from pma_model.mix import RuleMix
 from pma_model.params import default_params
@@ -56,10 +56,12 @@ def driven_mix(rules, form: str, *, drift: bool, turns_kpa, offset_m: float, exc
     return mix
 
 
-def assert_the_same(mix: RuleMix, target_m: float) -> None:
-    """The same answer, every field to the bit (NaN as NaN)."""
-    compiled = mix.pressure_for_length(target_m, BRANCH_AUTO)
-    searched = mix.searched_pressure_for_length(target_m, True)
+def assert_the_same(mix: RuleMix, target_m: float, branch: int = BRANCH_AUTO) -> None:
+    """The same answer, every field to the bit (NaN as NaN): along the path (AUTO) or on
+    one direction's major branches."""
+    compiled = mix.pressure_for_length(target_m, branch)
+    searched = mix.searched_pressure_for_length(target_m, branch == BRANCH_INCREASING,
+                                                path=branch == BRANCH_AUTO)
     assert [np.float64(v).tobytes() if isinstance(v, float) else v for v in
             astuple(compiled)] == [np.float64(v).tobytes() if isinstance(v, float) else v
                                    for v in astuple(searched)], (target_m, compiled, searched)
@@ -92,7 +94,8 @@ def test_the_compiled_inverse_is_the_search_in_python(rules, form, drift, turns_
     if not local:   # no local offset to fade along the path
         mix.without_local_offset()
     for target_m in targets_around(mix):
-        assert_the_same(mix, target_m)
+        for branch in (BRANCH_AUTO, BRANCH_INCREASING, BRANCH_DECREASING):
+            assert_the_same(mix, target_m, branch)
 
 
 @pytest.mark.parametrize('form', ['sigmoid', 'hill'])
