@@ -32,7 +32,7 @@ from pma_interfaces.msg import ControlState, LengthSetpoint
 from support.bursts import BurstClient, answered
 from support.control_probe import ControlProbe
 from support.procs import INSTALL, Proc
-from support.ros import publish_until, shutdown, wait_until
+from support.ros import poll, publish_until, shutdown, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -107,6 +107,23 @@ class Rig:
         count = len(self.probe.control)
         wait_until(lambda: len(self.probe.control) >= count + 3, 10,
                    'the controller past the last 0 Pa')
+
+    def vents(self, timeout: float, since: float) -> None:
+        """Wait until the muscle is at rest; if it is not, fail with what pma/state and
+        pma/pressure_setpoint carried since `since` (monotonic): whether the device never
+        vented, vented slowly, or was filled again, and by whom."""
+        if poll(lambda: self.probe.latest().gauge_pressure_pa < REST_PA, timeout):
+            return
+        trace = [f'seq {s.seq} t {s.device_time_s:.2f} s: {s.gauge_pressure_pa / 1e3:.1f} kPa, '
+                 f'setpoint {s.gauge_setpoint_pa / 1e3:.1f} kPa, status {s.status}'
+                 for s in self.probe.states_since(since)[::10]]
+        logs = {name: proc.output.splitlines()[-12:]
+                for name, proc in (('fake_arduino', self.fake), ('driver_node', self.driver),
+                                   ('length_controller', self.controller))}
+        pytest.fail(f'not vented within {timeout} s; commands since: '
+                    f'{self.probe.commands_since(since)}; every 10th state since:\n'
+                    + '\n'.join(trace) + ''.join(f'\n--- {name}, last lines:\n' + '\n'.join(lines)
+                                                 for name, lines in logs.items()))
 
     def stays_vented(self, seconds: float) -> None:
         """Over `seconds`: the device is asked for 0 Pa, nothing commands more, the muscle
@@ -217,14 +234,14 @@ def test_deactivating_the_driver_ends_the_hold_and_activating_it_does_not_reinfl
     commanded the held length's pressure again by itself."""
     rig = at_rest
     rig.hold(0.26)
-    mark = rig.controller.mark()
+    mark, since = rig.controller.mark(), time.monotonic()
     assert rig.transition(4)                                       # deactivate: it vents
     rig.controller.wait_for_line('hold ended: no usable pma/state sample', 5, after=mark)
     time.sleep(1.0)
     assert rig.transition(3)                                       # activate
     count = rig.probe.state_count()
     wait_until(lambda: rig.probe.state_count() > count + 5, 10, 'samples again')
-    wait_until(lambda: rig.probe.latest().gauge_pressure_pa < REST_PA, 10, 'vented')
+    rig.vents(10, since)
     rig.stays_vented(2.0)
     assert rig.probe.latest_control().message.startswith('hold ended: no usable pma/state')
 
@@ -237,7 +254,7 @@ def test_the_driver_crashing_while_holding_does_not_reinflate_the_muscle(at_rest
     rig = at_rest
     rig.hold(0.255)
     assert rig.probe.latest().gauge_pressure_pa > 200_000.0
-    mark = rig.controller.mark()
+    mark, since = rig.controller.mark(), time.monotonic()
     rig.driver.signal(signal.SIGKILL)
     rig.driver.popen.wait(5)
     rig.controller.wait_for_line('hold ended', 5, after=mark)
@@ -245,7 +262,7 @@ def test_the_driver_crashing_while_holding_does_not_reinflate_the_muscle(at_rest
     rig.driver.wait_for_line('active: publishing', 30)
     count = rig.probe.state_count()
     wait_until(lambda: rig.probe.state_count() > count + 5, 10, 'samples again')
-    wait_until(lambda: rig.probe.latest().gauge_pressure_pa < REST_PA, 10, 'vented')
+    rig.vents(10, since)
     rig.stays_vented(2.5)
     status = subprocess.run([str(PMA), 'status'], capture_output=True, text=True, timeout=60,
                             stdin=subprocess.DEVNULL, check=False)
@@ -258,14 +275,14 @@ def test_the_device_venting_by_itself_ends_the_hold(at_rest):
     the controller let go only a second later, taking the vent for another command source."""
     rig = at_rest
     rig.hold(0.255)
-    mark = rig.controller.mark()
+    mark, since = rig.controller.mark(), time.monotonic()
     ceiling = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=150_000.0)
     assert rig.call_parameter('driver_node', 'max_gauge_pressure_pa', ceiling).successful
     try:
         rig.controller.wait_for_line('hold ended: the device vented by itself (overpressure)',
                                      5, after=mark)
         assert 'released the target' not in rig.controller.lines_since(mark)
-        wait_until(lambda: rig.probe.latest().gauge_pressure_pa < REST_PA, 10, 'vented')
+        rig.vents(10, since)
         rig.stays_vented(1.5)
     finally:
         ceiling.double_value = 500_000.0
