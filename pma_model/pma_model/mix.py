@@ -409,9 +409,10 @@ class RuleMix:
 
     def _path_arrays(self, weights: np.ndarray):
         """(experts, stacks, branches, scalars): the state kernel.mixed_path_pressure reads
-        (its E_ and S_ layouts); the branch table is kept while the rules' branches are the
-        same objects (a commit makes new ones). Built as lists and converted once: numpy's
-        per-item cost was most of the call."""
+        (its E_ and S_ layouts; kernel.mixed_major_pressure reads all but the stacks); the
+        branch table is kept while the rules' branches are the same objects (a commit makes
+        new ones). Built as lists and converted once: numpy's per-item cost was most of the
+        call."""
         rows, stacks, branches, settled = [], [], [], []
         for i, (weight, expert) in enumerate(zip(weights.tolist(), self.experts, strict=True)):
             state = expert.path_state()
